@@ -1,0 +1,353 @@
+"""Build ``(Scene, Params, State)`` from a validated :class:`~mysim_jax.config.SceneConfig`.
+
+Everything here is host-side NumPy; nothing is traced or compiled. The explicit stability
+check of fixed-step integrators runs here (it needs the masses on both ends of each
+spring) and raises :class:`~mysim_jax.config.ConfigError` naming ``sim.dt``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from mysim_jax.config import FIXED_STEP_INTEGRATORS, ConfigError, SceneConfig
+from mysim_jax.dynamics.stability import spring_stable_steps, stable_step
+from mysim_jax.net.rope import build_rope
+from mysim_jax.types import JointBucket, Params, PhysState, Scene, State
+
+# Dense one-hot accumulation beats segment_sum on CPU for small graphs (BENCHMARKS.md);
+# above this many nodes the dense matrix costs more than it saves.
+MATMUL_ACCUMULATE_MAX_NODES = 128
+
+
+def _np_rotate(q, v):
+    w, u = q[0], np.asarray(q[1:])
+    t = 2.0 * np.cross(u, v)
+    return np.asarray(v) + w * t + np.cross(u, t)
+
+
+@dataclass
+class _Tables:
+    point_names: list
+    point_mass: list
+    point_pos: list
+    point_vel: list
+    marker_names: list
+    marker_body: list
+    marker_pos: list
+    marker_quat: list
+
+
+def _inertia_matrix(inertia) -> np.ndarray:
+    if len(inertia) == 3 and not isinstance(inertia[0], (tuple, list)):
+        return np.diag(np.asarray(inertia, dtype=float))
+    return np.asarray(inertia, dtype=float)
+
+
+def build(config: SceneConfig):
+    """Assemble the scene. Returns ``(scene, params, state)``."""
+    if config.sim.precision == "float64" and not jax.config.jax_enable_x64:
+        raise ConfigError(
+            f"sim.precision: float64 requested by scene '{config.name}' but JAX runs in 32-bit "
+            "mode; enable it first with jax.config.update('jax_enable_x64', True) or "
+            "`with jax.enable_x64(True):` (scripts/simulate.py does this for you)"
+        )
+    body_index = {b.name: i for i, b in enumerate(config.bodies)}
+    anchor_index = {a.name: i for i, a in enumerate(config.anchors)}
+
+    t = _Tables([], [], [], [], [], [], [], [])
+    for p in config.points:
+        t.point_names.append(p.name)
+        t.point_mass.append(p.mass)
+        t.point_pos.append(np.asarray(p.pos, float))
+        t.point_vel.append(np.asarray(p.vel, float))
+    for bi, b in enumerate(config.bodies):
+        for m in b.markers:
+            t.marker_names.append(f"{b.name}.{m.name}")
+            t.marker_body.append(bi)
+            t.marker_pos.append(np.asarray(m.pos, float))
+            t.marker_quat.append(np.asarray(m.quat, float))
+
+    def marker_for(ref: str) -> int:
+        """Index of marker ``body.marker``, or of an implicit centre marker for ``body``."""
+        if ref not in t.marker_names:
+            t.marker_names.append(ref)
+            t.marker_body.append(body_index[ref])
+            t.marker_pos.append(np.zeros(3))
+            t.marker_quat.append(np.array([1.0, 0.0, 0.0, 0.0]))
+        return t.marker_names.index(ref)
+
+    def world_pos(ref: str):
+        """Initial world position of an attachment, or None if not placed yet."""
+        if ref in anchor_index:
+            return np.asarray(config.anchors[anchor_index[ref]].pos, float)
+        if ref in t.point_names:
+            return t.point_pos[t.point_names.index(ref)]
+        body_name, _, marker_name = ref.partition(".")
+        if body_name in body_index:
+            b = config.bodies[body_index[body_name]]
+            offset = np.zeros(3)
+            if marker_name:
+                offset = np.asarray(next(m.pos for m in b.markers if m.name == marker_name), float)
+            return np.asarray(b.pos, float) + _np_rotate(np.asarray(b.quat), offset)
+        return None
+
+    # --- ropes: place masses (a rope may hang off another rope's mass) ----------------
+    placed: dict[int, object] = {}
+    pending = list(range(len(config.ropes)))
+    while pending:
+        progress = False
+        for ri in list(pending):
+            r = config.ropes[ri]
+            a, b = world_pos(r.start), world_pos(r.end)
+            if a is None or b is None:
+                continue
+            seg = build_rope(r.length, r.n_masses, r.mass, r.EA, r.damping, a, b)
+            placed[ri] = (len(t.point_names), seg)
+            for j in range(r.n_masses):
+                t.point_names.append(f"{r.name}_{j}")
+                t.point_mass.append(seg.point_mass[j])
+                t.point_pos.append(seg.point_pos[j])
+                t.point_vel.append(np.zeros(3))
+            pending.remove(ri)
+            progress = True
+        if not progress:
+            names = ", ".join(f"ropes.{i} ({config.ropes[i].name})" for i in pending)
+            raise ConfigError(f"{names}: rope ends form a cycle; attach at least one end to a point, body or anchor")
+
+    # --- node resolution ----------------------------------------------------------------
+    # markers must be final before node numbers are handed out: first collect references
+    refs = [r.start for r in config.ropes] + [r.end for r in config.ropes]
+    refs += [s.start for s in config.springs] + [s.end for s in config.springs]
+    refs += [ld.at for ld in config.loads]
+    for ref in refs:
+        if ref not in t.point_names and ref not in anchor_index:
+            marker_for(ref)
+    n_points, n_markers = len(t.point_names), len(t.marker_names)
+
+    def node(ref: str) -> int:
+        if ref in t.point_names:
+            return t.point_names.index(ref)
+        if ref in anchor_index:
+            return n_points + n_markers + anchor_index[ref]
+        return n_points + t.marker_names.index(ref)
+
+    spring_names, node_a, node_b, tension_only = [], [], [], []
+    stiffness, damping, rest = [], [], []
+    rope_point_index = []
+    for ri, r in enumerate(config.ropes):
+        first, seg = placed[ri]
+        chain = [node(r.start)] + list(range(first, first + r.n_masses)) + [node(r.end)]
+        rope_point_index.append(tuple(range(first, first + r.n_masses)))
+        for j in range(r.n_masses + 1):
+            spring_names.append(f"{r.name}[{j}]")
+            node_a.append(chain[j])
+            node_b.append(chain[j + 1])
+            tension_only.append(r.model == "tension_only")
+            stiffness.append(seg.stiffness[j])
+            damping.append(seg.damping[j])
+            rest.append(seg.rest_length[j])
+    for s in config.springs:
+        spring_names.append(s.name)
+        node_a.append(node(s.start))
+        node_b.append(node(s.end))
+        tension_only.append(s.model == "tension_only")
+        stiffness.append(s.stiffness)
+        damping.append(s.damping)
+        if s.rest_length is None:
+            rest.append(float(np.linalg.norm(world_pos(s.end) - world_pos(s.start))))
+        else:
+            rest.append(s.rest_length)
+
+    # --- loads ----------------------------------------------------------------------------
+    n_nodes = n_points + n_markers + len(config.anchors)
+    load_force = np.zeros((n_nodes, 3))
+    load_torque = np.zeros((len(config.bodies), 3))
+    for ld in config.loads:
+        load_force[node(ld.at)] += ld.force
+        if ld.at in body_index:
+            load_torque[body_index[ld.at]] += ld.torque
+
+    buckets = _joint_buckets(config, body_index, anchor_index, t.marker_names)
+
+    scene = Scene(
+        name=config.name,
+        point_names=tuple(t.point_names),
+        body_names=tuple(b.name for b in config.bodies),
+        marker_names=tuple(t.marker_names),
+        marker_body=tuple(t.marker_body),
+        anchor_names=tuple(a.name for a in config.anchors),
+        rope_names=tuple(r.name for r in config.ropes),
+        rope_point_index=tuple(rope_point_index),
+        spring_names=tuple(spring_names),
+        spring_node_a=tuple(node_a),
+        spring_node_b=tuple(node_b),
+        spring_tension_only=tuple(tension_only),
+        has_gravity=any(g != 0.0 for g in config.gravity),
+        has_loads=bool(np.any(load_force) or np.any(load_torque)),
+        joint_buckets=buckets,
+        integrator=config.sim.integrator,
+        dt=config.sim.dt,
+        substeps=config.sim.substeps,
+        output_dt=config.sim.output_dt,
+        t_end=config.sim.t_end,
+        precision=config.sim.precision,
+        rtol=config.sim.rtol,
+        atol=config.sim.atol,
+        max_steps=config.sim.max_steps,
+        accumulate="matmul" if n_nodes <= MATMUL_ACCUMULATE_MAX_NODES else "segment_sum",
+        plot_names=tuple(config.output.plot),
+    )
+
+    point_mass = np.asarray(t.point_mass, float).reshape(-1)
+    body_mass = np.asarray([b.mass for b in config.bodies], float).reshape(-1)
+    inertia = np.asarray([_inertia_matrix(b.inertia) for b in config.bodies], float).reshape(-1, 3, 3)
+    _check_stability(config, scene, point_mass, body_mass, inertia, t.marker_pos,
+                     np.asarray(stiffness, float), np.asarray(damping, float))
+
+    dtype = scene.dtype
+
+    def arr(x, shape):
+        return jnp.asarray(np.asarray(x, dtype=float).reshape(shape), dtype=dtype)
+
+    params = Params(
+        point_mass=arr(point_mass, (-1,)),
+        body_mass=arr(body_mass, (-1,)),
+        body_inertia=arr(inertia, (-1, 3, 3)),
+        marker_pos=arr(t.marker_pos, (-1, 3)),
+        marker_quat=arr(t.marker_quat, (-1, 4)),
+        anchor_pos=arr([a.pos for a in config.anchors], (-1, 3)),
+        anchor_quat=arr([a.quat for a in config.anchors], (-1, 4)),
+        spring_stiffness=arr(stiffness, (-1,)),
+        spring_damping=arr(damping, (-1,)),
+        spring_rest_length=arr(rest, (-1,)),
+        gravity=arr(config.gravity, (3,)),
+        load_node_force=arr(load_force, (n_nodes, 3)),
+        load_body_torque=arr(load_torque, (-1, 3)),
+        baumgarte_alpha=jnp.asarray(config.baumgarte.alpha, dtype=dtype),
+        baumgarte_beta=jnp.asarray(config.baumgarte.beta, dtype=dtype),
+    )
+    phys = PhysState(
+        point_pos=arr(t.point_pos, (-1, 3)),
+        point_vel=arr(t.point_vel, (-1, 3)),
+        body_pos=arr([b.pos for b in config.bodies], (-1, 3)),
+        body_quat=arr([b.quat for b in config.bodies], (-1, 4)),
+        body_vel=arr([b.vel for b in config.bodies], (-1, 3)),
+        body_angvel=arr([b.angvel for b in config.bodies], (-1, 3)),
+    )
+    state = State(phys=phys, time=jnp.zeros((), dtype=dtype))
+    return scene, params, state
+
+
+def _joint_buckets(config: SceneConfig, body_index, anchor_index, marker_names) -> tuple[JointBucket, ...]:
+    """Split joints into connected groups of bodies and stack equal-structure groups."""
+    if not config.joints:
+        return ()
+    parent = list(range(len(config.bodies)))
+
+    def find(i):
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    def side(ref):
+        if ref in anchor_index:
+            return None, anchor_index[ref]
+        return body_index[ref.split(".")[0]], marker_names.index(ref)
+
+    sides = [(side(j.marker_i), side(j.marker_j)) for j in config.joints]
+    for (bi, _), (bj, _) in sides:
+        if bi is not None and bj is not None:
+            parent[find(bi)] = find(bj)
+    groups: dict[int, list[int]] = {}
+    for ji, ((bi, _), (bj, _)) in enumerate(sides):
+        root = find(bi if bi is not None else bj)
+        groups.setdefault(root, []).append(ji)
+
+    buckets: dict[tuple, list] = {}
+    for root, joint_ids in groups.items():
+        bodies = sorted({b for ji in joint_ids for b in (sides[ji][0][0], sides[ji][1][0]) if b is not None})
+        local = {b: k for k, b in enumerate(bodies)}
+        sig = (len(bodies),) + tuple(
+            (config.joints[ji].type,
+             sides[ji][0][0] is None, sides[ji][1][0] is None,
+             -1 if sides[ji][0][0] is None else local[sides[ji][0][0]],
+             -1 if sides[ji][1][0] is None else local[sides[ji][1][0]])
+            for ji in joint_ids
+        )
+        frames_i = tuple(sides[ji][0][1] for ji in joint_ids)
+        frames_j = tuple(sides[ji][1][1] for ji in joint_ids)
+        buckets.setdefault(sig, []).append((tuple(bodies), frames_i, frames_j))
+
+    out = []
+    for sig, members in buckets.items():
+        joints = sig[1:]
+        out.append(JointBucket(
+            joint_types=tuple(j[0] for j in joints),
+            side_i_is_anchor=tuple(j[1] for j in joints),
+            side_j_is_anchor=tuple(j[2] for j in joints),
+            side_i_local_body=tuple(j[3] for j in joints),
+            side_j_local_body=tuple(j[4] for j in joints),
+            group_bodies=tuple(m[0] for m in members),
+            group_frame_i=tuple(m[1] for m in members),
+            group_frame_j=tuple(m[2] for m in members),
+        ))
+    return tuple(out)
+
+
+def _check_stability(config, scene, point_mass, body_mass, inertia, marker_pos, stiffness, damping):
+    """Reject a fixed step above the explicit limit of the stiffest spring or joint."""
+    integrator = config.sim.integrator
+    if integrator not in FIXED_STEP_INTEGRATORS:
+        return
+    h = config.sim.dt / config.sim.substeps
+    n_points, n_markers = scene.n_points, scene.n_markers
+    marker_pos = np.asarray(marker_pos, float).reshape(-1, 3)
+
+    def inv_mass(node):
+        if node < n_points:
+            return 1.0 / point_mass[node], scene.point_names[node]
+        if node < n_points + n_markers:
+            m = node - n_points
+            b = scene.marker_body[m]
+            # a force at an offset marker also turns the body: 1/m_eff <= 1/m + r²/I_min
+            r2 = float(marker_pos[m] @ marker_pos[m])
+            i_min = float(np.linalg.eigvalsh(inertia[b]).min())
+            return 1.0 / body_mass[b] + r2 / i_min, scene.marker_names[m]
+        return 0.0, scene.anchor_names[node - n_points - n_markers]
+
+    problems, limits = [], []
+    if scene.n_springs:
+        ends_a = [inv_mass(n) for n in scene.spring_node_a]
+        ends_b = [inv_mass(n) for n in scene.spring_node_b]
+        spring_limits = spring_stable_steps(integrator, stiffness, damping,
+                                            [e[0] for e in ends_a], [e[0] for e in ends_b])
+        worst = int(np.argmin(spring_limits))
+        limits.append(spring_limits[worst])
+        if h > spring_limits[worst]:
+            problems.append(
+                f"spring '{scene.spring_names[worst]}' (k = {stiffness[worst]:.4g} N/m, "
+                f"c = {damping[worst]:.4g} N s/m, joining '{ends_a[worst][1]}' and "
+                f"'{ends_b[worst][1]}') is stable only below {spring_limits[worst]:.3g} s"
+            )
+    if config.joints:
+        beta, alpha = config.baumgarte.beta, config.baumgarte.alpha
+        limits.append(stable_step(integrator, beta, 2.0 * alpha))
+        if h > limits[-1]:
+            problems.append(
+                f"Baumgarte constants (alpha = {alpha:g}, beta = {beta:g} 1/s) are stable only "
+                f"below {limits[-1]:.3g} s"
+            )
+    if problems:
+        substeps = math.ceil(config.sim.dt / min(limits))
+        raise ConfigError(
+            f"sim.dt: step {h:.3g} s (dt = {config.sim.dt:g} / substeps = {config.sim.substeps}) "
+            f"exceeds the explicit stability limit of {integrator}: " + "; ".join(problems)
+            + f". Use sim.substeps >= {substeps}, a smaller dt, or an adaptive integrator "
+            "(tsit5, kvaerno5)"
+        )

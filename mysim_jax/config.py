@@ -1,0 +1,431 @@
+"""Scene configuration: YAML files loaded into typed, validated configs.
+
+``load_config(path, overrides)`` reads a YAML scene file, applies command-line overrides
+(``sim.dt=5e-4``, ``ropes.0.EA=2e5``), and validates everything with pydantic before any
+JAX code runs. Every problem is reported as a :class:`ConfigError` that names the field
+(``ropes.0.EA: Input should be greater than 0``) and the file it came from.
+
+Checks done here: unknown keys, wrong types or shapes, non-positive masses / lengths /
+stiffnesses, duplicate names, references (rope ends, spring ends, joint markers, loads) to
+things that do not exist, step sizes that do not divide the output interval. The explicit
+stability check needs the assembled topology (masses on both ends of every spring), so it
+runs in :func:`mysim_jax.build.build`, still before anything compiles, and reports against
+``sim.dt`` / ``sim.substeps``.
+
+Units are SI throughout. Quaternions are scalar-first ``[w, x, y, z]`` (normalised on
+load; a zero quaternion is an error).
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from pathlib import Path
+from typing import Annotated, Any, Literal, Union
+
+import yaml
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+INTEGRATORS = ("semi_implicit_euler", "rk4", "tsit5", "kvaerno5")
+FIXED_STEP_INTEGRATORS = ("semi_implicit_euler", "rk4")
+ADAPTIVE_INTEGRATORS = ("tsit5", "kvaerno5")
+
+
+class ConfigError(ValueError):
+    """A scene configuration is invalid. The message names every offending field."""
+
+
+PosFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+NonNegFloat = Annotated[float, Field(ge=0, allow_inf_nan=False)]
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+Vec3 = tuple[Finite, Finite, Finite]
+Quat = tuple[Finite, Finite, Finite, Finite]
+Name = Annotated[str, Field(min_length=1, pattern=r"^[A-Za-z_][A-Za-z0-9_]*$")]
+
+
+def _normalize_quat(q: Quat) -> Quat:
+    n = math.sqrt(sum(c * c for c in q))
+    if n < 1e-12:
+        raise ValueError("quaternion [w, x, y, z] must be non-zero")
+    return tuple(c / n for c in q)
+
+
+UnitQuat = Annotated[Quat, AfterValidator(lambda q: _normalize_quat(q))]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class BaumgarteConfig(_Strict):
+    """Baumgarte stabilisation of joint constraints: C̈ + 2·alpha·Ċ + beta²·C = 0.
+
+    alpha [1/s] damps the velocity-level drift, beta [1/s] pulls the position error back.
+    The defaults (critically damped, time constant 1/beta = 20 ms) keep drift small
+    without stiffening the system beyond what a 1e-3 s step resolves.
+    """
+
+    alpha: NonNegFloat = 50.0
+    beta: NonNegFloat = 50.0
+
+
+class SimConfig(_Strict):
+    """Time integration settings.
+
+    ``dt`` is the environment step (controls are held over it); the integrator advances
+    it in ``substeps`` equal sub-steps of ``dt / substeps`` (fixed-step integrators), or
+    adaptively with ``rtol``/``atol`` starting from ``dt / substeps`` (diffrax solvers).
+    """
+
+    t_end: PosFloat
+    dt: PosFloat
+    substeps: Annotated[int, Field(ge=1)] = 1
+    output_dt: PosFloat
+    integrator: Literal["semi_implicit_euler", "rk4", "tsit5", "kvaerno5"] = "semi_implicit_euler"
+    precision: Literal["float32", "float64"] = "float32"
+    rtol: PosFloat = 1e-8
+    atol: PosFloat = 1e-10
+    max_steps: Annotated[int, Field(ge=1)] = 10_000_000
+
+    @model_validator(mode="after")
+    def _grid(self):
+        ratio = self.output_dt / self.dt
+        if abs(ratio - round(ratio)) > 1e-6 * max(1.0, ratio) or round(ratio) < 1:
+            raise ValueError(
+                f"output_dt ({self.output_dt:g}) must be a whole multiple of dt ({self.dt:g})"
+            )
+        return self
+
+
+class PointConfig(_Strict):
+    """A point mass (no orientation)."""
+
+    name: Name
+    mass: PosFloat
+    pos: Vec3 = (0.0, 0.0, 0.0)
+    vel: Vec3 = (0.0, 0.0, 0.0)
+
+
+class MarkerConfig(_Strict):
+    """A local frame on a rigid body: offset ``pos`` and orientation ``quat`` (body frame)."""
+
+    name: Name
+    pos: Vec3 = (0.0, 0.0, 0.0)
+    quat: UnitQuat = (1.0, 0.0, 0.0, 0.0)
+
+
+Inertia = Union[Vec3, tuple[Vec3, Vec3, Vec3]]
+
+
+class BodyConfig(_Strict):
+    """A rigid body. ``inertia`` about the centre of mass, body frame: diagonal [Ixx, Iyy, Izz]
+    or a full symmetric 3x3 matrix. ``vel`` is world-frame, ``angvel`` body-frame."""
+
+    name: Name
+    mass: PosFloat
+    inertia: Inertia
+    pos: Vec3 = (0.0, 0.0, 0.0)
+    quat: UnitQuat = (1.0, 0.0, 0.0, 0.0)
+    vel: Vec3 = (0.0, 0.0, 0.0)
+    angvel: Vec3 = (0.0, 0.0, 0.0)
+    markers: list[MarkerConfig] = []
+
+    @field_validator("inertia")
+    @classmethod
+    def _inertia(cls, v):
+        import numpy as np
+
+        m = np.diag(v) if len(v) == 3 and not isinstance(v[0], tuple) else np.array(v, dtype=float)
+        if not np.allclose(m, m.T, rtol=1e-9, atol=1e-15):
+            raise ValueError("inertia matrix must be symmetric")
+        eig = np.linalg.eigvalsh(m)
+        if eig.min() <= 0:
+            raise ValueError(f"inertia must be positive definite (eigenvalues {eig.tolist()})")
+        a, b, c = sorted(eig)
+        if c > a + b + 1e-12 * c:
+            raise ValueError(
+                f"principal moments {[a, b, c]} violate the triangle inequality "
+                "(no physical mass distribution has them)"
+            )
+        return v
+
+
+class AnchorConfig(_Strict):
+    """A fixed world frame: rope / spring ends attach to it, joints can use it as a marker."""
+
+    name: Name
+    pos: Vec3
+    quat: UnitQuat = (1.0, 0.0, 0.0, 0.0)
+
+
+class RopeConfig(_Strict):
+    """A lumped-mass rope (paper Sec. 2.1): ``n_masses`` point masses of ``mass`` each,
+    rest length ``length / n_masses`` between interior masses and half that at both ends.
+
+    ``start`` / ``end`` name a point, an anchor, a body (its centre) or ``body.marker``.
+    ``model: tension_only`` (default) never pushes; ``linear`` is the two-way spring-damper
+    the paper uses for validation. The masses start on the straight line between the two
+    ends, at their rest spacing scaled to the current end-to-end distance.
+    """
+
+    name: Name
+    length: PosFloat
+    n_masses: Annotated[int, Field(ge=1)]
+    mass: PosFloat
+    EA: PosFloat
+    damping: NonNegFloat = 0.0
+    model: Literal["tension_only", "linear"] = "tension_only"
+    start: str
+    end: str
+
+
+class SpringConfig(_Strict):
+    """A spring-damper between two attachment points (same references as rope ends).
+    ``rest_length`` defaults to the initial distance."""
+
+    name: Name
+    start: str
+    end: str
+    stiffness: PosFloat
+    damping: NonNegFloat = 0.0
+    rest_length: NonNegFloat | None = None
+    model: Literal["tension_only", "linear"] = "linear"
+
+
+class JointConfig(_Strict):
+    """A joint between two markers (``body.marker`` or an anchor name), paper Appendix A.
+
+    fixed: r_I = r_J, x_I·y_J = x_I·z_J = y_I·z_J = 0.
+    universal: r_I = r_J, z_I·z_J = 0.
+    """
+
+    name: Name
+    type: Literal["fixed", "universal"]
+    marker_i: str
+    marker_j: str
+
+
+class LoadConfig(_Strict):
+    """A constant applied load: ``force`` (world frame, N) at a point, body centre, or
+    ``body.marker``; ``torque`` (body frame, N·m) on a body."""
+
+    at: str
+    force: Vec3 = (0.0, 0.0, 0.0)
+    torque: Vec3 = (0.0, 0.0, 0.0)
+
+
+class OutputConfig(_Strict):
+    """What ``scripts/simulate.py`` plots (names of points or bodies)."""
+
+    plot: list[str] = []
+
+
+class SceneConfig(_Strict):
+    """A whole scene, as written in ``configs/*.yaml``."""
+
+    name: Name
+    description: str = ""
+    sim: SimConfig
+    gravity: Vec3 = (0.0, 0.0, -9.81)
+    baumgarte: BaumgarteConfig = BaumgarteConfig()
+    points: list[PointConfig] = []
+    bodies: list[BodyConfig] = []
+    anchors: list[AnchorConfig] = []
+    ropes: list[RopeConfig] = []
+    springs: list[SpringConfig] = []
+    joints: list[JointConfig] = []
+    loads: list[LoadConfig] = []
+    output: OutputConfig = OutputConfig()
+
+    @model_validator(mode="after")
+    def _references(self):
+        problems: list[str] = []
+        owners: dict[str, str] = {}
+
+        def claim(name: str, where: str):
+            if name in owners:
+                problems.append(f"{where}: name '{name}' is already used by {owners[name]}")
+            else:
+                owners[name] = where
+
+        for i, p in enumerate(self.points):
+            claim(p.name, f"points.{i}")
+        for i, b in enumerate(self.bodies):
+            claim(b.name, f"bodies.{i}")
+            seen = set()
+            for j, m in enumerate(b.markers):
+                if m.name in seen:
+                    problems.append(f"bodies.{i}.markers.{j}: duplicate marker name '{m.name}'")
+                seen.add(m.name)
+        for i, a in enumerate(self.anchors):
+            claim(a.name, f"anchors.{i}")
+        for i, r in enumerate(self.ropes):
+            claim(r.name, f"ropes.{i}")
+            for j in range(r.n_masses):
+                claim(f"{r.name}_{j}", f"ropes.{i} (its mass {j})")
+        for i, s in enumerate(self.springs):
+            claim(s.name, f"springs.{i}")
+
+        attachable = self.attachment_names()
+        for i, r in enumerate(self.ropes):
+            for end in ("start", "end"):
+                ref = getattr(r, end)
+                if ref not in attachable:
+                    problems.append(f"ropes.{i}.{end}: '{ref}' {self._unknown(ref)}")
+                elif ref.startswith(f"{r.name}_"):
+                    problems.append(f"ropes.{i}.{end}: a rope cannot attach to its own masses")
+            if r.start == r.end:
+                problems.append(f"ropes.{i}: start and end are the same ('{r.start}')")
+        for i, s in enumerate(self.springs):
+            for end in ("start", "end"):
+                ref = getattr(s, end)
+                if ref not in attachable:
+                    problems.append(f"springs.{i}.{end}: '{ref}' {self._unknown(ref)}")
+            if s.start == s.end:
+                problems.append(f"springs.{i}: start and end are the same ('{s.start}')")
+        frames = self.frame_names()
+        for i, j in enumerate(self.joints):
+            for side in ("marker_i", "marker_j"):
+                ref = getattr(j, side)
+                if ref not in frames:
+                    problems.append(
+                        f"joints.{i}.{side}: '{ref}' is not a marker ('body.marker') or anchor"
+                        f" {self._unknown(ref)}"
+                    )
+            if j.marker_i == j.marker_j:
+                problems.append(f"joints.{i}: marker_i and marker_j are the same")
+            bi, bj = j.marker_i.split(".")[0], j.marker_j.split(".")[0]
+            if bi == bj and "." in j.marker_i:
+                problems.append(f"joints.{i}: both markers are on body '{bi}'")
+            if j.marker_i in self.anchor_names() and j.marker_j in self.anchor_names():
+                problems.append(f"joints.{i}: a joint between two anchors constrains nothing")
+        for i, ld in enumerate(self.loads):
+            if ld.at not in attachable or ld.at in self.anchor_names():
+                problems.append(f"loads.{i}.at: '{ld.at}' is not a point, body or body.marker")
+            elif any(ld.torque) and ld.at not in {b.name for b in self.bodies}:
+                problems.append(f"loads.{i}.torque: a torque needs a body, '{ld.at}' is not one")
+        plottable = self.trajectory_names()
+        for i, name in enumerate(self.output.plot):
+            if name not in plottable:
+                problems.append(f"output.plot.{i}: '{name}' is not a point or body")
+        if problems:
+            raise ValueError("; ".join(problems))
+        return self
+
+    # --- name tables -------------------------------------------------------------------
+    def anchor_names(self) -> set[str]:
+        return {a.name for a in self.anchors}
+
+    def marker_names(self) -> set[str]:
+        return {f"{b.name}.{m.name}" for b in self.bodies for m in b.markers}
+
+    def frame_names(self) -> set[str]:
+        """Names a joint may use: ``body.marker`` and anchors."""
+        return self.marker_names() | self.anchor_names()
+
+    def trajectory_names(self) -> set[str]:
+        """Points (including rope masses) and bodies: the things that move."""
+        names = {p.name for p in self.points} | {b.name for b in self.bodies}
+        for r in self.ropes:
+            names |= {f"{r.name}_{j}" for j in range(r.n_masses)}
+        return names
+
+    def attachment_names(self) -> set[str]:
+        """Names a rope / spring end may use."""
+        return self.trajectory_names() | self.marker_names() | self.anchor_names()
+
+    def _unknown(self, ref: str) -> str:
+        if "." in ref:
+            body = ref.split(".")[0]
+            if body not in {b.name for b in self.bodies}:
+                return f"(no body named '{body}')"
+            return f"(body '{body}' has no marker '{ref.split('.', 1)[1]}')"
+        return "(no point, rope mass, body or anchor has that name)"
+
+
+# --- loading ---------------------------------------------------------------------------
+
+
+def _format_validation_error(err: ValidationError) -> str:
+    lines = []
+    for e in err.errors():
+        loc = ".".join(str(p) for p in e["loc"])
+        msg = e["msg"]
+        if e["type"] == "extra_forbidden":
+            msg = "unknown key"
+        if msg.startswith("Value error, "):
+            msg = msg[len("Value error, "):]
+        lines.append(f"  {loc or '<scene>'}: {msg}" + (f" (got {e['input']!r})" if e["type"] not in ("extra_forbidden", "missing", "value_error") and not isinstance(e.get("input"), dict) else ""))
+    return "\n".join(lines)
+
+
+def apply_override(raw: dict, assignment: str) -> None:
+    """Apply one ``dotted.key=value`` override to a raw config dict, in place.
+
+    The value is parsed as YAML (``5e-4`` and ``[0, 0, -9.81]`` work). List entries are
+    addressed by index (``ropes.0.EA=2e5``). Unknown keys are left for validation to
+    reject, so the error names them.
+    """
+    if "=" not in assignment:
+        raise ConfigError(f"--set '{assignment}': expected key=value")
+    key, text = assignment.split("=", 1)
+    parts = [p for p in key.strip().split(".") if p]
+    if not parts:
+        raise ConfigError(f"--set '{assignment}': empty key")
+    try:
+        value = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"--set {key}: cannot parse value '{text}': {exc}") from None
+    node: Any = raw
+    for depth, part in enumerate(parts[:-1]):
+        where = ".".join(parts[: depth + 1])
+        if isinstance(node, list):
+            if not part.isdigit() or int(part) >= len(node):
+                raise ConfigError(f"--set {key}: '{where}' has no entry {part} (it has {len(node)})")
+            node = node[int(part)]
+        elif isinstance(node, dict):
+            if part not in node:
+                node[part] = {}
+            node = node[part]
+        else:
+            raise ConfigError(f"--set {key}: '{where}' is a value, not a section")
+    last = parts[-1]
+    if isinstance(node, list):
+        if not last.isdigit() or int(last) >= len(node):
+            raise ConfigError(f"--set {key}: no entry {last} (it has {len(node)})")
+        node[int(last)] = value
+    elif isinstance(node, dict):
+        node[last] = value
+    else:
+        raise ConfigError(f"--set {key}: parent is a value, not a section")
+
+
+def config_from_dict(raw: Any, source: str = "<dict>", overrides: list[str] | tuple[str, ...] = ()) -> SceneConfig:
+    """Validate a raw (YAML-parsed) dict into a :class:`SceneConfig`."""
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{source}: a scene file must be a YAML mapping at the top level")
+    raw = copy.deepcopy(raw)
+    for ov in overrides:
+        apply_override(raw, ov)
+    try:
+        return SceneConfig.model_validate(raw)
+    except ValidationError as err:
+        raise ConfigError(f"{source}: invalid scene configuration\n{_format_validation_error(err)}") from None
+
+
+def load_config(path: str | Path, overrides: list[str] | tuple[str, ...] = ()) -> SceneConfig:
+    """Read, override and validate a YAML scene file. Raises :class:`ConfigError`."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"{path}: no such config file")
+    try:
+        raw = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: broken YAML: {exc}") from None
+    return config_from_dict(raw, str(path), overrides)
+
+
+def dump_config(config: SceneConfig) -> str:
+    """The resolved config as YAML (round-trips through :func:`config_from_dict`)."""
+    data = config.model_dump(mode="json")
+    return yaml.safe_dump(data, sort_keys=False)

@@ -1,0 +1,63 @@
+"""Force elements: spring-dampers between nodes, constant applied loads.
+
+Spring-damper law (paper Sec. 2.1, used for every rope segment and free spring): with
+``s`` the current length, ``s̄`` the rest length, ``ṡ`` the elongation rate,
+
+    f = k (s − s̄) + c ṡ        (tension positive, acts along the segment)
+
+``linear`` springs apply ``f`` both ways (they push when compressed); ``tension_only``
+springs (real ropes) apply ``max(f, 0)`` while taut (``s > s̄``) and nothing while slack.
+A zero-length segment gives zero force with finite gradients (no NaN).
+
+Gravity is not a force here: it is added to the accelerations in ``mysim_jax.sim``.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+
+from mysim_jax import vecmath
+from mysim_jax.dynamics.markers import scatter_rows
+from mysim_jax.types import Params, Scene
+
+
+def spring_tension(stiffness, damping, rest_length, length, rate, tension_only):
+    """Scalar tension ``(n_springs,)`` of each spring; ``tension_only`` is a static bool mask."""
+    tension = stiffness * (length - rest_length) + damping * rate
+    mask = np.asarray(tension_only, dtype=bool)
+    if not mask.any():
+        return tension
+    taut = jnp.where(length > rest_length, jnp.maximum(tension, 0.0), 0.0)
+    if mask.all():
+        return taut
+    return jnp.where(mask, taut, tension)
+
+
+def spring_forces(scene: Scene, params: Params, node_pos, node_vel):
+    """Forces ``(n_nodes, 3)`` that all springs exert on the nodes they join."""
+    a = np.asarray(scene.spring_node_a, dtype=np.int32)
+    b = np.asarray(scene.spring_node_b, dtype=np.int32)
+    dx = node_pos[b] - node_pos[a]
+    dv = node_vel[b] - node_vel[a]
+    length, unit = vecmath.safe_unit(dx)
+    rate = vecmath.dot(dv, unit)
+    tension = spring_tension(
+        params.spring_stiffness, params.spring_damping, params.spring_rest_length,
+        length, rate, scene.spring_tension_only,
+    )
+    f = tension[:, None] * unit        # force on node a (towards b when in tension)
+    n = scene.n_nodes
+    if scene.accumulate == "matmul":
+        signed = np.zeros((n, a.shape[0]), dtype=np.float64)
+        signed[a, np.arange(a.shape[0])] += 1.0
+        signed[b, np.arange(b.shape[0])] -= 1.0
+        return jnp.asarray(signed, dtype=f.dtype) @ f
+    return scatter_rows(f, a, n, "segment_sum") - scatter_rows(f, b, n, "segment_sum")
+
+
+def spring_lengths(scene: Scene, node_pos):
+    """Current length of every spring ``(n_springs,)``."""
+    a = np.asarray(scene.spring_node_a, dtype=np.int32)
+    b = np.asarray(scene.spring_node_b, dtype=np.int32)
+    return vecmath.safe_norm(node_pos[b] - node_pos[a])

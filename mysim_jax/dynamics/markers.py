@@ -1,0 +1,85 @@
+"""Markers (local frames on rigid bodies) and the node table.
+
+A marker ``m`` on body ``b`` has a body-frame offset ``r_m`` and orientation ``q_m``.
+Its world position is ``p_b + R_b r_m`` and its velocity ``v_b + R_b (ω_b × r_m)``
+(ω in the body frame). A force ``F`` (world) applied at the marker acts on the body as
+``F`` at the centre of mass plus the body-frame torque ``r_m × (R_bᵀ F)``.
+
+Springs, rope segments and loads address *nodes* (see :mod:`mysim_jax.types`): points,
+markers and anchors in one table, so one gather and one scatter serve them all.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from mysim_jax import vecmath
+from mysim_jax.dynamics.quaternion import quat_mul, quat_rotate, quat_rotate_inv
+from mysim_jax.types import Params, PhysState, Scene
+
+
+def marker_kinematics(scene: Scene, params: Params, phys: PhysState):
+    """World position ``(n_markers, 3)`` and velocity ``(n_markers, 3)`` of every marker."""
+    body = np.asarray(scene.marker_body, dtype=np.int32)
+    q = phys.body_quat[body]
+    r_world = quat_rotate(q, params.marker_pos)
+    pos = phys.body_pos[body] + r_world
+    vel = phys.body_vel[body] + quat_rotate(q, vecmath.cross(phys.body_angvel[body], params.marker_pos))
+    return pos, vel
+
+
+def marker_frames(scene: Scene, params: Params, phys: PhysState):
+    """World position ``(n_markers, 3)`` and orientation quaternion ``(n_markers, 4)``."""
+    body = np.asarray(scene.marker_body, dtype=np.int32)
+    q = phys.body_quat[body]
+    return phys.body_pos[body] + quat_rotate(q, params.marker_pos), quat_mul(q, params.marker_quat)
+
+
+def node_states(scene: Scene, params: Params, phys: PhysState):
+    """Positions and velocities of all nodes (points, markers, anchors): ``(n_nodes, 3)`` each."""
+    pos = [phys.point_pos]
+    vel = [phys.point_vel]
+    if scene.n_markers:
+        mpos, mvel = marker_kinematics(scene, params, phys)
+        pos.append(mpos)
+        vel.append(mvel)
+    if scene.n_anchors:
+        pos.append(params.anchor_pos)
+        vel.append(jnp.zeros_like(params.anchor_pos))
+    return jnp.concatenate(pos, axis=0), jnp.concatenate(vel, axis=0)
+
+
+def scatter_rows(values, index, n: int, method: str):
+    """Sum rows of ``values`` ``(k, 3)`` into ``n`` rows by the static ``index`` ``(k,)``.
+
+    ``method="matmul"`` multiplies by a constant one-hot matrix (fastest for small
+    graphs on CPU, see BENCHMARKS.md); ``"segment_sum"`` uses ``jax.ops.segment_sum``.
+    """
+    index = np.asarray(index, dtype=np.int32)
+    if method == "matmul":
+        onehot = np.zeros((n, index.shape[0]), dtype=np.float64)
+        onehot[index, np.arange(index.shape[0])] = 1.0
+        return jnp.asarray(onehot, dtype=values.dtype) @ values
+    return jax.ops.segment_sum(values, index, num_segments=n)
+
+
+def distribute_node_forces(scene: Scene, params: Params, phys: PhysState, node_force):
+    """Split node forces ``(n_nodes, 3)`` into point forces, body forces and body torques.
+
+    Returns ``(point_force (n_points, 3), body_force (n_bodies, 3) world,
+    body_torque (n_bodies, 3) body frame)``. Forces on anchors are dropped (the world
+    takes them).
+    """
+    npt, nm = scene.n_points, scene.n_markers
+    point_force = node_force[:npt]
+    if nm == 0 or scene.n_bodies == 0:
+        zeros = jnp.zeros((scene.n_bodies, 3), dtype=node_force.dtype)
+        return point_force, zeros, zeros
+    f_marker = node_force[npt:npt + nm]
+    body = np.asarray(scene.marker_body, dtype=np.int32)
+    torque_local = vecmath.cross(params.marker_pos, quat_rotate_inv(phys.body_quat[body], f_marker))
+    both = jnp.concatenate([f_marker, torque_local], axis=-1)   # one scatter for both
+    summed = scatter_rows(both, body, scene.n_bodies, scene.accumulate)
+    return point_force, summed[:, :3], summed[:, 3:]

@@ -1,0 +1,166 @@
+"""The three kinds of data a simulation is made of (see DESIGN.md, "Data flow").
+
+* :class:`Scene` — static structure: counts, names, index arrays (as tuples), which effects
+  exist, integrator settings. Frozen and hashable; changing it recompiles; never traced.
+* :class:`Params` — a pytree of float arrays: masses, inertias, marker offsets, spring
+  constants, gravity, Baumgarte constants. Traced, differentiable, vmappable.
+* :class:`State` — a pytree: the multibody state :class:`PhysState` and the time.
+
+Attachment points ("nodes") are numbered in one table so that springs and rope segments
+can join anything with plain index arrays::
+
+    node index:  [0, n_points)                    point masses
+                 [n_points, n_points + n_markers)  markers on rigid bodies
+                 [n_points + n_markers, n_nodes)   fixed anchors
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import jax.numpy as jnp
+from flax import struct
+
+
+@dataclass(frozen=True)
+class JointBucket:
+    """Joint groups that share one structure, solved together with ``vmap``.
+
+    A *group* is a connected set of rigid bodies joined by joints (anchors connect to
+    nothing). Groups with the same signature (number of bodies, joint types, and which
+    side of each joint is a body marker vs an anchor) are stacked into one bucket.
+    """
+
+    joint_types: tuple[str, ...]          # (n_joints,) "fixed" | "universal"
+    side_i_is_anchor: tuple[bool, ...]    # (n_joints,)
+    side_j_is_anchor: tuple[bool, ...]    # (n_joints,)
+    side_i_local_body: tuple[int, ...]    # (n_joints,) position of the body in the group (-1 for anchors)
+    side_j_local_body: tuple[int, ...]    # (n_joints,)
+    group_bodies: tuple[tuple[int, ...], ...]  # (n_groups, n_bodies) global body indices
+    group_frame_i: tuple[tuple[int, ...], ...]  # (n_groups, n_joints) marker or anchor index
+    group_frame_j: tuple[tuple[int, ...], ...]  # (n_groups, n_joints)
+
+    @property
+    def n_rows(self) -> int:
+        return sum(6 if t == "fixed" else 4 for t in self.joint_types)
+
+
+@dataclass(frozen=True)
+class Scene:
+    """Static description of one environment. Hashable: usable as a ``jit`` static arg."""
+
+    name: str
+    # --- entities ---------------------------------------------------------------------
+    point_names: tuple[str, ...]
+    body_names: tuple[str, ...]
+    marker_names: tuple[str, ...]           # "body.marker"
+    marker_body: tuple[int, ...]            # (n_markers,) body index of each marker
+    anchor_names: tuple[str, ...]
+    rope_names: tuple[str, ...] = ()
+    rope_point_index: tuple[tuple[int, ...], ...] = ()   # (n_ropes, n_masses_r) point indices
+    # --- springs (rope segments and free springs), joining node indices ----------------
+    spring_names: tuple[str, ...] = ()
+    spring_node_a: tuple[int, ...] = ()
+    spring_node_b: tuple[int, ...] = ()
+    spring_tension_only: tuple[bool, ...] = ()
+    # --- effects ----------------------------------------------------------------------
+    has_gravity: bool = True
+    has_loads: bool = False
+    joint_buckets: tuple[JointBucket, ...] = ()
+    # --- integration ------------------------------------------------------------------
+    integrator: str = "semi_implicit_euler"
+    dt: float = 1e-3
+    substeps: int = 1
+    output_dt: float = 1e-3
+    t_end: float = 1.0
+    precision: str = "float32"
+    rtol: float = 1e-8
+    atol: float = 1e-10
+    max_steps: int = 10_000_000
+    # how node forces are summed: "matmul" (dense one-hot incidence, fast for small nets)
+    # or "segment_sum" (scales to large nets); chosen in build() and measured in bench.py
+    accumulate: str = "matmul"
+    plot_names: tuple[str, ...] = field(default=())
+
+    @property
+    def n_points(self) -> int:
+        return len(self.point_names)
+
+    @property
+    def n_bodies(self) -> int:
+        return len(self.body_names)
+
+    @property
+    def n_markers(self) -> int:
+        return len(self.marker_names)
+
+    @property
+    def n_anchors(self) -> int:
+        return len(self.anchor_names)
+
+    @property
+    def n_nodes(self) -> int:
+        return self.n_points + self.n_markers + self.n_anchors
+
+    @property
+    def n_springs(self) -> int:
+        return len(self.spring_node_a)
+
+    @property
+    def substep(self) -> float:
+        """The integrator's (initial, for adaptive solvers) step ``dt / substeps``."""
+        return self.dt / self.substeps
+
+    @property
+    def dtype(self):
+        return jnp.float64 if self.precision == "float64" else jnp.float32
+
+
+@struct.dataclass
+class Params:
+    """Traced physical parameters of one environment (vmap over them for sweeps)."""
+
+    point_mass: jnp.ndarray          # (n_points,) kg
+    body_mass: jnp.ndarray           # (n_bodies,) kg
+    body_inertia: jnp.ndarray        # (n_bodies, 3, 3) kg m^2, body frame, about the CoM
+    marker_pos: jnp.ndarray          # (n_markers, 3) m, body frame
+    marker_quat: jnp.ndarray         # (n_markers, 4) marker -> body rotation
+    anchor_pos: jnp.ndarray          # (n_anchors, 3) m, world
+    anchor_quat: jnp.ndarray         # (n_anchors, 4)
+    spring_stiffness: jnp.ndarray    # (n_springs,) N/m
+    spring_damping: jnp.ndarray      # (n_springs,) N s/m
+    spring_rest_length: jnp.ndarray  # (n_springs,) m
+    gravity: jnp.ndarray             # (3,) m/s^2
+    load_node_force: jnp.ndarray     # (n_nodes, 3) N, world frame, constant applied forces
+    load_body_torque: jnp.ndarray    # (n_bodies, 3) N m, body frame
+    baumgarte_alpha: jnp.ndarray     # () 1/s
+    baumgarte_beta: jnp.ndarray      # () 1/s
+
+
+@struct.dataclass
+class PhysState:
+    """Multibody state: what the integrators advance."""
+
+    point_pos: jnp.ndarray    # (n_points, 3) m, world
+    point_vel: jnp.ndarray    # (n_points, 3) m/s, world
+    body_pos: jnp.ndarray     # (n_bodies, 3) m, world (centre of mass)
+    body_quat: jnp.ndarray    # (n_bodies, 4) body -> world, scalar first
+    body_vel: jnp.ndarray     # (n_bodies, 3) m/s, world
+    body_angvel: jnp.ndarray  # (n_bodies, 3) rad/s, body frame
+
+
+@struct.dataclass
+class Accelerations:
+    """Second derivatives of one :class:`PhysState`."""
+
+    point_acc: jnp.ndarray       # (n_points, 3) m/s^2, world
+    body_acc: jnp.ndarray        # (n_bodies, 3) m/s^2, world
+    body_angacc: jnp.ndarray     # (n_bodies, 3) rad/s^2, body frame
+
+
+@struct.dataclass
+class State:
+    """Full state of one environment."""
+
+    phys: PhysState
+    time: jnp.ndarray         # () s
