@@ -140,11 +140,11 @@ class BodyConfig(_Strict):
             raise ValueError("inertia matrix must be symmetric")
         eig = np.linalg.eigvalsh(m)
         if eig.min() <= 0:
-            raise ValueError(f"inertia must be positive definite (eigenvalues {eig.tolist()})")
+            raise ValueError(f"inertia must be positive definite (eigenvalues {[float(e) for e in eig]})")
         a, b, c = sorted(eig)
         if c > a + b + 1e-12 * c:
             raise ValueError(
-                f"principal moments {[a, b, c]} violate the triangle inequality "
+                f"principal moments {[float(a), float(b), float(c)]} violate the triangle inequality "
                 "(no physical mass distribution has them)"
             )
         return v
@@ -349,13 +349,24 @@ class SceneConfig(_Strict):
 def _format_validation_error(err: ValidationError) -> str:
     lines = []
     for e in err.errors():
-        loc = ".".join(str(p) for p in e["loc"])
-        msg = e["msg"]
-        if e["type"] == "extra_forbidden":
-            msg = "unknown key"
+        loc = [str(p) for p in e["loc"]]
+        kind, msg = e["type"], e["msg"]
         if msg.startswith("Value error, "):
             msg = msg[len("Value error, "):]
-        lines.append(f"  {loc or '<scene>'}: {msg}" + (f" (got {e['input']!r})" if e["type"] not in ("extra_forbidden", "missing", "value_error") and not isinstance(e.get("input"), dict) else ""))
+        shown = ""
+        if kind == "extra_forbidden":
+            msg = "unknown key"
+        elif kind == "missing" and loc and loc[-1].isdigit():
+            msg = f"too few entries (entry {loc[-1]} is missing)"
+            loc = loc[:-1]
+        elif kind == "too_long":
+            msg = "too many entries"
+        elif kind not in ("missing", "value_error") and not isinstance(e.get("input"), (dict, list)):
+            shown = f" (got {e['input']!r})"
+        if not loc:  # whole-scene checks already name their fields
+            lines.extend(f"  {part}" for part in msg.split("; "))
+        else:
+            lines.append(f"  {'.'.join(loc)}: {msg}{shown}")
     return "\n".join(lines)
 
 

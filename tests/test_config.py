@@ -1,0 +1,144 @@
+"""Bad input gets a clear error naming the field, before anything compiles."""
+
+import jax
+import pytest
+import yaml
+
+from mysim_jax.build import build
+from mysim_jax.config import ConfigError, config_from_dict, dump_config, load_config
+
+from conftest import CONFIGS
+
+
+def _raw():
+    return yaml.safe_load((CONFIGS / "rope_net.yaml").read_text())
+
+
+def _err(raw=None, overrides=(), build_too=False):
+    raw = _raw() if raw is None else raw
+    with pytest.raises(ConfigError) as info:
+        cfg = config_from_dict(raw, "scene.yaml", list(overrides))
+        if build_too:
+            with jax.enable_x64(True):
+                build(cfg)
+    return str(info.value)
+
+
+def test_all_configs_load_and_round_trip():
+    for path in sorted(CONFIGS.glob("*.yaml")):
+        cfg = load_config(path)
+        again = config_from_dict(yaml.safe_load(dump_config(cfg)), "dumped")
+        assert again == cfg, path.name
+
+
+def test_unknown_key_is_named():
+    msg = _err(overrides=["sim.dtt=1e-4"])
+    assert "sim.dtt: unknown key" in msg
+    raw = _raw()
+    raw["ropes"][2]["stiffnes"] = 3
+    assert "ropes.2.stiffnes: unknown key" in _err(raw)
+
+
+def test_wrong_type_and_shape():
+    assert "sim.dt" in _err(overrides=["sim.dt=fast"])
+    raw = _raw()
+    raw["points"][0]["pos"] = [0.0, 0.0]
+    msg = _err(raw)
+    assert "points.0.pos" in msg
+    assert "sim.integrator" in _err(overrides=["sim.integrator=euler"])
+    assert "sim.precision" in _err(overrides=["sim.precision=float16"])
+
+
+@pytest.mark.parametrize(
+    "override, field",
+    [
+        ("points.0.mass=-0.2", "points.0.mass"),
+        ("points.0.mass=0", "points.0.mass"),
+        ("ropes.1.length=0", "ropes.1.length"),
+        ("ropes.1.EA=-1e5", "ropes.1.EA"),
+        ("ropes.3.mass=-1", "ropes.3.mass"),
+        ("ropes.0.n_masses=0", "ropes.0.n_masses"),
+        ("ropes.0.damping=-1", "ropes.0.damping"),
+        ("sim.dt=-1e-4", "sim.dt"),
+        ("sim.t_end=0", "sim.t_end"),
+    ],
+)
+def test_non_positive_physical_values(override, field):
+    assert field in _err(overrides=[override])
+
+
+def test_step_above_stability_limit_names_dt_and_spring():
+    msg = _err(overrides=["sim.integrator=semi_implicit_euler", "sim.dt=1e-3"], build_too=True)
+    assert "sim.dt" in msg and "stability limit" in msg and "r0[0]" in msg and "substeps >= 4" in msg
+    # substeps fix it; the adaptive solvers have no explicit limit
+    for ov in (["sim.substeps=4"], ["sim.integrator=tsit5"]):
+        with jax.enable_x64(True):
+            build(config_from_dict(_raw(), "x", ["sim.integrator=semi_implicit_euler", "sim.dt=1e-3"] + ov))
+
+
+def test_stability_limit_tracks_the_spring_constants():
+    # ten times stiffer ropes: 1e-4 s is no longer stable for semi-implicit Euler
+    ov = ["sim.integrator=semi_implicit_euler"] + [f"ropes.{i}.EA=1e7" for i in range(4)]
+    assert "stability limit" in _err(overrides=ov, build_too=True)
+
+
+def test_missing_references_are_named():
+    raw = _raw()
+    raw["ropes"][1]["end"] = "a9"
+    msg = _err(raw)
+    assert "ropes.1.end: 'a9'" in msg
+    raw = _raw()
+    raw["ropes"][0]["start"] = "uav3.hook"
+    assert "no body named 'uav3'" in _err(raw)
+    raw = _raw()
+    raw["bodies"] = [{"name": "box", "mass": 1.0, "inertia": [1, 1, 1], "markers": [{"name": "top"}]}]
+    raw["joints"] = [{"name": "j", "type": "fixed", "marker_i": "box.bottom", "marker_j": "a0"}]
+    assert "joints.0.marker_i" in _err(raw) and "has no marker 'bottom'" in _err(raw)
+    raw["joints"][0]["marker_i"] = "box.top"
+    config_from_dict(raw, "ok")
+
+
+def test_duplicate_names_and_bad_inertia():
+    raw = _raw()
+    raw["anchors"][1]["name"] = "a0"
+    assert "already used" in _err(raw)
+    raw = _raw()
+    raw["bodies"] = [{"name": "rod", "mass": 1.0, "inertia": [1.0, 1.0, 3.0]}]
+    assert "bodies.0.inertia" in _err(raw) and "triangle" in _err(raw)
+    raw["bodies"][0]["inertia"] = [1.0, -1.0, 1.0]
+    assert "bodies.0.inertia" in _err(raw)
+    raw["bodies"][0]["inertia"] = [1.0, 1.0, 1.0]
+    raw["bodies"][0]["quat"] = [0, 0, 0, 0]
+    assert "bodies.0.quat" in _err(raw)
+
+
+def test_output_grid_must_match_dt():
+    assert "output_dt" in _err(overrides=["sim.output_dt=1.5e-4"])
+
+
+def test_file_errors(tmp_path):
+    with pytest.raises(ConfigError, match="no such config file"):
+        load_config(tmp_path / "missing.yaml")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("name: x\nsim: {dt: [1, \n")
+    with pytest.raises(ConfigError, match="broken YAML"):
+        load_config(bad)
+    bad.write_text("- just\n- a list\n")
+    with pytest.raises(ConfigError, match="mapping"):
+        load_config(bad)
+
+
+def test_override_errors():
+    with pytest.raises(ConfigError, match="expected key=value"):
+        config_from_dict(_raw(), "x", ["sim.dt"])
+    with pytest.raises(ConfigError, match="no entry 7"):
+        config_from_dict(_raw(), "x", ["ropes.7.EA=1"])
+    cfg = config_from_dict(_raw(), "x", ["ropes.2.EA=2e5", "gravity=[0, 0, -1.62]"])
+    assert cfg.ropes[2].EA == 2e5 and cfg.gravity == (0, 0, -1.62)
+
+
+def test_float64_without_x64_is_a_clear_error():
+    if jax.config.jax_enable_x64:
+        pytest.skip("x64 is globally enabled in this process (JAX_ENABLE_X64); nothing to check")
+    with pytest.raises(ConfigError, match="jax_enable_x64"):
+        build(load_config(CONFIGS / "rope_net.yaml"))
