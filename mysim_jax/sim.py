@@ -4,10 +4,11 @@
 chain of pure stages named after the physics (each under ``jax.named_scope`` so that a
 profile reads like the paper)::
 
-    marker_kinematics -> spring_forces -> applied_loads -> distribute_node_forces
-      -> newton_euler (+ gravity) -> constraint_solve
+    marker_kinematics -> [force stages: spring_forces, applied_loads, ...]
+      -> distribute_node_forces -> newton_euler (+ gravity) -> constraint_solve
 
-A scene without springs traces no spring code, without joints no constraint solve.
+``force_stages(scene)`` lists the force elements a scene has; a scene without springs
+traces no spring code, without joints no constraint solve.
 
 ``step(scene, params, state, control=None)`` advances one environment by ``scene.dt``
 (``scene.substeps`` sub-steps of a fixed-step integrator, or one adaptive diffrax solve).
@@ -27,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from mysim_jax.dynamics import constraints as _constraints
-from mysim_jax.dynamics.forces import spring_forces
+from mysim_jax.dynamics.forces import ForceStage, Loads, spring_forces
 from mysim_jax.dynamics.integrators import FIXED_STEP, state_derivative
 from mysim_jax.dynamics.markers import distribute_node_forces, node_states
 from mysim_jax.dynamics.quaternion import quat_normalize
@@ -35,29 +36,50 @@ from mysim_jax.dynamics.rigid_body import body_accelerations, inertia_inverse
 from mysim_jax.types import Accelerations, Params, PhysState, Scene, State
 
 
-def accelerations(scene: Scene, params: Params, phys: PhysState) -> Accelerations:
+def _spring_stage(scene, params, phys, nodes, inputs) -> Loads:
+    return Loads.of_nodes(spring_forces(scene, params, *nodes), scene.n_bodies)
+
+
+def _load_stage(scene, params, phys, nodes, inputs) -> Loads:
+    return Loads(node_force=params.load_node_force,
+                 body_force=jnp.zeros_like(phys.body_pos), body_torque=params.load_body_torque)
+
+
+def force_stages(scene: Scene) -> tuple[tuple[str, ForceStage], ...]:
+    """The force elements this scene has, in pipeline order, decided from the static Scene.
+
+    Each stage is ``fn(scene, params, phys, nodes, inputs) -> Loads`` with ``nodes`` the
+    ``(node_pos, node_vel)`` table and ``inputs`` the actuator commands held over the step
+    (``None`` when the scene has no actuators). New effects add one entry here.
+    """
+    stages: list[tuple[str, ForceStage]] = []
+    if scene.n_springs:
+        stages.append(("spring_forces", _spring_stage))
+    if scene.has_loads:
+        stages.append(("applied_loads", _load_stage))
+    return tuple(stages)
+
+
+def accelerations(scene: Scene, params: Params, phys: PhysState, inputs=None) -> Accelerations:
     """Accelerations of every point and body for one environment."""
-    dtype = phys.point_pos.dtype
-    node_force = None
-    if scene.n_springs or scene.has_loads:
+    stages = force_stages(scene)
+    loads = None
+    if stages:
         with jax.named_scope("marker_kinematics"):
-            node_pos, node_vel = node_states(scene, params, phys)
-        node_force = jnp.zeros((scene.n_nodes, 3), dtype=dtype)
-        if scene.n_springs:
-            with jax.named_scope("spring_forces"):
-                node_force = spring_forces(scene, params, node_pos, node_vel)
-        if scene.has_loads:
-            with jax.named_scope("applied_loads"):
-                node_force = node_force + params.load_node_force
+            nodes = node_states(scene, params, phys)
+        for name, stage in stages:
+            with jax.named_scope(name):
+                part = stage(scene, params, phys, nodes, inputs)
+            loads = part if loads is None else loads + part
     with jax.named_scope("distribute_node_forces"):
-        if node_force is None:
+        if loads is None:
             point_force = jnp.zeros_like(phys.point_pos)
             body_force = jnp.zeros_like(phys.body_pos)
             body_torque = jnp.zeros_like(phys.body_pos)
         else:
-            point_force, body_force, body_torque = distribute_node_forces(scene, params, phys, node_force)
-        if scene.has_loads:
-            body_torque = body_torque + params.load_body_torque
+            point_force, body_force, body_torque = distribute_node_forces(scene, params, phys, loads.node_force)
+            body_force = body_force + loads.body_force
+            body_torque = body_torque + loads.body_torque
     with jax.named_scope("newton_euler"):
         point_acc = point_force / params.point_mass[:, None]
         if scene.has_gravity:
@@ -80,9 +102,9 @@ def accelerations(scene: Scene, params: Params, phys: PhysState) -> Acceleration
     return Accelerations(point_acc=point_acc, body_acc=body_acc, body_angacc=body_angacc)
 
 
-def derivative(scene: Scene, params: Params, phys: PhysState) -> PhysState:
+def derivative(scene: Scene, params: Params, phys: PhysState, inputs=None) -> PhysState:
     """``d(phys)/dt`` as a PhysState-shaped pytree (quaternion rate ½ q ⊗ ω)."""
-    return state_derivative(phys, accelerations(scene, params, phys))
+    return state_derivative(phys, accelerations(scene, params, phys, inputs))
 
 
 def _adaptive_solver(scene: Scene):
@@ -90,14 +112,15 @@ def _adaptive_solver(scene: Scene):
 
 
 def _vector_field(scene: Scene):
-    def field(t, y, params):
+    def field(t, y, args):
+        params, inputs = args
         # quaternions drift off the unit sphere by O(tolerance); forces and the attitude
         # rate use the unit quaternion
-        return derivative(scene, params, y.replace(body_quat=quat_normalize(y.body_quat)))
+        return derivative(scene, params, y.replace(body_quat=quat_normalize(y.body_quat)), inputs)
     return field
 
 
-def solve_adaptive(scene: Scene, params: Params, phys: PhysState, t0, t1, ts=None, progress=False):
+def solve_adaptive(scene: Scene, params: Params, phys: PhysState, t0, t1, ts=None, progress=False, inputs=None):
     """Integrate with the scene's diffrax solver from ``t0`` to ``t1``.
 
     Returns the states at ``ts`` (stacked) if given, else the state at ``t1``.
@@ -110,7 +133,7 @@ def solve_adaptive(scene: Scene, params: Params, phys: PhysState, t0, t1, ts=Non
         t1=t1,
         dt0=scene.substep,
         y0=phys,
-        args=params,
+        args=(params, inputs),
         saveat=saveat,
         stepsize_controller=diffrax.PIDController(rtol=scene.rtol, atol=scene.atol),
         max_steps=scene.max_steps,
@@ -125,13 +148,12 @@ def solve_adaptive(scene: Scene, params: Params, phys: PhysState, t0, t1, ts=Non
 
 def step(scene: Scene, params: Params, state: State, control=None) -> State:
     """Advance one environment by ``scene.dt``. Pure; vmap and jit at the call site."""
-    del control  # no actuators in this scene type yet; reserved for controllers
     if scene.integrator in FIXED_STEP:
         integrator = FIXED_STEP[scene.integrator]
         h = jnp.asarray(scene.substep, dtype=state.time.dtype)
 
         def accel(phys):
-            return accelerations(scene, params, phys)
+            return accelerations(scene, params, phys, control)
 
         phys = state.phys
         if scene.substeps == 1:
@@ -139,7 +161,7 @@ def step(scene: Scene, params: Params, state: State, control=None) -> State:
         else:
             phys = jax.lax.fori_loop(0, scene.substeps, lambda _, p: integrator.step(accel, p, h), phys)
     else:
-        phys = solve_adaptive(scene, params, state.phys, state.time, state.time + scene.dt)
+        phys = solve_adaptive(scene, params, state.phys, state.time, state.time + scene.dt, inputs=control)
     return State(phys=phys, time=state.time + jnp.asarray(scene.dt, dtype=state.time.dtype))
 
 

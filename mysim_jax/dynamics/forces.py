@@ -14,12 +14,37 @@ Gravity is not a force here: it is added to the accelerations in ``mysim_jax.sim
 
 from __future__ import annotations
 
+from typing import Callable
+
 import jax.numpy as jnp
 import numpy as np
+from flax import struct
 
 from mysim_jax import vecmath
 from mysim_jax.dynamics.markers import scatter_rows
 from mysim_jax.types import Params, Scene
+
+
+@struct.dataclass
+class Loads:
+    """Forces of one force stage, before they are turned into accelerations."""
+
+    node_force: jnp.ndarray    # (n_nodes, 3) world frame, at points / markers (anchors: ignored)
+    body_force: jnp.ndarray    # (n_bodies, 3) world frame, at the centre of mass
+    body_torque: jnp.ndarray   # (n_bodies, 3) body frame
+
+    @classmethod
+    def of_nodes(cls, node_force, n_bodies: int) -> "Loads":
+        zeros = jnp.zeros((n_bodies, 3), dtype=node_force.dtype)
+        return cls(node_force=node_force, body_force=zeros, body_torque=zeros)
+
+    def __add__(self, other: "Loads") -> "Loads":
+        return Loads(self.node_force + other.node_force, self.body_force + other.body_force,
+                     self.body_torque + other.body_torque)
+
+
+# fn(scene, params, phys, (node_pos, node_vel), inputs) -> Loads
+ForceStage = Callable[..., Loads]
 
 
 def spring_tension(stiffness, damping, rest_length, length, rate, tension_only):
