@@ -7,6 +7,7 @@ spring) and raises :class:`~mysim_jax.config.ConfigError` naming ``sim.dt``.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -15,6 +16,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from mysim_jax.config import FIXED_STEP_INTEGRATORS, ConfigError, SceneConfig
+from mysim_jax.contact.build import build_contact, contact_stable_step
+from mysim_jax.control.build import build_quadrotors, expand_cameras
 from mysim_jax.dynamics.stability import spring_stable_steps, stable_step
 from mysim_jax.net.rope import build_rope
 from mysim_jax.types import JointBucket, Params, PhysState, Scene, State
@@ -22,6 +25,11 @@ from mysim_jax.types import JointBucket, Params, PhysState, Scene, State
 # Dense one-hot accumulation beats segment_sum on CPU for small graphs (BENCHMARKS.md);
 # above this many nodes the dense matrix costs more than it saves.
 MATMUL_ACCUMULATE_MAX_NODES = 128
+
+# ``substeps: auto`` takes sub-steps of at most this fraction of the per-element explicit
+# stability limit: the per-element estimate ignores coupling between elements (which can
+# raise the top frequency by up to ~√2) and the nonlinearity of contact forces.
+AUTO_SUBSTEP_SAFETY = 0.5
 
 
 def _np_rotate(q, v):
@@ -56,6 +64,8 @@ def build(config: SceneConfig):
             "mode; enable it first with jax.config.update('jax_enable_x64', True) or "
             "`with jax.enable_x64(True):` (scripts/simulate.py does this for you)"
         )
+    # quadrotor cameras become bodies, markers and joints (a new config; the input is not touched)
+    config = expand_cameras(config)
     body_index = {b.name: i for i, b in enumerate(config.bodies)}
     anchor_index = {a.name: i for i, a in enumerate(config.anchors)}
 
@@ -173,6 +183,14 @@ def build(config: SceneConfig):
             load_torque[body_index[ld.at]] += ld.torque
 
     buckets = _joint_buckets(config, body_index, anchor_index, t.marker_names)
+    contact_scene = contact_params = None
+    if config.contact is not None:
+        contact_scene, contact_params = build_contact(
+            config.contact, t.point_names, [b.name for b in config.bodies],
+            jnp.float64 if config.sim.precision == "float64" else jnp.float32)
+    quad_scene, quad_params, control_params, control_state = build_quadrotors(
+        config, [b.name for b in config.bodies], t.marker_names,
+        jnp.float64 if config.sim.precision == "float64" else jnp.float32)
 
     scene = Scene(
         name=config.name,
@@ -192,7 +210,7 @@ def build(config: SceneConfig):
         joint_buckets=buckets,
         integrator=config.sim.integrator,
         dt=config.sim.dt,
-        substeps=config.sim.substeps,
+        substeps=1 if config.sim.substeps == "auto" else config.sim.substeps,
         output_dt=config.sim.output_dt,
         t_end=config.sim.t_end,
         precision=config.sim.precision,
@@ -201,13 +219,16 @@ def build(config: SceneConfig):
         max_steps=config.sim.max_steps,
         accumulate="matmul" if n_nodes <= MATMUL_ACCUMULATE_MAX_NODES else "segment_sum",
         plot_names=tuple(config.output.plot),
+        contact=contact_scene,
+        quadrotor=quad_scene,
     )
 
     point_mass = np.asarray(t.point_mass, float).reshape(-1)
     body_mass = np.asarray([b.mass for b in config.bodies], float).reshape(-1)
     inertia = np.asarray([_inertia_matrix(b.inertia) for b in config.bodies], float).reshape(-1, 3, 3)
-    _check_stability(config, scene, point_mass, body_mass, inertia, t.marker_pos,
-                     np.asarray(stiffness, float), np.asarray(damping, float))
+    substeps = _check_stability(config, scene, point_mass, body_mass, inertia, t.marker_pos,
+                                np.asarray(stiffness, float), np.asarray(damping, float))
+    scene = dataclasses.replace(scene, substeps=substeps)
 
     dtype = scene.dtype
 
@@ -230,6 +251,9 @@ def build(config: SceneConfig):
         load_body_torque=arr(load_torque, (-1, 3)),
         baumgarte_alpha=jnp.asarray(config.baumgarte.alpha, dtype=dtype),
         baumgarte_beta=jnp.asarray(config.baumgarte.beta, dtype=dtype),
+        contact=contact_params,
+        quadrotor=quad_params,
+        controller=control_params,
     )
     phys = PhysState(
         point_pos=arr(t.point_pos, (-1, 3)),
@@ -239,7 +263,7 @@ def build(config: SceneConfig):
         body_vel=arr([b.vel for b in config.bodies], (-1, 3)),
         body_angvel=arr([b.angvel for b in config.bodies], (-1, 3)),
     )
-    state = State(phys=phys, time=jnp.zeros((), dtype=dtype))
+    state = State(phys=phys, time=jnp.zeros((), dtype=dtype), controller=control_state)
     return scene, params, state
 
 
@@ -300,12 +324,14 @@ def _joint_buckets(config: SceneConfig, body_index, anchor_index, marker_names) 
     return tuple(out)
 
 
-def _check_stability(config, scene, point_mass, body_mass, inertia, marker_pos, stiffness, damping):
-    """Reject a fixed step above the explicit limit of the stiffest spring or joint."""
+def _check_stability(config, scene, point_mass, body_mass, inertia, marker_pos, stiffness, damping) -> int:
+    """Reject a fixed step above the explicit limit of the stiffest spring, joint or
+    contact; resolve ``substeps: auto``. Returns the number of sub-steps to take."""
     integrator = config.sim.integrator
+    auto = config.sim.substeps == "auto"
     if integrator not in FIXED_STEP_INTEGRATORS:
-        return
-    h = config.sim.dt / config.sim.substeps
+        return 1 if auto else config.sim.substeps
+    h = config.sim.dt / (1 if auto else config.sim.substeps)
     n_points, n_markers = scene.n_points, scene.n_markers
     marker_pos = np.asarray(marker_pos, float).reshape(-1, 3)
 
@@ -343,11 +369,20 @@ def _check_stability(config, scene, point_mass, body_mass, inertia, marker_pos, 
                 f"Baumgarte constants (alpha = {alpha:g}, beta = {beta:g} 1/s) are stable only "
                 f"below {limits[-1]:.3g} s"
             )
+    if scene.contact is not None:
+        limit, what = contact_stable_step(integrator, config.contact, scene.contact, point_mass, body_mass)
+        limits.append(limit)
+        if h > limit:
+            problems.append(f"{what} is stable only below {limit:.3g} s")
+    if auto:
+        finite = [x for x in limits if math.isfinite(x)]
+        return max(1, math.ceil(config.sim.dt / (AUTO_SUBSTEP_SAFETY * min(finite)) - 1e-9)) if finite else 1
     if problems:
         substeps = math.ceil(config.sim.dt / min(limits))
         raise ConfigError(
             f"sim.dt: step {h:.3g} s (dt = {config.sim.dt:g} / substeps = {config.sim.substeps}) "
             f"exceeds the explicit stability limit of {integrator}: " + "; ".join(problems)
-            + f". Use sim.substeps >= {substeps}, a smaller dt, or an adaptive integrator "
-            "(tsit5, kvaerno5)"
+            + f". Use sim.substeps >= {substeps} (or sim.substeps: auto), a smaller dt, or an adaptive "
+            "integrator (tsit5, kvaerno5)"
         )
+    return config.sim.substeps

@@ -26,6 +26,9 @@ from typing import Annotated, Any, Literal, Union
 import yaml
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from mysim_jax.contact.config import ContactConfig, resolve_members
+from mysim_jax.control.config import QuadrotorConfig, quadrotor_problems
+
 INTEGRATORS = ("semi_implicit_euler", "rk4", "tsit5", "kvaerno5")
 FIXED_STEP_INTEGRATORS = ("semi_implicit_euler", "rk4")
 ADAPTIVE_INTEGRATORS = ("tsit5", "kvaerno5")
@@ -75,11 +78,14 @@ class SimConfig(_Strict):
     ``dt`` is the environment step (controls are held over it); the integrator advances
     it in ``substeps`` equal sub-steps of ``dt / substeps`` (fixed-step integrators), or
     adaptively with ``rtol``/``atol`` starting from ``dt / substeps`` (diffrax solvers).
+    ``substeps: auto`` lets :func:`mysim_jax.build.build` choose the number of sub-steps
+    from the explicit stability limit of the stiffest spring, joint or contact (with a
+    safety factor; 1 for the adaptive solvers).
     """
 
     t_end: PosFloat
     dt: PosFloat
-    substeps: Annotated[int, Field(ge=1)] = 1
+    substeps: Union[Annotated[int, Field(ge=1)], Literal["auto"]] = 1
     output_dt: PosFloat
     integrator: Literal["semi_implicit_euler", "rk4", "tsit5", "kvaerno5"] = "semi_implicit_euler"
     precision: Literal["float32", "float64"] = "float32"
@@ -236,6 +242,8 @@ class SceneConfig(_Strict):
     joints: list[JointConfig] = []
     loads: list[LoadConfig] = []
     output: OutputConfig = OutputConfig()
+    contact: ContactConfig | None = None     # see mysim_jax/contact/config.py
+    quadrotors: list[QuadrotorConfig] = []   # see mysim_jax/control/config.py
 
     @model_validator(mode="after")
     def _references(self):
@@ -308,6 +316,11 @@ class SceneConfig(_Strict):
         for i, name in enumerate(self.output.plot):
             if name not in plottable:
                 problems.append(f"output.plot.{i}: '{name}' is not a point or body")
+        if self.contact is not None:
+            points = [p.name for p in self.points] + [f"{r.name}_{j}" for r in self.ropes for j in range(r.n_masses)]
+            problems += resolve_members(self.contact, points, [b.name for b in self.bodies],
+                                        self.anchor_names())[1]
+        problems += quadrotor_problems(self)
         if problems:
             raise ValueError("; ".join(problems))
         return self
@@ -326,6 +339,7 @@ class SceneConfig(_Strict):
     def trajectory_names(self) -> set[str]:
         """Points (including rope masses) and bodies: the things that move."""
         names = {p.name for p in self.points} | {b.name for b in self.bodies}
+        names |= {c.name for q in self.quadrotors for c in q.cameras}
         for r in self.ropes:
             names |= {f"{r.name}_{j}" for j in range(r.n_masses)}
         return names

@@ -27,10 +27,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from mysim_jax.contact.forces import contact_forces
+from mysim_jax.control.actuation import actuate
 from mysim_jax.dynamics import constraints as _constraints
 from mysim_jax.dynamics.forces import ForceStage, Loads, spring_forces
+from mysim_jax.dynamics.gimbal import gimbal_servo_forces
 from mysim_jax.dynamics.integrators import FIXED_STEP, state_derivative
 from mysim_jax.dynamics.markers import distribute_node_forces, node_states
+from mysim_jax.dynamics.quadrotor import aerodynamic_forces, rotor_forces
 from mysim_jax.dynamics.quaternion import quat_normalize
 from mysim_jax.dynamics.rigid_body import body_accelerations, inertia_inverse
 from mysim_jax.types import Accelerations, Params, PhysState, Scene, State
@@ -57,6 +61,14 @@ def force_stages(scene: Scene) -> tuple[tuple[str, ForceStage], ...]:
         stages.append(("spring_forces", _spring_stage))
     if scene.has_loads:
         stages.append(("applied_loads", _load_stage))
+    if scene.contact is not None:
+        stages.append(("contact_forces", contact_forces))
+    if scene.quadrotor is not None:
+        stages.append(("rotor_forces", rotor_forces))
+        if scene.quadrotor.has_drag or scene.quadrotor.has_wind:
+            stages.append(("aerodynamic_forces", aerodynamic_forces))
+        if scene.quadrotor.n_gimbals:
+            stages.append(("gimbal_servo", gimbal_servo_forces))
     return tuple(stages)
 
 
@@ -146,8 +158,26 @@ def solve_adaptive(scene: Scene, params: Params, phys: PhysState, t0, t1, ts=Non
     return ys
 
 
+def held_inputs(scene: Scene, params: Params, state: State, control=None):
+    """The actuator inputs held over the next step, and the updated controller memory.
+
+    Scenes with quadrotors run their control stage here (controller, or the caller's
+    motor commands ``control``, then the motor model; :mod:`mysim_jax.control.actuation`);
+    other scenes pass ``control`` through unchanged.
+    """
+    if scene.quadrotor is None:
+        return control, state.controller
+    with jax.named_scope("control"):
+        return actuate(scene, params, state, control)
+
+
 def step(scene: Scene, params: Params, state: State, control=None) -> State:
-    """Advance one environment by ``scene.dt``. Pure; vmap and jit at the call site."""
+    """Advance one environment by ``scene.dt``. Pure; vmap and jit at the call site.
+
+    The control stage (:func:`held_inputs`) runs once at the start of the step; its
+    output is held over the sub-steps (zero-order hold).
+    """
+    control, memory = held_inputs(scene, params, state, control)
     if scene.integrator in FIXED_STEP:
         integrator = FIXED_STEP[scene.integrator]
         h = jnp.asarray(scene.substep, dtype=state.time.dtype)
@@ -162,7 +192,8 @@ def step(scene: Scene, params: Params, state: State, control=None) -> State:
             phys = jax.lax.fori_loop(0, scene.substeps, lambda _, p: integrator.step(accel, p, h), phys)
     else:
         phys = solve_adaptive(scene, params, state.phys, state.time, state.time + scene.dt, inputs=control)
-    return State(phys=phys, time=state.time + jnp.asarray(scene.dt, dtype=state.time.dtype))
+    return state.replace(phys=phys, time=state.time + jnp.asarray(scene.dt, dtype=state.time.dtype),
+                         controller=memory)
 
 
 def rollout(scene: Scene, params: Params, state: State, n_steps: int, every: int = 1):
@@ -188,6 +219,7 @@ class Trajectory:
     time: np.ndarray          # (n_out,)
     phys: PhysState           # leaves (n_out, ...) as NumPy arrays
     acc: Accelerations        # leaves (n_out, ...) as NumPy arrays
+    controller: object = None  # ControlState leaves (n_out, ...) (quadrotor scenes), else None
 
 
 def output_times(scene: Scene) -> np.ndarray:
@@ -201,34 +233,44 @@ def simulate(scene: Scene, params: Params, state: State, progress: bool = True, 
 
     Fixed-step integrators run as jitted ``lax.scan`` chunks of ``chunk`` outputs with a
     progress bar between chunks; adaptive solvers run as one diffrax solve (with diffrax's
-    progress meter). Accelerations are evaluated exactly at the saved states.
+    progress meter). Scenes with quadrotors always step (their controller acts once per
+    step). Accelerations are evaluated exactly at the saved states, with the actuator
+    inputs the controller holds from there.
     """
     times = output_times(scene)
     dtype = scene.dtype
-    if scene.integrator in FIXED_STEP:
+    memory = None
+    if scene.integrator in FIXED_STEP or scene.quadrotor is not None:
         every = int(round(scene.output_dt / scene.dt))
         n_out = len(times) - 1
         advance = jax.jit(lambda p, s: rollout(scene, p, s, chunk * every, every))
-        pieces = [jax.tree.map(lambda a: np.asarray(a)[None], state.phys)]
+        pieces = [jax.tree.map(lambda a: np.asarray(a)[None], state)]
         done = 0
         bar = _progress(n_out, progress, scene)
         while done < n_out:
             state, traj = advance(params, state)
             take = min(chunk, n_out - done)
-            pieces.append(jax.tree.map(lambda a: np.asarray(a)[:take], traj.phys))
+            pieces.append(jax.tree.map(lambda a: np.asarray(a)[:take], traj))
             done += take
             if bar is not None:
                 bar.update(take)
         if bar is not None:
             bar.close()
-        phys = jax.tree.map(lambda *xs: np.concatenate(xs, axis=0), *pieces)
+        states = jax.tree.map(lambda *xs: np.concatenate(xs, axis=0), *pieces)
+        phys, memory = states.phys, states.controller
     else:
         ts = jnp.asarray(times, dtype=dtype)
         run = jax.jit(lambda p, y: solve_adaptive(scene, p, y, ts[0], ts[-1], ts, progress))
         phys = jax.tree.map(np.asarray, run(params, state.phys))
-    acc_fn = jax.jit(jax.vmap(lambda y: accelerations(scene, params, y)))
-    acc = jax.tree.map(np.asarray, acc_fn(jax.tree.map(jnp.asarray, phys)))
-    return Trajectory(time=times, phys=phys, acc=acc)
+    if memory is None:
+        acc_fn = jax.jit(jax.vmap(lambda y: accelerations(scene, params, y)))
+        acc = jax.tree.map(np.asarray, acc_fn(jax.tree.map(jnp.asarray, phys)))
+    else:
+        def acc_at(s):
+            return accelerations(scene, params, s.phys, held_inputs(scene, params, s)[0])
+
+        acc = jax.tree.map(np.asarray, jax.jit(jax.vmap(acc_at))(jax.tree.map(jnp.asarray, states)))
+    return Trajectory(time=times, phys=phys, acc=acc, controller=memory)
 
 
 def _progress(total: int, enabled: bool, scene: Scene):

@@ -4,7 +4,8 @@
   exist, integrator settings. Frozen and hashable; changing it recompiles; never traced.
 * :class:`Params` — a pytree of float arrays: masses, inertias, marker offsets, spring
   constants, gravity, Baumgarte constants. Traced, differentiable, vmappable.
-* :class:`State` — a pytree: the multibody state :class:`PhysState` and the time.
+* :class:`State` — a pytree: the multibody state :class:`PhysState`, the time and (with
+  quadrotors) the controller memory.
 
 Attachment points ("nodes") are numbered in one table so that springs and rope segments
 can join anything with plain index arrays::
@@ -17,9 +18,16 @@ can join anything with plain index arrays::
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import jax.numpy as jnp
 from flax import struct
+
+from mysim_jax.contact.types import ContactParams, ContactScene
+
+if TYPE_CHECKING:  # annotations only: these modules import this one
+    from mysim_jax.control.pid import ControlParams, ControlState
+    from mysim_jax.dynamics.quadrotor import QuadrotorParams, QuadrotorScene
 
 
 @dataclass(frozen=True)
@@ -81,6 +89,10 @@ class Scene:
     # or "segment_sum" (scales to large nets); chosen in build() and measured in bench.py
     accumulate: str = "matmul"
     plot_names: tuple[str, ...] = field(default=())
+    # --- contact (mysim_jax/contact): None when the scene has no contact ---------------
+    contact: ContactScene | None = None
+    # --- quadrotors, their controller and cameras (mysim_jax/dynamics/quadrotor.py) ----
+    quadrotor: QuadrotorScene | None = None
 
     @property
     def n_points(self) -> int:
@@ -135,6 +147,9 @@ class Params:
     load_body_torque: jnp.ndarray    # (n_bodies, 3) N m, body frame
     baumgarte_alpha: jnp.ndarray     # () 1/s
     baumgarte_beta: jnp.ndarray      # () 1/s
+    contact: ContactParams | None = None   # contact constants and sphere radii (None: no contact)
+    quadrotor: QuadrotorParams | None = None   # rotors, motors, aerodynamics, gimbal servos
+    controller: ControlParams | None = None    # PID gains, controller model, references
 
 
 @struct.dataclass
@@ -164,3 +179,4 @@ class State:
 
     phys: PhysState
     time: jnp.ndarray         # () s
+    controller: ControlState | None = None   # PID integrators, motor speeds (quadrotor scenes)

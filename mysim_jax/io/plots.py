@@ -42,3 +42,35 @@ def plot_kinematics(columns: dict[str, np.ndarray], name: str, out_dir: str | Pa
         plt.close(fig)
         written.append(path)
     return written
+
+
+def plot_path(columns: dict[str, np.ndarray], name: str, out_dir: str | Path) -> Path:
+    """Write ``NAME_path.png``: reference (dashed) against actual path, top view (x-y) and
+    side view (x-z), and the position error against time. Needs ``NAME_ref_x/y/z``."""
+    out_dir = Path(out_dir)
+    t = columns["time"]
+    pos = np.stack([columns[f"{name}_{a}"] for a in "xyz"], axis=-1)
+    ref = np.stack([columns[f"{name}_ref_{a}"] for a in "xyz"], axis=-1)
+    err = np.linalg.norm(pos - ref, axis=-1)
+    fig, axes = plt.subplots(1, 3, figsize=(14, 4.2))
+    for ax, (i, j), title in zip(axes[:2], ((0, 1), (0, 2)), ("top view", "side view")):
+        ax.plot(ref[:, i], ref[:, j], "--", lw=1.2, color="0.4", label="reference")
+        ax.plot(pos[:, i], pos[:, j], lw=1.2, label="actual")
+        ax.plot(pos[0, i], pos[0, j], "o", ms=4, color="C0")
+        ax.set_xlabel(f"{'xyz'[i]} [m]")
+        ax.set_ylabel(f"{'xyz'[j]} [m]")
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.set_title(f"{name}: {title}")
+        ax.grid(alpha=0.3)
+    axes[0].legend(loc="best", fontsize=8)
+    axes[2].plot(t, err * 1e3, lw=1.0)
+    axes[2].set_xlabel("time [s]")
+    axes[2].set_ylabel("|position error| [mm]")
+    rms = float(np.sqrt(np.mean(err ** 2)))
+    axes[2].set_title(f"RMS {rms * 1e3:.3g} mm, max {err.max() * 1e3:.3g} mm")
+    axes[2].grid(alpha=0.3)
+    fig.tight_layout()
+    path = out_dir / f"{name}_path.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

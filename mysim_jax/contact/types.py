@@ -1,0 +1,61 @@
+"""Static contact structure (part of :class:`~mysim_jax.types.Scene`) and contact
+parameters (part of :class:`~mysim_jax.types.Params`).
+
+Spheres are numbered in one table: first the spheres on point masses, then those on
+rigid bodies (each centred on the body's centre of mass). Pairs and ground contacts are
+static index tuples into that table; all of them are evaluated every step and the ones
+not touching contribute exactly zero (sharp model) — no data-dependent shapes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import jax.numpy as jnp
+from flax import struct
+
+
+@dataclass(frozen=True)
+class ContactScene:
+    """Static contact structure of one scene. Hashable."""
+
+    sphere_names: tuple[str, ...]          # (n_spheres,) point names, then body names
+    sphere_point: tuple[int, ...]          # (n_point_spheres,) point index of each
+    sphere_body: tuple[int, ...]           # (n_body_spheres,) body index of each
+    pair_a: tuple[int, ...] = ()           # (n_pairs,) sphere index
+    pair_b: tuple[int, ...] = ()           # (n_pairs,) sphere index (force on b along a -> b)
+    ground_sphere: tuple[int, ...] = ()    # (n_ground,) spheres that touch the plane z = 0
+    model: str = "sharp"                   # "sharp" | "smooth"
+    friction: bool = False
+
+    @property
+    def n_spheres(self) -> int:
+        return len(self.sphere_point) + len(self.sphere_body)
+
+    @property
+    def n_pairs(self) -> int:
+        return len(self.pair_a)
+
+    @property
+    def n_ground(self) -> int:
+        return len(self.ground_sphere)
+
+    def pair_names(self) -> list[str]:
+        return [f"{self.sphere_names[a]}|{self.sphere_names[b]}" for a, b in zip(self.pair_a, self.pair_b)]
+
+
+@struct.dataclass
+class ContactParams:
+    """Traced contact constants (differentiable; vmap for sweeps)."""
+
+    radius: jnp.ndarray            # (n_spheres,) m
+    stiffness: jnp.ndarray         # () k, N/m^n
+    exponent: jnp.ndarray          # () n
+    damping: jnp.ndarray           # () c, N s/m
+    damping_depth: jnp.ndarray     # () p, m
+    mu_static: jnp.ndarray         # ()
+    mu_dynamic: jnp.ndarray        # ()
+    v_static: jnp.ndarray          # () m/s
+    v_dynamic: jnp.ndarray         # () m/s
+    smooth_depth: jnp.ndarray      # () m, width of the smooth model
+    smooth_velocity: jnp.ndarray   # () m/s, slip regularisation of the smooth model

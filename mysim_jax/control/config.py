@@ -1,0 +1,366 @@
+"""Configuration of quadrotors: rotors, motors, aerodynamics, controller, reference
+trajectory and cameras (the ``quadrotors:`` section of a scene file).
+
+Every default is the paper's (Table UAV_model, Table PID_controller, Table camera) unless
+its docstring says otherwise. This module only depends on pydantic so that
+:mod:`mysim_jax.config` can import it; :func:`quadrotor_problems` is the whole-scene
+check that :class:`~mysim_jax.config.SceneConfig` calls (bodies that do not exist,
+name clashes, a controller without a reference, ...).
+
+A minimal quadrotor names its rigid body (mass and inertia live on the body) and a
+reference::
+
+    bodies:
+      - {name: uav0, mass: 0.28, inertia: [1.4e-4, 1.4e-4, 2.17e-4], pos: [0, 0, 1]}
+    quadrotors:
+      - body: uav0
+        reference: {center: [0, 0, 1]}          # hover
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Literal
+
+import numpy as np
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, model_validator
+
+PosFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+NonNegFloat = Annotated[float, Field(ge=0, allow_inf_nan=False)]
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+Vec3 = tuple[Finite, Finite, Finite]
+NonNegVec3 = tuple[NonNegFloat, NonNegFloat, NonNegFloat]
+PosVec4 = tuple[PosFloat, PosFloat, PosFloat, PosFloat]
+Vec4 = tuple[Finite, Finite, Finite, Finite]
+Pair = tuple[Finite, Finite]
+PosPair = tuple[PosFloat, PosFloat]
+Name = Annotated[str, Field(min_length=1, pattern=r"^[A-Za-z_][A-Za-z0-9_]*$")]
+
+
+def _unit_quat(q):
+    n = math.sqrt(sum(c * c for c in q))
+    if n < 1e-12:
+        raise ValueError("quaternion [w, x, y, z] must be non-zero")
+    return tuple(c / n for c in q)
+
+
+def _rotate(q, v):
+    """Rotate ``v`` by the unit quaternion ``q`` (w, x, y, z), NumPy."""
+    w, u = q[0], np.asarray(q[1:], dtype=float)
+    t = 2.0 * np.cross(u, v)
+    return np.asarray(v, dtype=float) + w * t + np.cross(u, t)
+
+
+UnitQuat = Annotated[tuple[Finite, Finite, Finite, Finite], AfterValidator(_unit_quat)]
+
+# --- paper defaults ------------------------------------------------------------------
+# Table UAV_model lists the rotor angles as 0.785, 2.36, 3.93, 5.50 rad: pi/4 + k pi/2
+# rounded to three digits. The rounded values are not symmetric (the rotors' centre of
+# thrust sits 0.4 mm off the body centre, so hover would need unequal motor speeds); the
+# defaults are the exact angles the table rounds.
+PAPER_ARM_LENGTH = (0.096, 0.096, 0.096, 0.096)                  # m
+PAPER_ROTOR_ANGLE = tuple(math.pi / 4 + k * math.pi / 2 for k in range(4))   # rad
+PAPER_LIFT_COEFFICIENT = (2.88e-7,) * 4                         # N s^2 / rad^2
+PAPER_TORQUE_COEFFICIENT = (7.24e-9,) * 4                       # N m s^2 / rad^2
+PAPER_SPIN = (1, -1, 1, -1)       # tau_psi = k (w1^2 - w2^2 + w3^2 - w4^2)
+# Motor limit (the paper gives none): 2440 rad/s (23 300 rpm) gives the paper's 0.28 kg
+# vehicle a thrust-to-weight ratio of 4 c w_max^2 / (m g) = 2.50, typical of small
+# camera quadrotors (hover at 1544 rad/s = 63 % of the maximum speed).
+DEFAULT_OMEGA_MAX = 2440.0                                      # rad/s
+PAPER_POSITION_GAINS = {"kp": (0.4, 0.4, 1.25), "ki": (0.05, 0.025, 0.05), "kd": (0.2, 0.12, 0.5)}
+PAPER_ATTITUDE_GAINS = {"kp": (7.0e4, 7.0e4, 6.0e4), "ki": (0.0, 0.0, 5.0e2), "kd": (2.0e4, 2.0e4, 1.2e4)}
+PAPER_CAMERA_OFFSET = (0.03, 0.0, -0.03)                        # m, UAV body frame
+PAPER_CAMERA_INERTIA = (2.17e-6, 4.83e-6, 5.67e-6)              # kg m^2
+PAPER_CAMERA_MASS = 0.02                                        # kg
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class RotorConfig(_Strict):
+    """Four rotors at ``d_i = l_i [sin θ_i, cos θ_i, 0]`` (body frame), thrust ``c_i ω_i²``
+    along body z, reaction torque ``spin_i k_i ω_i²`` about body z (``spin = +1``: the
+    rotor turns clockwise seen from above, so its drag torque on the body points up).
+
+    Motor speeds are clipped to ``[omega_min, omega_max]`` (rad/s). ``time_constant``
+    (s) adds first-order motor lag ``ω̇ = (ω_cmd − ω)/τ``; without it the motors follow
+    their command instantly.
+    """
+
+    arm_length: PosVec4 = PAPER_ARM_LENGTH
+    angle: Vec4 = PAPER_ROTOR_ANGLE
+    lift_coefficient: PosVec4 = PAPER_LIFT_COEFFICIENT
+    torque_coefficient: PosVec4 = PAPER_TORQUE_COEFFICIENT
+    spin: tuple[Literal[1, -1], Literal[1, -1], Literal[1, -1], Literal[1, -1]] = PAPER_SPIN
+    omega_min: NonNegFloat = 0.0
+    omega_max: PosFloat = DEFAULT_OMEGA_MAX
+    time_constant: PosFloat | None = None
+
+    @model_validator(mode="after")
+    def _check(self):
+        if self.omega_min >= self.omega_max:
+            raise ValueError(f"omega_min ({self.omega_min:g}) must be below omega_max ({self.omega_max:g})")
+        from mysim_jax.dynamics.quadrotor import allocation_matrix_np
+
+        m = allocation_matrix_np(self.arm_length, self.angle, self.lift_coefficient,
+                                 self.torque_coefficient, self.spin)
+        if np.linalg.cond(m) > 1e12:
+            raise ValueError("rotor layout cannot produce independent thrust and three torques "
+                             "(singular allocation matrix): check angle and spin")
+        return self
+
+
+class GainSet(_Strict):
+    """Per-axis PID gains ``[x, y, z]`` (position loop: world axes; attitude loop: body
+    roll, pitch, yaw axes). All gains are non-negative."""
+
+    kp: NonNegVec3
+    ki: NonNegVec3
+    kd: NonNegVec3
+
+
+class ControllerConfig(_Strict):
+    """The cascaded PID of paper Fig. entire_controller_pd (see :mod:`mysim_jax.control.pid`).
+
+    ``position`` gains are in N/m, N/(m s), N s/m (Table PID_controller). ``attitude``
+    gains are read in ``attitude_gain_units`` (see :mod:`mysim_jax.control.pid`):
+
+    * ``dyne_cm`` (default): torque gains in CGS units, dyn cm/rad = 1e-7 N m/rad. The
+      unit system in which the paper's gains are a textbook design (roll/pitch critically
+      damped on J = 1400 g cm²); it flies the vehicle best of the readings tried;
+    * ``rotor_speed_squared``: the attitude PID outputs a differential squared motor
+      speed (rad²/s² per rad) that the mixer adds with ± signs to every rotor;
+    * ``torque``: plain SI, N m/rad (with the paper's numbers the vehicle does not fly).
+
+    ``feedforward`` (differential flatness): ``acceleration`` adds ``m a_d`` to the
+    desired thrust; ``full`` (default) also feeds the reference's body rates and
+    accelerations (from its jerk and snap) to the attitude loop; ``none`` is plain PID.
+    ``max_tilt`` (rad) limits the tilt of the desired thrust vector. Integrators are clamped to ``±position_integral_limit`` (m s) and
+    ``±attitude_integral_limit`` (rad s) and frozen while a motor saturates
+    (anti-windup). ``mass`` is the mass the controller assumes (default: the UAV body
+    plus its cameras).
+    """
+
+    type: Literal["cascaded_pid"] = "cascaded_pid"
+    position: GainSet = GainSet(**PAPER_POSITION_GAINS)
+    attitude: GainSet = GainSet(**PAPER_ATTITUDE_GAINS)
+    attitude_gain_units: Literal["dyne_cm", "rotor_speed_squared", "torque"] = "dyne_cm"
+    feedforward: Literal["none", "acceleration", "full"] = "full"
+    max_tilt: Annotated[float, Field(gt=0, lt=math.pi / 2)] = 0.8
+    position_integral_limit: PosFloat = 2.0
+    attitude_integral_limit: PosFloat = 1.0
+    mass: PosFloat | None = None
+
+
+class YawReference(_Strict):
+    """``ψ_d(t) = center + amplitude sin(multiple φ(t) + phase)`` (rad)."""
+
+    center: Finite = 0.0
+    amplitude: Finite = 0.0
+    multiple: Finite = 1.0
+    phase: Finite = 0.0
+
+
+class ReferenceConfig(_Strict):
+    """A Lissajous reference ``r_d(t) = center + amplitude ⊙ sin(multiple ⊙ φ(t) + phase)``
+    with ``φ(t) = 2π s(t) / period``. ``s(t)`` ramps the speed up smoothly over ``ramp``
+    seconds (quintic smooth step on ``ṡ``, so position, velocity and acceleration of the
+    reference are continuous and start from rest); after the ramp ``s(t) = t − ramp/2``.
+
+    All amplitudes zero (the default) is a hover at ``center``. ``multiple = [1, 2, ·]``
+    draws a figure-eight.
+    """
+
+    type: Literal["lissajous"] = "lissajous"
+    center: Vec3
+    amplitude: Vec3 = (0.0, 0.0, 0.0)
+    multiple: Vec3 = (1.0, 2.0, 1.0)
+    phase: Vec3 = (0.0, 0.0, 0.0)
+    period: PosFloat = 1.0
+    ramp: NonNegFloat = 0.0
+    yaw: YawReference = YawReference()
+
+
+class WindConfig(_Strict):
+    """Wind as a world-frame force on the UAV body (N): a constant part plus one
+    ``1 − cos`` gust ``½ gust_force (1 − cos(2π (t − gust_start)/gust_duration))`` for
+    ``gust_start <= t <= gust_start + gust_duration``."""
+
+    force: Vec3 = (0.0, 0.0, 0.0)
+    gust_force: Vec3 = (0.0, 0.0, 0.0)
+    gust_start: NonNegFloat = 0.0
+    gust_duration: PosFloat = 1.0
+
+
+class ServoConfig(_Strict):
+    """PD angle servo of a gimbal: torque ``kp (a_cmd − a) − kd ȧ`` on each of the two
+    axes (N m/rad, N m s/rad). The defaults give the Table camera a ~10 Hz, well
+    damped servo (ω_n ≈ 60 rad/s, ζ ≈ 0.8)."""
+
+    kp: PosPair = (0.02, 0.02)
+    kd: PosPair = (5.0e-4, 5.0e-4)
+
+
+class GimbalCommand(_Strict):
+    """Commanded gimbal angles ``angle + amplitude sin(2π t / period)`` (rad, per axis)."""
+
+    angle: Pair = (0.0, 0.0)
+    amplitude: Pair = (0.0, 0.0)
+    period: PosPair = (1.0, 1.0)
+
+
+class CameraConfig(_Strict):
+    """A camera body attached to the UAV (paper Fig. camera_fixed / camera_universal).
+
+    ``mount: fixed`` — a fixed joint at ``offset`` (UAV body frame); the camera frame is
+    the UAV frame rotated by ``quat`` (camera → UAV body).
+    ``mount: gimbal`` — a universal joint at ``offset`` with a driven outer axis
+    (``outer_axis``, UAV body frame) and inner axis (``inner_axis``, camera frame),
+    perpendicular at zero angles, when the camera frame is the UAV frame rotated by
+    ``quat``. The camera's centre of mass is the joint point.
+    """
+
+    name: Name
+    mount: Literal["fixed", "gimbal"]
+    offset: Vec3 = PAPER_CAMERA_OFFSET
+    quat: UnitQuat = (1.0, 0.0, 0.0, 0.0)
+    mass: PosFloat = PAPER_CAMERA_MASS
+    inertia: tuple[PosFloat, PosFloat, PosFloat] = PAPER_CAMERA_INERTIA
+    outer_axis: Vec3 = (0.0, 0.0, 1.0)
+    inner_axis: Vec3 = (0.0, 1.0, 0.0)
+    servo: ServoConfig = ServoConfig()
+    command: GimbalCommand = GimbalCommand()
+
+    @model_validator(mode="after")
+    def _check(self):
+        fields = type(self).model_fields
+        gimbal_only = {k for k in ("outer_axis", "inner_axis", "servo", "command")
+                       if getattr(self, k) != fields[k].default}
+        if self.mount == "fixed" and gimbal_only:
+            raise ValueError(f"{', '.join(sorted(gimbal_only))}: only a gimbal camera has these")
+        a, b, c = sorted(self.inertia)
+        if c > a + b + 1e-12 * c:
+            raise ValueError(f"inertia {list(self.inertia)} violates the triangle inequality")
+        if self.mount == "gimbal":
+            outer, inner = np.asarray(self.outer_axis), np.asarray(self.inner_axis)
+            if np.linalg.norm(outer) < 1e-9 or np.linalg.norm(inner) < 1e-9:
+                raise ValueError("outer_axis and inner_axis must be non-zero")
+            inner_in_body = _rotate(self.quat, inner)
+            cosine = abs(outer @ inner_in_body) / (np.linalg.norm(outer) * np.linalg.norm(inner))
+            if cosine > 1e-6:
+                raise ValueError(
+                    f"outer_axis {list(self.outer_axis)} (UAV frame) and inner_axis {list(self.inner_axis)} "
+                    f"(camera frame, rotated by quat) must be perpendicular (cos angle = {cosine:.3g})"
+                )
+        return self
+
+
+class QuadrotorConfig(_Strict):
+    """A quadrotor: rotor forces on the rigid body ``body``, optionally under a
+    controller tracking ``reference``, with optional drag, wind and cameras.
+
+    ``drag`` (N s/m, body axes) is linear body drag ``F = −R D Rᵀ v``. ``controller:
+    null`` leaves the motors to the ``control`` argument of ``step`` (commanded motor
+    speeds, rad/s).
+    """
+
+    body: Name
+    rotors: RotorConfig = RotorConfig()
+    drag: NonNegVec3 | None = None
+    wind: WindConfig | None = None
+    controller: ControllerConfig | None = ControllerConfig()
+    reference: ReferenceConfig | None = None
+    cameras: list[CameraConfig] = []
+
+
+def quadrotor_problems(scene) -> list[str]:
+    """Whole-scene checks of ``scene.quadrotors`` (called by SceneConfig's validator)."""
+    problems: list[str] = []
+    bodies = {b.name: b for b in scene.bodies}
+    taken = {p.name for p in scene.points} | set(bodies) | {a.name for a in scene.anchors}
+    taken |= {r.name for r in scene.ropes} | {s.name for s in scene.springs}
+    taken |= {f"{r.name}_{j}" for r in scene.ropes for j in range(r.n_masses)}
+    seen_bodies: dict[str, int] = {}
+    has_controller = [q.controller is not None for q in scene.quadrotors]
+    for i, q in enumerate(scene.quadrotors):
+        where = f"quadrotors.{i}"
+        if q.body not in bodies:
+            known = ", ".join(sorted(bodies)) or "none"
+            problems.append(f"{where}.body: '{q.body}' is not a body (bodies: {known})")
+        elif q.body in seen_bodies:
+            problems.append(f"{where}.body: body '{q.body}' is already quadrotors.{seen_bodies[q.body]}")
+        else:
+            seen_bodies[q.body] = i
+        if q.controller is not None and q.reference is None:
+            problems.append(f"{where}.reference: a quadrotor with a controller needs a reference trajectory")
+        if q.controller is None and q.reference is not None:
+            problems.append(f"{where}.reference: only used by a controller (controller is null)")
+        if any(has_controller) and not all(has_controller):
+            problems.append(f"{where}.controller: either every quadrotor has a controller or none has")
+        marker_names = {m.name for m in bodies[q.body].markers} if q.body in bodies else set()
+        for j, cam in enumerate(q.cameras):
+            if cam.name in taken:
+                problems.append(f"{where}.cameras.{j}.name: '{cam.name}' is already used")
+            taken.add(cam.name)
+            if f"{cam.name}_mount" in marker_names:
+                problems.append(f"{where}.cameras.{j}.name: body '{q.body}' already has a marker "
+                                f"'{cam.name}_mount' (the camera's mount marker)")
+    return problems
+
+
+class GainsFile(_Strict):
+    """A gains file (``scripts/tune_pid.py`` writes one; ``simulate.py --gains`` reads it):
+    either one ``controller`` section for every quadrotor, or a ``quadrotors`` list of
+    ``{controller: ...}`` by index."""
+
+    class _Controller(_Strict):
+        position: GainSet
+        attitude: GainSet
+
+    class _Quad(_Strict):
+        controller: "GainsFile._Controller"
+
+    controller: _Controller | None = None
+    quadrotors: list[_Quad] | None = None
+
+    @model_validator(mode="after")
+    def _one_form(self):
+        if (self.controller is None) == (self.quadrotors is None):
+            raise ValueError("give either 'controller' (all quadrotors) or 'quadrotors' (by index)")
+        return self
+
+
+def gain_overrides(gains_path, config_path) -> list[str]:
+    """``--set``-style overrides that put the gains of ``gains_path`` into the scene file
+    ``config_path``. Raises :class:`~mysim_jax.config.ConfigError` naming the problem."""
+    from pathlib import Path
+
+    import yaml
+    from pydantic import ValidationError
+
+    from mysim_jax.config import ConfigError, _format_validation_error
+
+    gains_path, config_path = Path(gains_path), Path(config_path)
+    for p in (gains_path, config_path):
+        if not p.is_file():
+            raise ConfigError(f"{p}: no such file")
+    try:
+        gains = GainsFile.model_validate(yaml.safe_load(gains_path.read_text()))
+        raw = yaml.safe_load(config_path.read_text()) or {}
+    except ValidationError as err:
+        raise ConfigError(f"{gains_path}: invalid gains file\n{_format_validation_error(err)}") from None
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"broken YAML: {exc}") from None
+    n_quads = len(raw.get("quadrotors") or []) if isinstance(raw, dict) else 0
+    if n_quads == 0:
+        raise ConfigError(f"--gains {gains_path}: scene {config_path} has no quadrotors")
+    per_quad = [gains.controller] * n_quads if gains.controller is not None else [q.controller for q in gains.quadrotors]
+    if len(per_quad) != n_quads:
+        raise ConfigError(f"{gains_path}: quadrotors: {len(per_quad)} entries, the scene has {n_quads} quadrotors")
+    out = []
+    for i, ctrl in enumerate(per_quad):
+        for loop in ("position", "attitude"):
+            for k in ("kp", "ki", "kd"):
+                out.append(f"quadrotors.{i}.controller.{loop}.{k}={list(getattr(getattr(ctrl, loop), k))}")
+    return out
