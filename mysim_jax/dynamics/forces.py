@@ -21,7 +21,7 @@ import numpy as np
 from flax import struct
 
 from mysim_jax import vecmath
-from mysim_jax.dynamics.markers import scatter_rows
+from mysim_jax.dynamics.markers import scatter_rows, take_rows
 from mysim_jax.types import Params, Scene
 
 
@@ -63,8 +63,8 @@ def spring_forces(scene: Scene, params: Params, node_pos, node_vel):
     """Forces ``(n_nodes, 3)`` that all springs exert on the nodes they join."""
     a = np.asarray(scene.spring_node_a, dtype=np.int32)
     b = np.asarray(scene.spring_node_b, dtype=np.int32)
-    dx = node_pos[b] - node_pos[a]
-    dv = node_vel[b] - node_vel[a]
+    dx = take_rows(node_pos, b) - take_rows(node_pos, a)
+    dv = take_rows(node_vel, b) - take_rows(node_vel, a)
     length, unit = vecmath.safe_unit(dx)
     rate = vecmath.dot(dv, unit)
     tension = spring_tension(
@@ -78,11 +78,11 @@ def spring_forces(scene: Scene, params: Params, node_pos, node_vel):
         signed[a, np.arange(a.shape[0])] += 1.0
         signed[b, np.arange(b.shape[0])] -= 1.0
         return jnp.asarray(signed, dtype=f.dtype) @ f
-    return scatter_rows(f, a, n, "segment_sum") - scatter_rows(f, b, n, "segment_sum")
+    return scatter_rows(f, a, n, scene.accumulate) - scatter_rows(f, b, n, scene.accumulate)
 
 
 def spring_lengths(scene: Scene, node_pos):
     """Current length of every spring ``(n_springs,)``."""
     a = np.asarray(scene.spring_node_a, dtype=np.int32)
     b = np.asarray(scene.spring_node_b, dtype=np.int32)
-    return vecmath.safe_norm(node_pos[b] - node_pos[a])
+    return vecmath.safe_norm(take_rows(node_pos, b) - take_rows(node_pos, a))

@@ -51,13 +51,62 @@ def node_states(scene: Scene, params: Params, phys: PhysState):
     return jnp.concatenate(pos, axis=0), jnp.concatenate(vel, axis=0)
 
 
+def index_runs(index) -> tuple[tuple[int, int, int, int], ...]:
+    """Split a static index array into runs ``(out_start, src_start, length, stride)``.
+
+    A run is a maximal stretch of ``index`` that counts up by one (``stride`` 1) or
+    repeats one value (``stride`` 0): ``index[out_start + i] == src_start + stride * i``.
+    Rope segments, contact pairs ("ball vs all net points") and marker tables are a few
+    such runs, which XLA handles as slices and broadcasts instead of gathers/scatters.
+    """
+    index = np.asarray(index, dtype=np.int64).reshape(-1)
+    runs, i, k = [], 0, index.shape[0]
+    while i < k:
+        j = i + 1
+        stride = int(index[j] - index[i]) if j < k and index[j] - index[i] in (0, 1) else 1
+        while j < k and index[j] - index[j - 1] == stride:
+            j += 1
+        runs.append((i, int(index[i]), j - i, stride))
+        i = j
+    return tuple(runs)
+
+
+# Use slices while the index has at most this many runs (or at most a quarter as many
+# runs as entries); beyond that the many small slices cost more than one gather.
+MAX_SLICE_RUNS = 8
+
+
+def _few_runs(runs, k: int) -> bool:
+    return len(runs) <= max(MAX_SLICE_RUNS, k // 4)
+
+
+def take_rows(x, index):
+    """``x[index]`` for a static integer ``index`` ``(k,)``, as slices when it has few runs.
+
+    Under ``vmap`` XLA:CPU lowers a gather with a constant index array to a per-element
+    loop; contiguous slices and broadcasts are much cheaper (BENCHMARKS.md, section f).
+    Results are identical to ``x[index]``.
+    """
+    index = np.asarray(index, dtype=np.int32).reshape(-1)
+    runs = index_runs(index)
+    if not runs:
+        return x[index]
+    if not _few_runs(runs, index.shape[0]):
+        return x[index]
+    pieces = [x[s:s + n] if stride else jnp.broadcast_to(x[s:s + 1], (n,) + x.shape[1:])
+              for _, s, n, stride in runs]
+    return pieces[0] if len(pieces) == 1 else jnp.concatenate(pieces, axis=0)
+
+
 def scatter_rows(values, index, n: int, method: str):
     """Sum rows of ``values`` ``(k, 3)`` into ``n`` rows by the static ``index`` ``(k,)``.
 
-    ``method="matmul"`` multiplies by a constant one-hot matrix (fastest for small
-    graphs on CPU, see BENCHMARKS.md); ``"segment_sum"`` uses ``jax.ops.segment_sum``.
+    ``method="matmul"`` multiplies by a constant one-hot matrix (fastest for small graphs
+    at large batch on CPU); ``"segment_sum"`` uses ``jax.ops.segment_sum`` (fastest for a
+    single environment). BENCHMARKS.md section (b) measures both, and a padded-slice sum
+    per run of ``index``, which was slower than both at every batch size.
     """
-    index = np.asarray(index, dtype=np.int32)
+    index = np.asarray(index, dtype=np.int32).reshape(-1)
     if method == "matmul":
         onehot = np.zeros((n, index.shape[0]), dtype=np.float64)
         onehot[index, np.arange(index.shape[0])] = 1.0
