@@ -19,8 +19,10 @@ host-side driver that writes outputs.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
+from functools import partial
 
 import diffrax
 import jax
@@ -228,6 +230,25 @@ def output_times(scene: Scene) -> np.ndarray:
     return np.arange(n + 1) * scene.output_dt
 
 
+@partial(jax.jit, static_argnums=(0, 3, 4))
+def _advance(scene: Scene, params: Params, state: State, n_steps: int, every: int):
+    return rollout(scene, params, state, n_steps, every)
+
+
+@partial(jax.jit, static_argnums=(0, 4))
+def _solve_on_grid(scene: Scene, params: Params, phys: PhysState, ts, progress: bool):
+    return solve_adaptive(scene, params, phys, ts[0], ts[-1], ts, progress)
+
+
+@partial(jax.jit, static_argnums=0)
+def _accelerations_on_grid(scene: Scene, params: Params, states: State):
+    """Accelerations at stacked states, with the inputs the controller holds there."""
+    def at(s):
+        inputs = held_inputs(scene, params, s)[0] if scene.quadrotor is not None else None
+        return accelerations(scene, params, s.phys, inputs)
+    return jax.vmap(at)(states)
+
+
 def simulate(scene: Scene, params: Params, state: State, progress: bool = True, chunk: int = 200) -> Trajectory:
     """Run the scene from ``state`` to ``scene.t_end``, saving every ``scene.output_dt``.
 
@@ -236,19 +257,24 @@ def simulate(scene: Scene, params: Params, state: State, progress: bool = True, 
     progress meter). Scenes with quadrotors always step (their controller acts once per
     step). Accelerations are evaluated exactly at the saved states, with the actuator
     inputs the controller holds from there.
+
+    The compiled functions are cached per Scene (``params`` and ``state`` are arguments,
+    not constants): a second call with new params or a new state does not recompile.
+    This runs one environment, for which ``segment_sum`` node-force accumulation is
+    faster than the dense ``matmul`` that suits large batches (BENCHMARKS.md, section b),
+    so the scene is run with ``accumulate="segment_sum"``; the results are the same.
     """
+    scene = dataclasses.replace(scene, accumulate="segment_sum")
     times = output_times(scene)
-    dtype = scene.dtype
     memory = None
     if scene.integrator in FIXED_STEP or scene.quadrotor is not None:
         every = int(round(scene.output_dt / scene.dt))
         n_out = len(times) - 1
-        advance = jax.jit(lambda p, s: rollout(scene, p, s, chunk * every, every))
         pieces = [jax.tree.map(lambda a: np.asarray(a)[None], state)]
         done = 0
         bar = _progress(n_out, progress, scene)
         while done < n_out:
-            state, traj = advance(params, state)
+            state, traj = _advance(scene, params, state, chunk * every, every)
             take = min(chunk, n_out - done)
             pieces.append(jax.tree.map(lambda a: np.asarray(a)[:take], traj))
             done += take
@@ -259,17 +285,10 @@ def simulate(scene: Scene, params: Params, state: State, progress: bool = True, 
         states = jax.tree.map(lambda *xs: np.concatenate(xs, axis=0), *pieces)
         phys, memory = states.phys, states.controller
     else:
-        ts = jnp.asarray(times, dtype=dtype)
-        run = jax.jit(lambda p, y: solve_adaptive(scene, p, y, ts[0], ts[-1], ts, progress))
-        phys = jax.tree.map(np.asarray, run(params, state.phys))
-    if memory is None:
-        acc_fn = jax.jit(jax.vmap(lambda y: accelerations(scene, params, y)))
-        acc = jax.tree.map(np.asarray, acc_fn(jax.tree.map(jnp.asarray, phys)))
-    else:
-        def acc_at(s):
-            return accelerations(scene, params, s.phys, held_inputs(scene, params, s)[0])
-
-        acc = jax.tree.map(np.asarray, jax.jit(jax.vmap(acc_at))(jax.tree.map(jnp.asarray, states)))
+        ts = jnp.asarray(times, dtype=scene.dtype)
+        phys = jax.tree.map(np.asarray, _solve_on_grid(scene, params, state.phys, ts, bool(progress)))
+        states = State(phys=phys, time=times.astype(phys.point_pos.dtype))
+    acc = jax.tree.map(np.asarray, _accelerations_on_grid(scene, params, jax.tree.map(jnp.asarray, states)))
     return Trajectory(time=times, phys=phys, acc=acc, controller=memory)
 
 
