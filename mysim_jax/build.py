@@ -18,7 +18,7 @@ import numpy as np
 from mysim_jax.config import FIXED_STEP_INTEGRATORS, ConfigError, SceneConfig
 from mysim_jax.contact.build import build_contact, contact_stable_step
 from mysim_jax.control.build import build_quadrotors, expand_cameras
-from mysim_jax.dynamics.stability import spring_stable_steps, stable_step
+from mysim_jax.dynamics.stability import network_stable_step, stable_step
 from mysim_jax.net.rope import build_rope
 from mysim_jax.types import JointBucket, Params, PhysState, Scene, State
 
@@ -227,7 +227,8 @@ def build(config: SceneConfig):
     body_mass = np.asarray([b.mass for b in config.bodies], float).reshape(-1)
     inertia = np.asarray([_inertia_matrix(b.inertia) for b in config.bodies], float).reshape(-1, 3, 3)
     substeps = _check_stability(config, scene, point_mass, body_mass, inertia, t.marker_pos,
-                                np.asarray(stiffness, float), np.asarray(damping, float))
+                                np.asarray(stiffness, float), np.asarray(damping, float),
+                                np.asarray(t.point_pos, float).reshape(-1, 3))
     scene = dataclasses.replace(scene, substeps=substeps)
 
     dtype = scene.dtype
@@ -324,7 +325,18 @@ def _joint_buckets(config: SceneConfig, body_index, anchor_index, marker_names) 
     return tuple(out)
 
 
-def _check_stability(config, scene, point_mass, body_mass, inertia, marker_pos, stiffness, damping) -> int:
+def _initial_node_positions(config, scene, point_pos, marker_pos) -> np.ndarray:
+    """World positions ``(n_nodes, 3)`` of all nodes in the initial configuration."""
+    rows = [np.asarray(point_pos, float).reshape(-1, 3)]
+    bodies = config.bodies
+    rows.append(np.asarray([np.asarray(bodies[b].pos, float) + _np_rotate(np.asarray(bodies[b].quat, float), marker_pos[m])
+                            for m, b in enumerate(scene.marker_body)], float).reshape(-1, 3))
+    rows.append(np.asarray([a.pos for a in config.anchors], float).reshape(-1, 3))
+    return np.concatenate(rows, axis=0)
+
+
+def _check_stability(config, scene, point_mass, body_mass, inertia, marker_pos, stiffness, damping,
+                     node_pos_points) -> int:
     """Reject a fixed step above the explicit limit of the stiffest spring, joint or
     contact; resolve ``substeps: auto``. Returns the number of sub-steps to take."""
     integrator = config.sim.integrator
@@ -335,31 +347,45 @@ def _check_stability(config, scene, point_mass, body_mass, inertia, marker_pos, 
     n_points, n_markers = scene.n_points, scene.n_markers
     marker_pos = np.asarray(marker_pos, float).reshape(-1, 3)
 
-    def inv_mass(node):
-        if node < n_points:
-            return 1.0 / point_mass[node], scene.point_names[node]
-        if node < n_points + n_markers:
-            m = node - n_points
-            b = scene.marker_body[m]
-            # a force at an offset marker also turns the body: 1/m_eff <= 1/m + r²/I_min
-            r2 = float(marker_pos[m] @ marker_pos[m])
-            i_min = float(np.linalg.eigvalsh(inertia[b]).min())
-            return 1.0 / body_mass[b] + r2 / i_min, scene.marker_names[m]
-        return 0.0, scene.anchor_names[node - n_points - n_markers]
-
     problems, limits = [], []
     if scene.n_springs:
-        ends_a = [inv_mass(n) for n in scene.spring_node_a]
-        ends_b = [inv_mass(n) for n in scene.spring_node_b]
-        spring_limits = spring_stable_steps(integrator, stiffness, damping,
-                                            [e[0] for e in ends_a], [e[0] for e in ends_b])
-        worst = int(np.argmin(spring_limits))
-        limits.append(spring_limits[worst])
-        if h > spring_limits[worst]:
+        # the spring network: one 3-DOF node per point mass and per body (a force at an
+        # offset marker also turns the body: 1/m_eff <= 1/m + r²/I_min); anchors are fixed
+        inv_mass = list(1.0 / np.asarray(point_mass, float))
+        for b, body in enumerate(config.bodies):
+            i_min = float(np.linalg.eigvalsh(inertia[b]).min())
+            r2 = max([float(marker_pos[m] @ marker_pos[m]) for m in range(n_markers)
+                      if scene.marker_body[m] == b] or [0.0])
+            inv_mass.append(1.0 / body_mass[b] + r2 / i_min)
+
+        def dof_node(node):
+            if node < n_points:
+                return node
+            if node < n_points + n_markers:
+                return n_points + scene.marker_body[node - n_points]
+            return -1
+
+        def node_name(node):
+            if node < n_points:
+                return scene.point_names[node]
+            if node < n_points + n_markers:
+                return scene.marker_names[node - n_points]
+            return scene.anchor_names[node - n_points - n_markers]
+
+        world = _initial_node_positions(config, scene, node_pos_points, marker_pos)
+        d = world[list(scene.spring_node_b)] - world[list(scene.spring_node_a)]
+        length = np.linalg.norm(d, axis=1, keepdims=True)
+        direction = np.where(length > 0, d / np.where(length > 0, length, 1.0), 0.0)
+        limit, worst = network_stable_step(
+            integrator, [dof_node(x) for x in scene.spring_node_a], [dof_node(x) for x in scene.spring_node_b],
+            stiffness, damping, inv_mass, direction)
+        limits.append(limit)
+        if h > limit:
             problems.append(
-                f"spring '{scene.spring_names[worst]}' (k = {stiffness[worst]:.4g} N/m, "
-                f"c = {damping[worst]:.4g} N s/m, joining '{ends_a[worst][1]}' and "
-                f"'{ends_b[worst][1]}') is stable only below {spring_limits[worst]:.3g} s"
+                f"the spring network (its top mode strains spring '{scene.spring_names[worst]}' most: "
+                f"k = {stiffness[worst]:.4g} N/m, c = {damping[worst]:.4g} N s/m, joining "
+                f"'{node_name(scene.spring_node_a[worst])}' and '{node_name(scene.spring_node_b[worst])}') "
+                f"is stable only below {limit:.3g} s"
             )
     if config.joints:
         beta, alpha = config.baumgarte.beta, config.baumgarte.alpha

@@ -72,6 +72,12 @@ class BaumgarteConfig(_Strict):
     beta: NonNegFloat = 50.0
 
 
+# Smallest adaptive-solver tolerance accepted in float32. On the rope net, float32 tsit5
+# runs at rtol = atol = 1e-6 and at rtol 1e-5 / atol 1e-6, but atol 1e-7 (or the float64
+# defaults) exhausts max_steps (the error estimate is round-off noise).
+FLOAT32_MIN_TOLERANCE = 1e-6
+
+
 class SimConfig(_Strict):
     """Time integration settings.
 
@@ -92,6 +98,19 @@ class SimConfig(_Strict):
     rtol: PosFloat = 1e-8
     atol: PosFloat = 1e-10
     max_steps: Annotated[int, Field(ge=1)] = 10_000_000
+
+    @model_validator(mode="after")
+    def _float32_tolerances(self):
+        if self.precision == "float32" and self.integrator in ("tsit5", "kvaerno5"):
+            for key, value in (("atol", self.atol), ("rtol", self.rtol)):
+                if value < FLOAT32_MIN_TOLERANCE:
+                    raise ValueError(
+                        f"{key} = {value:g} is below what float32 resolves (round-off ~1e-7 on "
+                        "metre-scale coordinates): the adaptive solver would shrink its step "
+                        f"until max_steps. Use rtol and atol >= {FLOAT32_MIN_TOLERANCE:g} in "
+                        "float32 (e.g. 1e-5), or precision: float64"
+                    )
+        return self
 
     @model_validator(mode="after")
     def _grid(self):

@@ -1,11 +1,16 @@
 """Bad input gets a clear error naming the field, before anything compiles."""
 
+import dataclasses
+import re
+
 import jax
+import numpy as np
 import pytest
 import yaml
 
 from mysim_jax.build import build
 from mysim_jax.config import ConfigError, config_from_dict, dump_config, load_config
+from mysim_jax.sim import rollout
 
 from conftest import CONFIGS
 
@@ -69,17 +74,66 @@ def test_non_positive_physical_values(override, field):
 
 def test_step_above_stability_limit_names_dt_and_spring():
     msg = _err(overrides=["sim.integrator=semi_implicit_euler", "sim.dt=1e-3"], build_too=True)
-    assert "sim.dt" in msg and "stability limit" in msg and "r0[0]" in msg and "substeps >= 4" in msg
+    # the coupled network limit is 2.05e-4 s (see the next test), so 1e-3 s needs 5 sub-steps
+    assert "sim.dt" in msg and "stability limit" in msg and "r0[0]" in msg and "substeps >= 5" in msg
     # substeps fix it; the adaptive solvers have no explicit limit
-    for ov in (["sim.substeps=4"], ["sim.integrator=tsit5"]):
+    for ov in (["sim.substeps=5"], ["sim.integrator=tsit5"]):
         with jax.enable_x64(True):
             build(config_from_dict(_raw(), "x", ["sim.integrator=semi_implicit_euler", "sim.dt=1e-3"] + ov))
+
+
+def _network_limit(overrides):
+    """The stable step the config check computes for the rope net (parsed from its error)."""
+    msg = _err(overrides=["sim.integrator=semi_implicit_euler", "sim.dt=1", "sim.output_dt=1"] + overrides,
+               build_too=True)
+    return float(re.search(r"spring network .* is stable only below ([0-9.e+-]+) s", msg).group(1))
+
+
+@pytest.mark.float64
+@pytest.mark.parametrize("ea", [1e5, 4e5])
+def test_network_stability_limit_brackets_the_measured_blow_up(ea):
+    """The check's coupled estimate sits at the real limit: a run perturbed off the symmetric
+    plane (so every mode is excited) stays bounded at 0.9x the estimate and blows up at 1.1x.
+    (The per-spring estimate, 3.07e-4 s at EA = 1e5, would accept steps that blow up.)"""
+    ropes = [f"ropes.{i}.EA={ea:g}" for i in range(4)]
+    limit = _network_limit(ropes)
+    rng = np.random.default_rng(0)
+    finite = {}
+    for factor in (0.9, 1.1):
+        dt = factor * limit
+        cfg = config_from_dict(_raw(), "x", ["sim.integrator=semi_implicit_euler", "sim.precision=float64",
+                                             f"sim.dt={dt!r}", f"sim.output_dt={dt!r}", "sim.t_end=1"] + ropes)
+        if factor > 1:   # above the limit the check refuses; build the same scene at a stable dt and
+            # step it with the larger one (Scene.dt is static, the check is build-time only)
+            cfg = config_from_dict(_raw(), "x", ["sim.integrator=semi_implicit_euler", "sim.precision=float64",
+                                                 f"sim.dt={0.5 * limit!r}", f"sim.output_dt={0.5 * limit!r}"] + ropes)
+        scene, params, state = build(cfg)
+        scene = dataclasses.replace(scene, dt=dt, output_dt=dt)
+        pos = state.phys.point_pos + 1e-6 * rng.standard_normal(state.phys.point_pos.shape)
+        state = state.replace(phys=state.phys.replace(point_pos=pos))
+        final, _ = jax.jit(lambda s: rollout(scene, params, s, int(1.0 / dt), int(1.0 / dt)))(state)
+        finite[factor] = bool(np.isfinite(np.asarray(final.phys.point_pos)).all()
+                              and np.abs(np.asarray(final.phys.point_pos)).max() < 10.0)
+    assert finite == {0.9: True, 1.1: False}, (limit, finite)
 
 
 def test_stability_limit_tracks_the_spring_constants():
     # ten times stiffer ropes: 1e-4 s is no longer stable for semi-implicit Euler
     ov = ["sim.integrator=semi_implicit_euler"] + [f"ropes.{i}.EA=1e7" for i in range(4)]
     assert "stability limit" in _err(overrides=ov, build_too=True)
+    # with damping off the limit is 2/ω_max: four times the stiffness halves it
+    soft = _network_limit([f"ropes.{i}.damping=0" for i in range(4)])
+    stiff = _network_limit([f"ropes.{i}.damping=0" for i in range(4)] + [f"ropes.{i}.EA=4e5" for i in range(4)])
+    assert stiff == pytest.approx(0.5 * soft, rel=5e-3)   # the message prints 3 digits
+
+
+def test_float32_adaptive_tolerances_below_round_off_are_rejected():
+    msg = _err(overrides=["sim.precision=float32", "sim.integrator=tsit5", "sim.rtol=1e-5", "sim.atol=1e-8"])
+    assert "sim" in msg and "atol = 1e-08" in msg and "float64" in msg
+    assert "rtol" in _err(overrides=["sim.precision=float32", "sim.integrator=tsit5", "sim.rtol=1e-9",
+                                     "sim.atol=1e-5"])
+    config_from_dict(_raw(), "x", ["sim.precision=float32", "sim.integrator=tsit5", "sim.rtol=1e-5",
+                                   "sim.atol=1e-5"])
 
 
 def test_missing_references_are_named():
