@@ -249,6 +249,16 @@ def _accelerations_on_grid(scene: Scene, params: Params, states: State):
     return jax.vmap(at)(states)
 
 
+def single_env_scene(scene: Scene) -> Scene:
+    """The scene as ``simulate`` runs it: one environment, ``segment_sum`` accumulation.
+
+    Built scenes use the dense ``matmul`` accumulation that suits large batches; for a
+    single environment ``segment_sum`` is faster (BENCHMARKS.md, section b). The physics
+    is the same up to the order of floating-point additions.
+    """
+    return dataclasses.replace(scene, accumulate="segment_sum")
+
+
 def simulate(scene: Scene, params: Params, state: State, progress: bool = True, chunk: int = 200) -> Trajectory:
     """Run the scene from ``state`` to ``scene.t_end``, saving every ``scene.output_dt``.
 
@@ -260,11 +270,9 @@ def simulate(scene: Scene, params: Params, state: State, progress: bool = True, 
 
     The compiled functions are cached per Scene (``params`` and ``state`` are arguments,
     not constants): a second call with new params or a new state does not recompile.
-    This runs one environment, for which ``segment_sum`` node-force accumulation is
-    faster than the dense ``matmul`` that suits large batches (BENCHMARKS.md, section b),
-    so the scene is run with ``accumulate="segment_sum"``; the results are the same.
+    This runs one environment, so the scene is run as :func:`single_env_scene` makes it.
     """
-    scene = dataclasses.replace(scene, accumulate="segment_sum")
+    scene = single_env_scene(scene)
     times = output_times(scene)
     memory = None
     if scene.integrator in FIXED_STEP or scene.quadrotor is not None:

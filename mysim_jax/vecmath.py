@@ -2,7 +2,7 @@
 
 Arrays hold 3-vectors on their last axis (``(..., 3)``). The helpers spell out the
 three components instead of reducing over a size-3 minor axis: under ``jax.vmap`` on the
-CPU this keeps XLA's loops vectorised over the batch and was measured 1.6x faster on the
+CPU this keeps XLA's loops vectorised over the batch and was measured 1.6-2.0x faster on the
 rope-net benchmark (BENCHMARKS.md, section f).
 """
 
