@@ -134,6 +134,11 @@ def _vector_field(scene: Scene):
     return field
 
 
+# Solver steps between progress-bar refreshes: diffrax's default (20) redraws the bar
+# thousands of times in a contact scene (~1e5 steps), flooding logs with carriage returns.
+_PROGRESS_REFRESH_STEPS = 2000
+
+
 def solve_adaptive(scene: Scene, params: Params, phys: PhysState, t0, t1, ts=None, progress=False, inputs=None):
     """Integrate with the scene's diffrax solver from ``t0`` to ``t1``.
 
@@ -151,7 +156,7 @@ def solve_adaptive(scene: Scene, params: Params, phys: PhysState, t0, t1, ts=Non
         saveat=saveat,
         stepsize_controller=diffrax.PIDController(rtol=scene.rtol, atol=scene.atol),
         max_steps=scene.max_steps,
-        progress_meter=diffrax.TqdmProgressMeter() if progress else diffrax.NoProgressMeter(),
+        progress_meter=diffrax.TqdmProgressMeter(refresh_steps=_PROGRESS_REFRESH_STEPS) if progress else diffrax.NoProgressMeter(),
     )
     ys = sol.ys
     ys = ys.replace(body_quat=quat_normalize(ys.body_quat))

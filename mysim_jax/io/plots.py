@@ -11,6 +11,10 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 _QUANTITIES = (("", "position", "m"), ("v", "velocity", "m/s"), ("a", "acceleration", "m/s²"))
+# A panel's y-range spans at least this fraction of the largest range of the three axes:
+# an axis that only carries round-off (1e-12 m beside 0.5 m) shows as a flat line instead
+# of being auto-scaled into noise that looks like motion.
+_MIN_RELATIVE_SPAN = 1e-3
 
 
 def plot_kinematics(columns: dict[str, np.ndarray], name: str, out_dir: str | Path,
@@ -25,6 +29,8 @@ def plot_kinematics(columns: dict[str, np.ndarray], name: str, out_dir: str | Pa
     written = []
     for key, label, unit in _QUANTITIES:
         fig, axes = plt.subplots(3, 1, figsize=(7, 6.5), sharex=True)
+        spans = [np.ptp(columns[f"{name}_{key}{axis}"]) for axis in "xyz"]
+        min_span = _MIN_RELATIVE_SPAN * max(max(spans), 1e-12)
         for ax, axis in zip(axes, "xyz"):
             col = f"{name}_{key}{axis}"
             ax.plot(t, columns[col], lw=1.2, label="mysim_jax")
@@ -32,6 +38,10 @@ def plot_kinematics(columns: dict[str, np.ndarray], name: str, out_dir: str | Pa
                 ax.plot(reference["time"], reference[col], "--", lw=1.0, label=ref_label)
             ax.set_ylabel(f"{axis} [{unit}]")
             ax.grid(alpha=0.3)
+            low, high = ax.get_ylim()
+            if high - low < min_span:
+                mid = 0.5 * (low + high)
+                ax.set_ylim(mid - 0.5 * min_span, mid + 0.5 * min_span)
         axes[0].set_title(f"{name}: {label}")
         axes[-1].set_xlabel("time [s]")
         if reference is not None:
