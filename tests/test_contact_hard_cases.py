@@ -11,7 +11,8 @@ Each case asserts
   force acts, which stores up to k(v·h)ⁿ⁺¹/(n+1) of elastic energy at first touch
   (v = approach speed, h = step; 0.41 J for 10 m/s at h = 9.1e-6 s); that is allowed, with
   5 % slack (the 10 m/s explicit run reaches the bound itself), while the spheres
-  overlap, and out of contact E must be back below E(0) + tolerance — no bounce leaves with more energy than it came in with;
+  overlap, and out of contact E must be back below E(0) + tolerance — no bounce leaves
+  with more energy than it came in with;
 * no tunnelling: no sphere centre ever gets inside a sphere it touches (penetration below
   one radius) and the ball stays on the side it came from.
 
