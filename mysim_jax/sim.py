@@ -156,7 +156,8 @@ def solve_adaptive(scene: Scene, params: Params, phys: PhysState, t0, t1, ts=Non
         saveat=saveat,
         stepsize_controller=diffrax.PIDController(rtol=scene.rtol, atol=scene.atol),
         max_steps=scene.max_steps,
-        progress_meter=diffrax.TqdmProgressMeter(refresh_steps=_PROGRESS_REFRESH_STEPS) if progress else diffrax.NoProgressMeter(),
+        progress_meter=(diffrax.TqdmProgressMeter(refresh_steps=_PROGRESS_REFRESH_STEPS) if progress
+                        else diffrax.NoProgressMeter()),
     )
     ys = sol.ys
     ys = ys.replace(body_quat=quat_normalize(ys.body_quat))

@@ -2,8 +2,8 @@
 
 Arrays hold 3-vectors on their last axis (``(..., 3)``). The helpers spell out the
 three components instead of reducing over a size-3 minor axis: under ``jax.vmap`` on the
-CPU this keeps XLA's loops vectorised over the batch and was measured 1.6-2.0x faster on the
-rope-net benchmark (BENCHMARKS.md, section f).
+CPU this keeps XLA's loops vectorised over the batch; on the rope-net benchmark it was
+measured 1.5x faster (BENCHMARKS.md, section f; 1.7x in a run on another host).
 """
 
 from __future__ import annotations
