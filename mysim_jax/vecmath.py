@@ -3,7 +3,7 @@
 Arrays hold 3-vectors on their last axis (``(..., 3)``). The helpers spell out the
 three components instead of reducing over a size-3 minor axis: under ``jax.vmap`` on the
 CPU this keeps XLA's loops vectorised over the batch; on the rope-net benchmark it was
-measured 1.5x faster (BENCHMARKS.md, section f; 1.7x in a run on another host).
+measured 1.4x-1.7x faster across runs (BENCHMARKS.md, section f).
 """
 
 from __future__ import annotations
