@@ -18,6 +18,7 @@ import numpy as np
 from mysim_jax.config import FIXED_STEP_INTEGRATORS, ConfigError, SceneConfig
 from mysim_jax.contact.build import build_contact, contact_stable_step
 from mysim_jax.control.build import build_quadrotors, expand_cameras
+from mysim_jax.dynamics.joint_check import joint_problems
 from mysim_jax.dynamics.stability import network_stable_step, stable_step
 from mysim_jax.net.rope import build_rope
 from mysim_jax.types import JointBucket, Params, PhysState, Scene, State
@@ -66,6 +67,9 @@ def build(config: SceneConfig):
         )
     # quadrotor cameras become bodies, markers and joints (a new config; the input is not touched)
     config = expand_cameras(config)
+    problems = joint_problems(config)
+    if problems:
+        raise ConfigError("; ".join(problems))
     body_index = {b.name: i for i, b in enumerate(config.bodies)}
     anchor_index = {a.name: i for i, a in enumerate(config.anchors)}
 
@@ -211,8 +215,8 @@ def build(config: SceneConfig):
         integrator=config.sim.integrator,
         dt=config.sim.dt,
         substeps=1 if config.sim.substeps == "auto" else config.sim.substeps,
-        output_dt=config.sim.output_dt,
-        t_end=config.sim.t_end,
+        output_dt=config.sim.output_every * config.sim.dt,        # exactly on the step grid
+        t_end=config.sim.n_outputs * config.sim.output_every * config.sim.dt,
         precision=config.sim.precision,
         rtol=config.sim.rtol,
         atol=config.sim.atol,

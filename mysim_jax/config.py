@@ -5,9 +5,13 @@
 JAX code runs. Every problem is reported as a :class:`ConfigError` that names the field
 (``ropes.0.EA: Input should be greater than 0``) and the file it came from.
 
-Checks done here: unknown keys, wrong types or shapes, non-positive masses / lengths /
-stiffnesses, duplicate names, references (rope ends, spring ends, joint markers, loads) to
-things that do not exist, step sizes that do not divide the output interval. The explicit
+Checks done here: the file itself (UTF-8 YAML text without duplicate keys, see
+:mod:`mysim_jax.config_base`), unknown keys, wrong types or shapes, booleans where numbers
+belong, numbers beyond the accepted range, non-positive masses / lengths / stiffnesses,
+duplicate names, references (rope ends, spring ends, joint markers, loads) to things that
+do not exist, contact pairs that list no pair, an output grid that does not fit the step
+(``output_dt`` a whole multiple of ``dt``, ``t_end`` of ``output_dt``), and runs too
+long or too large to be meant (:data:`MAX_ENV_STEPS`, :data:`MAX_OUTPUT_VALUES`). The explicit
 stability check needs the assembled topology (masses on both ends of every spring), so it
 runs in :func:`mysim_jax.build.build`, still before anything compiles, and reports against
 ``sim.dt`` / ``sim.substeps``.
@@ -23,44 +27,33 @@ import math
 from pathlib import Path
 from typing import Annotated, Any, Literal, Union
 
+import numpy as np
 import yaml
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import Field, ValidationError, field_validator, model_validator
 
-from mysim_jax.contact.config import ContactConfig, resolve_members
+from mysim_jax.config_base import (MIN_POSITIVE, ConfigError, Finite, Name, NonNegFloat, PosFloat,
+                                   StrictModel, Tolerance, UnitQuat, Vec3, format_validation_error,
+                                   parse_yaml, read_yaml_file)
+from mysim_jax.contact.config import ContactConfig, contact_problems
 from mysim_jax.control.config import QuadrotorConfig, quadrotor_problems
+
+__all__ = ["ConfigError", "SceneConfig", "load_config", "config_from_dict", "apply_override", "dump_config"]
 
 INTEGRATORS = ("semi_implicit_euler", "rk4", "tsit5", "kvaerno5")
 FIXED_STEP_INTEGRATORS = ("semi_implicit_euler", "rk4")
 ADAPTIVE_INTEGRATORS = ("tsit5", "kvaerno5")
 
+# Run-size limits: a run beyond these is almost always a typo (t_end in ms, dt in s...).
+MAX_ENV_STEPS = 2**31 - 1          # environment steps of one run (the controller counts them in int32)
+MAX_OUTPUT_VALUES = 200_000_000    # saved numbers (rows x columns): 1.6 GB in memory, ~4 GB of CSV
+MAX_ROPE_MASSES = 10_000           # lumped masses of one rope
+MAX_OBJECTS = 100_000              # point masses (rope masses included) and bodies of a scene
+# output_dt / dt and t_end / output_dt must be whole numbers to this relative tolerance
+GRID_TOLERANCE = 1e-6
 
-class ConfigError(ValueError):
-    """A scene configuration is invalid. The message names every offending field."""
-
-
-PosFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
-NonNegFloat = Annotated[float, Field(ge=0, allow_inf_nan=False)]
-Finite = Annotated[float, Field(allow_inf_nan=False)]
-Vec3 = tuple[Finite, Finite, Finite]
 Quat = tuple[Finite, Finite, Finite, Finite]
-Name = Annotated[str, Field(min_length=1, pattern=r"^[A-Za-z_][A-Za-z0-9_]*$")]
 
-
-def _normalize_quat(q: Quat) -> Quat:
-    n = math.sqrt(sum(c * c for c in q))
-    if n < 1e-12:
-        raise ValueError("quaternion [w, x, y, z] must be non-zero")
-    return tuple(c / n for c in q)
-
-
-UnitQuat = Annotated[Quat, AfterValidator(lambda q: _normalize_quat(q))]
-
-
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-
-class BaumgarteConfig(_Strict):
+class BaumgarteConfig(StrictModel):
     """Baumgarte stabilisation of joint constraints: C̈ + 2·alpha·Ċ + beta²·C = 0.
 
     alpha [1/s] damps the velocity-level drift, beta [1/s] pulls the position error back.
@@ -78,7 +71,7 @@ class BaumgarteConfig(_Strict):
 FLOAT32_MIN_TOLERANCE = 1e-6
 
 
-class SimConfig(_Strict):
+class SimConfig(StrictModel):
     """Time integration settings.
 
     ``dt`` is the environment step (controls are held over it); the integrator advances
@@ -87,17 +80,33 @@ class SimConfig(_Strict):
     ``substeps: auto`` lets :func:`mysim_jax.build.build` choose the number of sub-steps
     from the explicit stability limit of the stiffest spring, joint or contact (with a
     safety factor; 1 for the adaptive solvers).
+
+    ``output_dt`` must be a whole multiple of ``dt`` and ``t_end`` a whole multiple of
+    ``output_dt`` (to a relative 1e-6; the run then uses the exact multiples,
+    :attr:`output_every` steps per output and :attr:`n_outputs` outputs after the
+    initial state), so that the run covers exactly ``t_end`` and every saved row lies
+    on a step.
     """
 
     t_end: PosFloat
     dt: PosFloat
-    substeps: Union[Annotated[int, Field(ge=1)], Literal["auto"]] = 1
+    substeps: Union[Annotated[int, Field(ge=1, le=1_000_000)], Literal["auto"]] = 1
     output_dt: PosFloat
     integrator: Literal["semi_implicit_euler", "rk4", "tsit5", "kvaerno5"] = "semi_implicit_euler"
     precision: Literal["float32", "float64"] = "float32"
-    rtol: PosFloat = 1e-8
-    atol: PosFloat = 1e-10
-    max_steps: Annotated[int, Field(ge=1)] = 10_000_000
+    rtol: Tolerance = 1e-8
+    atol: Tolerance = 1e-10
+    max_steps: Annotated[int, Field(ge=1, le=2**31 - 1)] = 10_000_000
+
+    @property
+    def output_every(self) -> int:
+        """Environment steps between saved states (``output_dt / dt``, a whole number)."""
+        return max(1, round(self.output_dt / self.dt))
+
+    @property
+    def n_outputs(self) -> int:
+        """Saved states after the initial one (``t_end / output_dt``, a whole number)."""
+        return round(self.t_end / (self.output_every * self.dt))
 
     @model_validator(mode="after")
     def _float32_tolerances(self):
@@ -115,14 +124,38 @@ class SimConfig(_Strict):
     @model_validator(mode="after")
     def _grid(self):
         ratio = self.output_dt / self.dt
-        if abs(ratio - round(ratio)) > 1e-6 * max(1.0, ratio) or round(ratio) < 1:
+        if ratio < 1.0 - GRID_TOLERANCE:
+            raise ValueError(f"output_dt ({self.output_dt:g}) is shorter than dt ({self.dt:g}): "
+                             "states are saved on environment steps")
+        if abs(ratio - round(ratio)) > GRID_TOLERANCE * ratio:
+            lo = max(1, math.floor(ratio)) * self.dt
             raise ValueError(
-                f"output_dt ({self.output_dt:g}) must be a whole multiple of dt ({self.dt:g})"
+                f"output_dt ({self.output_dt:g}) must be a whole multiple of dt ({self.dt:g}); "
+                f"e.g. {lo:g} or {lo + self.dt:g}"
+            )
+        grid = self.output_every * self.dt
+        runs = self.t_end / grid
+        if runs < 1.0 - GRID_TOLERANCE:
+            raise ValueError(
+                f"t_end ({self.t_end:g} s) is shorter than one output interval ({grid:g} s): the run "
+                "would save nothing but its initial state"
+            )
+        if abs(runs - round(runs)) > GRID_TOLERANCE * runs:
+            lo = math.floor(runs) * grid
+            raise ValueError(
+                f"t_end ({self.t_end:g} s) must be a whole multiple of output_dt ({grid:g} s) so "
+                f"that the run ends on a saved state; e.g. {lo:g} or {lo + grid:g}"
+            )
+        steps = self.n_outputs * self.output_every
+        if steps > MAX_ENV_STEPS:
+            raise ValueError(
+                f"t_end / dt = {steps:.3g} environment steps: more than {MAX_ENV_STEPS:,} "
+                "(check the units of t_end and dt)"
             )
         return self
 
 
-class PointConfig(_Strict):
+class PointConfig(StrictModel):
     """A point mass (no orientation)."""
 
     name: Name
@@ -131,7 +164,7 @@ class PointConfig(_Strict):
     vel: Vec3 = (0.0, 0.0, 0.0)
 
 
-class MarkerConfig(_Strict):
+class MarkerConfig(StrictModel):
     """A local frame on a rigid body: offset ``pos`` and orientation ``quat`` (body frame)."""
 
     name: Name
@@ -142,7 +175,7 @@ class MarkerConfig(_Strict):
 Inertia = Union[Vec3, tuple[Vec3, Vec3, Vec3]]
 
 
-class BodyConfig(_Strict):
+class BodyConfig(StrictModel):
     """A rigid body. ``inertia`` about the centre of mass, body frame: diagonal [Ixx, Iyy, Izz]
     or a full symmetric 3x3 matrix. ``vel`` is world-frame, ``angvel`` body-frame."""
 
@@ -158,14 +191,15 @@ class BodyConfig(_Strict):
     @field_validator("inertia")
     @classmethod
     def _inertia(cls, v):
-        import numpy as np
-
         m = np.diag(v) if len(v) == 3 and not isinstance(v[0], tuple) else np.array(v, dtype=float)
         if not np.allclose(m, m.T, rtol=1e-9, atol=1e-15):
             raise ValueError("inertia matrix must be symmetric")
         eig = np.linalg.eigvalsh(m)
         if eig.min() <= 0:
             raise ValueError(f"inertia must be positive definite (eigenvalues {[float(e) for e in eig]})")
+        if eig.min() < MIN_POSITIVE:
+            raise ValueError(f"smallest principal moment {float(eig.min()):g} kg m^2 is below {MIN_POSITIVE:g}: "
+                             "the angular accelerations it gives overflow float32")
         a, b, c = sorted(eig)
         if c > a + b + 1e-12 * c:
             raise ValueError(
@@ -175,7 +209,7 @@ class BodyConfig(_Strict):
         return v
 
 
-class AnchorConfig(_Strict):
+class AnchorConfig(StrictModel):
     """A fixed world frame: rope / spring ends attach to it, joints can use it as a marker."""
 
     name: Name
@@ -183,7 +217,7 @@ class AnchorConfig(_Strict):
     quat: UnitQuat = (1.0, 0.0, 0.0, 0.0)
 
 
-class RopeConfig(_Strict):
+class RopeConfig(StrictModel):
     """A lumped-mass rope (paper Sec. 2.1): ``n_masses`` point masses of ``mass`` each,
     rest length ``length / n_masses`` between interior masses and half that at both ends.
 
@@ -195,7 +229,7 @@ class RopeConfig(_Strict):
 
     name: Name
     length: PosFloat
-    n_masses: Annotated[int, Field(ge=1)]
+    n_masses: Annotated[int, Field(ge=1, le=MAX_ROPE_MASSES)]
     mass: PosFloat
     EA: PosFloat
     damping: NonNegFloat = 0.0
@@ -204,7 +238,7 @@ class RopeConfig(_Strict):
     end: str
 
 
-class SpringConfig(_Strict):
+class SpringConfig(StrictModel):
     """A spring-damper between two attachment points (same references as rope ends).
     ``rest_length`` defaults to the initial distance."""
 
@@ -217,7 +251,7 @@ class SpringConfig(_Strict):
     model: Literal["tension_only", "linear"] = "linear"
 
 
-class JointConfig(_Strict):
+class JointConfig(StrictModel):
     """A joint between two markers (``body.marker`` or an anchor name), paper Appendix A.
 
     fixed: r_I = r_J, x_I·y_J = x_I·z_J = y_I·z_J = 0.
@@ -230,7 +264,7 @@ class JointConfig(_Strict):
     marker_j: str
 
 
-class LoadConfig(_Strict):
+class LoadConfig(StrictModel):
     """A constant applied load: ``force`` (world frame, N) at a point, body centre, or
     ``body.marker``; ``torque`` (body frame, N·m) on a body."""
 
@@ -239,13 +273,13 @@ class LoadConfig(_Strict):
     torque: Vec3 = (0.0, 0.0, 0.0)
 
 
-class OutputConfig(_Strict):
+class OutputConfig(StrictModel):
     """What ``scripts/simulate.py`` plots (names of points or bodies)."""
 
     plot: list[str] = []
 
 
-class SceneConfig(_Strict):
+class SceneConfig(StrictModel):
     """A whole scene, as written in ``configs/*.yaml``."""
 
     name: Name
@@ -268,6 +302,20 @@ class SceneConfig(_Strict):
     def _references(self):
         problems: list[str] = []
         owners: dict[str, str] = {}
+
+        n_cameras = sum(len(q.cameras) for q in self.quadrotors)
+        n_objects = (len(self.points) + sum(r.n_masses for r in self.ropes) + len(self.bodies) + n_cameras)
+        if n_objects > MAX_OBJECTS:
+            raise ValueError(f"the scene has {n_objects:,} point masses and bodies (rope masses and cameras "
+                             f"included): more than {MAX_OBJECTS:,}")
+        n_points = len(self.points) + sum(r.n_masses for r in self.ropes)
+        # as scripts/simulate.py writes them (mysim_jax/io/trajectory.py)
+        columns = 1 + 9 * n_points + 16 * (n_objects - n_points) + 8 * len(self.quadrotors)
+        values = (self.sim.n_outputs + 1) * columns
+        if values > MAX_OUTPUT_VALUES:
+            raise ValueError(
+                f"sim: the run would save {self.sim.n_outputs + 1:,} rows of {columns:,} columns ({values:.3g} "
+                f"values, more than {MAX_OUTPUT_VALUES:.3g}); raise sim.output_dt or shorten sim.t_end")
 
         def claim(name: str, where: str):
             if name in owners:
@@ -337,8 +385,7 @@ class SceneConfig(_Strict):
                 problems.append(f"output.plot.{i}: '{name}' is not a point or body")
         if self.contact is not None:
             points = [p.name for p in self.points] + [f"{r.name}_{j}" for r in self.ropes for j in range(r.n_masses)]
-            problems += resolve_members(self.contact, points, [b.name for b in self.bodies],
-                                        self.anchor_names())[1]
+            problems += contact_problems(self.contact, points, [b.name for b in self.bodies], self.anchor_names())
         problems += quadrotor_problems(self)
         if problems:
             raise ValueError("; ".join(problems))
@@ -379,30 +426,6 @@ class SceneConfig(_Strict):
 # --- loading ---------------------------------------------------------------------------
 
 
-def _format_validation_error(err: ValidationError) -> str:
-    lines = []
-    for e in err.errors():
-        loc = [str(p) for p in e["loc"]]
-        kind, msg = e["type"], e["msg"]
-        if msg.startswith("Value error, "):
-            msg = msg[len("Value error, "):]
-        shown = ""
-        if kind == "extra_forbidden":
-            msg = "unknown key"
-        elif kind == "missing" and loc and loc[-1].isdigit():
-            msg = f"too few entries (entry {loc[-1]} is missing)"
-            loc = loc[:-1]
-        elif kind == "too_long":
-            msg = "too many entries"
-        elif kind not in ("missing", "value_error") and not isinstance(e.get("input"), (dict, list)):
-            shown = f" (got {e['input']!r})"
-        if not loc:  # whole-scene checks already name their fields
-            lines.extend(f"  {part}" for part in msg.split("; "))
-        else:
-            lines.append(f"  {'.'.join(loc)}: {msg}{shown}")
-    return "\n".join(lines)
-
-
 def apply_override(raw: dict, assignment: str) -> None:
     """Apply one ``dotted.key=value`` override to a raw config dict, in place.
 
@@ -416,10 +439,7 @@ def apply_override(raw: dict, assignment: str) -> None:
     parts = [p for p in key.strip().split(".") if p]
     if not parts:
         raise ConfigError(f"--set '{assignment}': empty key")
-    try:
-        value = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"--set {key}: cannot parse value '{text}': {exc}") from None
+    value = parse_yaml(text, f"--set {key}", "value")
     node: Any = raw
     for depth, part in enumerate(parts[:-1]):
         where = ".".join(parts[: depth + 1])
@@ -454,19 +474,13 @@ def config_from_dict(raw: Any, source: str = "<dict>", overrides: list[str] | tu
     try:
         return SceneConfig.model_validate(raw)
     except ValidationError as err:
-        raise ConfigError(f"{source}: invalid scene configuration\n{_format_validation_error(err)}") from None
+        raise ConfigError(f"{source}: invalid scene configuration\n{format_validation_error(err)}") from None
 
 
 def load_config(path: str | Path, overrides: list[str] | tuple[str, ...] = ()) -> SceneConfig:
-    """Read, override and validate a YAML scene file. Raises :class:`ConfigError`."""
-    path = Path(path)
-    if not path.is_file():
-        raise ConfigError(f"{path}: no such config file")
-    try:
-        raw = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{path}: broken YAML: {exc}") from None
-    return config_from_dict(raw, str(path), overrides)
+    """Read, override and validate a YAML scene file. Raises :class:`ConfigError` naming
+    the file and the field (:mod:`mysim_jax.config_base` lists what a file may not be)."""
+    return config_from_dict(read_yaml_file(path, "config file"), str(path), overrides)
 
 
 def dump_config(config: SceneConfig) -> str:

@@ -20,7 +20,6 @@ host-side driver that writes outputs.
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass
 from functools import partial
 
@@ -139,13 +138,13 @@ def _vector_field(scene: Scene):
 _PROGRESS_REFRESH_STEPS = 2000
 
 
-def solve_adaptive(scene: Scene, params: Params, phys: PhysState, t0, t1, ts=None, progress=False, inputs=None):
-    """Integrate with the scene's diffrax solver from ``t0`` to ``t1``.
-
-    Returns the states at ``ts`` (stacked) if given, else the state at ``t1``.
-    """
+def _diffeqsolve(scene: Scene, params: Params, phys: PhysState, t0, t1, ts=None, progress=False, inputs=None):
+    """The diffrax solve behind :func:`solve_adaptive`, returning diffrax's ``Solution``
+    (states, ``result``, ``stats``). It never raises: a failed solve (``max_steps``
+    reached, a non-finite state) is reported in ``result``, and saved times it did not
+    reach hold ``inf``."""
     saveat = diffrax.SaveAt(ts=ts) if ts is not None else diffrax.SaveAt(t1=True)
-    sol = diffrax.diffeqsolve(
+    return diffrax.diffeqsolve(
         diffrax.ODETerm(_vector_field(scene)),
         _adaptive_solver(scene),
         t0=t0,
@@ -156,13 +155,27 @@ def solve_adaptive(scene: Scene, params: Params, phys: PhysState, t0, t1, ts=Non
         saveat=saveat,
         stepsize_controller=diffrax.PIDController(rtol=scene.rtol, atol=scene.atol),
         max_steps=scene.max_steps,
+        throw=False,
         progress_meter=(diffrax.TqdmProgressMeter(refresh_steps=_PROGRESS_REFRESH_STEPS) if progress
                         else diffrax.NoProgressMeter()),
     )
+
+
+def solve_adaptive(scene: Scene, params: Params, phys: PhysState, t0, t1, ts=None, progress=False, inputs=None):
+    """Integrate with the scene's diffrax solver from ``t0`` to ``t1``.
+
+    Returns the states at ``ts`` (stacked) if given, else the state at ``t1``. A solve
+    that fails (``max_steps`` reached, e.g. because the state turned non-finite and every
+    step was rejected) does not raise inside jit: the states it did not reach are ``inf``
+    (at ``ts``) or NaN (at ``t1``: diffrax would return the state where it stopped,
+    which is not the state at ``t1``), so a caller checking for finite states sees it.
+    """
+    sol = _diffeqsolve(scene, params, phys, t0, t1, ts, progress, inputs)
     ys = sol.ys
     ys = ys.replace(body_quat=quat_normalize(ys.body_quat))
     if ts is None:
-        ys = jax.tree.map(lambda a: a[0], ys)
+        ok = sol.result == diffrax.RESULTS.successful
+        ys = jax.tree.map(lambda a: jnp.where(ok, a[0], jnp.nan), ys)
     return ys
 
 
@@ -222,17 +235,29 @@ def rollout(scene: Scene, params: Params, state: State, n_steps: int, every: int
 
 @dataclass
 class Trajectory:
-    """Host-side result of :func:`simulate`: states and accelerations on the output grid."""
+    """Host-side result of :func:`simulate`: states and accelerations on the output grid.
+
+    ``failure`` is None when the run reached ``t_end``. Otherwise it says why the run
+    stopped early (a state or acceleration turned non-finite, or the adaptive solver gave
+    up), when, and in which points or bodies; the arrays then hold the finite part of the
+    run only, up to the last finite saved state.
+    """
 
     time: np.ndarray          # (n_out,)
     phys: PhysState           # leaves (n_out, ...) as NumPy arrays
     acc: Accelerations        # leaves (n_out, ...) as NumPy arrays
     controller: object = None  # ControlState leaves (n_out, ...) (quadrotor scenes), else None
+    failure: str | None = None
+
+    @property
+    def ok(self) -> bool:
+        return self.failure is None
 
 
 def output_times(scene: Scene) -> np.ndarray:
-    """The output grid ``0, output_dt, ..., t_end`` (t_end rounded down to the grid)."""
-    n = int(math.floor(scene.t_end / scene.output_dt + 1e-9))
+    """The output grid ``0, output_dt, ..., t_end`` (:func:`~mysim_jax.build.build` puts
+    ``t_end`` on it)."""
+    n = int(round(scene.t_end / scene.output_dt))
     return np.arange(n + 1) * scene.output_dt
 
 
@@ -243,7 +268,8 @@ def _advance(scene: Scene, params: Params, state: State, n_steps: int, every: in
 
 @partial(jax.jit, static_argnums=(0, 4))
 def _solve_on_grid(scene: Scene, params: Params, phys: PhysState, ts, progress: bool):
-    return solve_adaptive(scene, params, phys, ts[0], ts[-1], ts, progress)
+    sol = _diffeqsolve(scene, params, phys, ts[0], ts[-1], ts, progress)
+    return sol.ys.replace(body_quat=quat_normalize(sol.ys.body_quat)), sol.result, sol.stats["num_steps"]
 
 
 @partial(jax.jit, static_argnums=0)
@@ -274,36 +300,119 @@ def simulate(scene: Scene, params: Params, state: State, progress: bool = True, 
     step). Accelerations are evaluated exactly at the saved states, with the actuator
     inputs the controller holds from there.
 
+    The run is watched: after each chunk (or the solve) the saved states, controller
+    memory and accelerations are checked for NaN and inf. At the first non-finite row the
+    run stops and the :class:`Trajectory` keeps the rows before it, with ``failure``
+    naming the time interval, the points or bodies concerned and what to try; an
+    adaptive solve that gives up (``max_steps``) is reported the same way.
+
     The compiled functions are cached per Scene (``params`` and ``state`` are arguments,
     not constants): a second call with new params or a new state does not recompile.
     This runs one environment, so the scene is run as :func:`single_env_scene` makes it.
     """
     scene = single_env_scene(scene)
     times = output_times(scene)
-    memory = None
     if scene.integrator in FIXED_STEP or scene.quadrotor is not None:
         every = int(round(scene.output_dt / scene.dt))
         n_out = len(times) - 1
         pieces = [jax.tree.map(lambda a: np.asarray(a)[None], state)]
+        failure = _non_finite(scene, pieces[0], times, 0)
         done = 0
         bar = _progress(n_out, progress, scene)
-        while done < n_out:
+        while done < n_out and failure is None:
             state, traj = _advance(scene, params, state, chunk * every, every)
             take = min(chunk, n_out - done)
-            pieces.append(jax.tree.map(lambda a: np.asarray(a)[:take], traj))
+            piece = jax.tree.map(lambda a: np.asarray(a)[:take], traj)
+            failure = _non_finite(scene, piece, times, done + 1)
+            if failure is not None:
+                take = failure[0] - (done + 1)
+            pieces.append(jax.tree.map(lambda a: a[:take], piece))
             done += take
             if bar is not None:
                 bar.update(take)
         if bar is not None:
             bar.close()
         states = jax.tree.map(lambda *xs: np.concatenate(xs, axis=0), *pieces)
-        phys, memory = states.phys, states.controller
     else:
         ts = jnp.asarray(times, dtype=scene.dtype)
-        phys = jax.tree.map(np.asarray, _solve_on_grid(scene, params, state.phys, ts, bool(progress)))
+        ys, result, n_steps = _solve_on_grid(scene, params, state.phys, ts, bool(progress))
+        phys = jax.tree.map(np.asarray, ys)
         states = State(phys=phys, time=times.astype(phys.point_pos.dtype))
+        failure = _non_finite(scene, states, times, 0)
+        if result != diffrax.RESULTS.successful:
+            row = failure[0] if failure is not None else len(times)
+            failure = (row, (
+                f"the adaptive solver ({scene.integrator}) gave up after t = {times[max(row - 1, 0)]:g} s and "
+                f"{int(n_steps):,} steps: {diffrax.RESULTS[result]} This happens when the state turns non-finite "
+                "(every step is then rejected) or when rtol / atol ask for more steps than sim.max_steps = "
+                f"{scene.max_steps:,}: raise sim.max_steps, loosen sim.rtol / sim.atol, or look for forces "
+                "that blow up. The saved states before that time are kept."))
+    n_kept = len(times) if failure is None else failure[0]
+    states = jax.tree.map(lambda a: a[:n_kept], states)
     acc = jax.tree.map(np.asarray, _accelerations_on_grid(scene, params, jax.tree.map(jnp.asarray, states)))
-    return Trajectory(time=times, phys=phys, acc=acc, controller=memory)
+    bad = _first_non_finite_row(acc)
+    if bad is not None:
+        failure = (bad, f"the acceleration turned non-finite at t = {times[bad]:g} s: "
+                        f"{_describe(scene, acc, bad)}. The rows before are kept. Usual causes: forces so "
+                        "large they overflow (check stiffnesses, gains and loads)")
+        n_kept = bad
+    keep = lambda a: a[:n_kept]   # noqa: E731
+    return Trajectory(time=times[:n_kept], phys=jax.tree.map(keep, states.phys), acc=jax.tree.map(keep, acc),
+                      controller=None if states.controller is None else jax.tree.map(keep, states.controller),
+                      failure=None if failure is None else failure[1])
+
+
+def _first_non_finite_row(tree) -> int | None:
+    """Index of the first row (leading axis) of any float leaf holding NaN or inf, or None."""
+    first = None
+    for leaf in jax.tree.leaves(tree):
+        leaf = np.asarray(leaf)
+        if not np.issubdtype(leaf.dtype, np.floating) or leaf.size == 0:
+            continue
+        bad = ~np.isfinite(leaf.reshape(leaf.shape[0], -1)).all(axis=1)
+        if bad.any():
+            row = int(np.argmax(bad))
+            first = row if first is None else min(first, row)
+    return first
+
+
+def _describe(scene: Scene, rows, row: int, memory=None, limit: int = 6) -> str:
+    """The points and bodies (and which of their quantities) that are non-finite in ``row``
+    of a stacked PhysState or Accelerations ``rows``; else the controller memory fields."""
+    found: dict[str, list[str]] = {}
+    for field in rows.__dataclass_fields__:
+        kind, quantity = field.split("_", 1)
+        names = scene.point_names if kind == "point" else scene.body_names
+        if not names:
+            continue
+        values = np.asarray(getattr(rows, field))[row].reshape(len(names), -1)
+        for i in np.flatnonzero(~np.isfinite(values).all(axis=1)):
+            found.setdefault(f"{kind} '{names[i]}'", []).append(quantity)
+    parts = [f"{who} ({', '.join(what)})" for who, what in list(found.items())[:limit]]
+    if len(found) > limit:
+        parts.append(f"and {len(found) - limit} more")
+    if not parts and memory is not None:
+        fields = [f for f in memory.__dataclass_fields__
+                  if np.asarray(getattr(memory, f)).dtype.kind == "f"
+                  and not np.isfinite(np.asarray(getattr(memory, f))[row]).all()]
+        parts = [f"the controller memory ({', '.join(fields)})"]
+    return "non-finite values in " + ", ".join(parts)
+
+
+def _non_finite(scene: Scene, states: State, times, first_row: int):
+    """``(output row, message)`` of the first saved state in ``states`` (output rows
+    ``first_row, first_row + 1, ...``) with a NaN or inf anywhere, or None."""
+    row = _first_non_finite_row((states.phys, states.controller))
+    if row is None:
+        return None
+    where = _describe(scene, states.phys, row, states.controller)
+    out = first_row + row
+    when = f"at t = {times[0]:g} s" if out == 0 else f"between t = {times[out - 1]:g} s and {times[out]:g} s"
+    return out, (
+        f"the state turned non-finite {when}: {where}. The rows before are kept. Usual causes: a step "
+        "too large for the motion (try a smaller sim.dt, more sim.substeps, or an adaptive integrator), "
+        "forces so large they overflow (check stiffnesses, gains and loads), or, with an adaptive "
+        "integrator stepping a controlled scene, a step on which the solver gave up (sim.max_steps)")
 
 
 def _progress(total: int, enabled: bool, scene: Scene):

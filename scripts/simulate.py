@@ -12,6 +12,14 @@ columns ``NAME_ref_x/y/z/yaw`` and motor columns ``NAME_rotor1..4`` in the CSV, 
 reference drawn on the position plot, ``NAME_path.png`` (reference against actual path)
 and the RMS / max tracking errors under ``tracking`` in ``metrics.json``. ``--gains``
 applies a gains file written by ``scripts/tune_pid.py``.
+
+Every input (config file, overrides, gains file, the OUT folder) is checked before
+anything is compiled; a problem is a one-line error naming the file or field, exit code
+2, and nothing is written. Outputs are written to a temporary folder and moved into OUT
+only when complete. A run whose state turns non-finite (or whose adaptive solver gives
+up) stops there: OUT then holds the finite part, ``metrics.json`` says
+``"status": "failed"`` with the reason, the error names the time and the points or
+bodies, and the exit code is 3.
 """
 
 from __future__ import annotations
@@ -20,7 +28,6 @@ import argparse
 import json
 import sys
 import time
-from pathlib import Path
 
 
 def main(argv=None) -> int:
@@ -35,15 +42,17 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
 
     from mysim_jax.config import ConfigError, dump_config, load_config
+    from mysim_jax.io.output import OutputError, check_output_dir
 
     try:
         overrides = list(args.overrides)
-        if args.gains:
+        if args.gains is not None:
             from mysim_jax.control.config import gain_overrides
 
             overrides = gain_overrides(args.gains, args.config) + overrides
         config = load_config(args.config, overrides)
-    except ConfigError as err:
+        out = check_output_dir(args.out)
+    except (ConfigError, OutputError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
 
@@ -54,6 +63,7 @@ def main(argv=None) -> int:
 
     from mysim_jax.build import build
     from mysim_jax.control.tracking import motor_columns, reference_columns, tracking_metrics
+    from mysim_jax.io.output import staged_output
     from mysim_jax.io.plots import plot_kinematics, plot_path
     from mysim_jax.io.trajectory import trajectory_columns, write_trajectory_csv
     from mysim_jax.sim import simulate
@@ -64,10 +74,6 @@ def main(argv=None) -> int:
         print(f"error: {args.config}: {err}", file=sys.stderr)
         return 2
 
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "config.yaml").write_text(dump_config(config))
-
     t0 = time.perf_counter()
     traj = simulate(scene, params, state, progress=not args.no_progress)
     wall = time.perf_counter() - t0
@@ -75,32 +81,44 @@ def main(argv=None) -> int:
     columns = trajectory_columns(scene, traj)
     columns.update(reference_columns(scene, params, traj.time))
     columns.update(motor_columns(scene, traj.controller))
-    write_trajectory_csv(out / "trajectory.csv", columns)
-    plots = []
-    for name in scene.plot_names:
-        reference = None
-        if f"{name}_ref_x" in columns:
-            reference = {"time": columns["time"], **{f"{name}_{a}": columns[f"{name}_ref_{a}"] for a in "xyz"}}
-            plots.append(plot_path(columns, name, out).name)
-        plots += [p.name for p in plot_kinematics(columns, name, out, reference=reference)]
-    tracking = tracking_metrics(scene, columns)
-
-    metrics = {
-        "scene": scene.name,
-        "integrator": scene.integrator,
-        "precision": scene.precision,
-        "dt": scene.dt,
-        "substeps": scene.substeps,
-        "t_end": float(traj.time[-1]),
-        "n_outputs": int(len(traj.time)),
-        "wall_time_s": wall,
-        "final": {name: [float(columns[f"{name}_{a}"][-1]) for a in "xyz"] for name in scene.plot_names},
-        "plots": plots,
-    }
-    if tracking:
-        metrics["tracking"] = tracking
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
-    print(f"{scene.name}: simulated {traj.time[-1]:g} s with {scene.integrator} ({scene.precision}) "
+    reached = float(traj.time[-1]) if len(traj.time) else 0.0
+    with staged_output(out) as tmp:
+        (tmp / "config.yaml").write_text(dump_config(config))
+        write_trajectory_csv(tmp / "trajectory.csv", columns)
+        plots = []
+        if len(traj.time) > 1:
+            for name in scene.plot_names:
+                reference = None
+                if f"{name}_ref_x" in columns:
+                    reference = {"time": columns["time"], **{f"{name}_{a}": columns[f"{name}_ref_{a}"] for a in "xyz"}}
+                    plots.append(plot_path(columns, name, tmp).name)
+                plots += [p.name for p in plot_kinematics(columns, name, tmp, reference=reference)]
+        tracking = tracking_metrics(scene, columns) if len(traj.time) else {}
+        metrics = {
+            "scene": scene.name,
+            "status": "ok" if traj.ok else "failed",
+            "integrator": scene.integrator,
+            "precision": scene.precision,
+            "dt": scene.dt,
+            "substeps": scene.substeps,
+            "t_end": reached,
+            "n_outputs": int(len(traj.time)),
+            "wall_time_s": wall,
+            "final": {name: [float(columns[f"{name}_{a}"][-1]) for a in "xyz"]
+                      for name in scene.plot_names if len(traj.time)},
+            "plots": plots,
+        }
+        if not traj.ok:
+            metrics["failure"] = traj.failure
+        if tracking:
+            metrics["tracking"] = tracking
+        (tmp / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    if not traj.ok:
+        print(f"error: {args.config}: {traj.failure}", file=sys.stderr)
+        print(f"{scene.name}: stopped at t = {reached:g} s of {scene.t_end:g} s; wrote the finite part to "
+              f"{out}/ (metrics.json status: failed)", file=sys.stderr)
+        return 3
+    print(f"{scene.name}: simulated {reached:g} s with {scene.integrator} ({scene.precision}) "
           f"in {wall:.2f} s (compile included); wrote {out}/trajectory.csv and {len(plots)} plots")
     for name, m in tracking.items():
         print(f"  {name}: RMS position error {m['rms_position_error_m']:.4g} m, "

@@ -25,7 +25,6 @@ import argparse
 import json
 import sys
 import time
-from pathlib import Path
 
 
 def main(argv=None) -> int:
@@ -54,11 +53,13 @@ def main(argv=None) -> int:
         return 2
 
     from mysim_jax.config import ConfigError, dump_config, load_config
+    from mysim_jax.io.output import OutputError, check_output_dir, staged_output
 
     try:
         config = load_config(args.config, args.overrides)
         heldout = [load_config(path) for path in args.heldout]
-    except ConfigError as err:
+        out_dir = check_output_dir(args.out)
+    except (ConfigError, OutputError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
     for path, cfg in [(args.config, config)] + list(zip(args.heldout, heldout)):
@@ -93,9 +94,6 @@ def main(argv=None) -> int:
                   f"{scene.quadrotor.n_quads}", file=sys.stderr)
             return 2
 
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "config.yaml").write_text(dump_config(config))
     horizon = config.sim.t_end if args.horizon is None else args.horizon
     n_steps = max(1, int(round(horizon / scene.dt / args.every))) * args.every
 
@@ -104,62 +102,64 @@ def main(argv=None) -> int:
                   clip_norm=args.clip, every=args.every, remat=args.checkpoint, progress=not args.no_progress)
     wall = time.perf_counter() - t0
 
-    tuned = jax.tree.map(lambda a, ref: jax.numpy.asarray(a, dtype=ref.dtype), result.gains,
-                         params.controller.gains)
-    n_quads = scene.quadrotor.n_quads
-    per_quad = [gains_to_dict(result.gains, q) for q in range(n_quads)]
-    gains_doc = {"controller": per_quad[0]} if n_quads == 1 else {"quadrotors": [{"controller": g} for g in per_quad]}
-    header = (f"# PID gains tuned by scripts/tune_pid.py on {args.config} ({horizon:g} s horizon, "
-              f"{args.iterations} Adam steps, lr {args.lr:g}).\n# Use: python scripts/simulate.py SCENE "
-              f"--gains {out / 'gains.yaml'}\n")
-    (out / "gains.yaml").write_text(header + yaml.safe_dump(gains_doc, sort_keys=False))
-    quads = [q.model_copy(update={"controller": q.controller.model_copy(update={
-        "position": q.controller.position.model_validate(g["position"]),
-        "attitude": q.controller.attitude.model_validate(g["attitude"])})})
-        for q, g in zip(config.quadrotors, per_quad)]
-    (out / "tuned_config.yaml").write_text(dump_config(config.model_copy(update={"quadrotors": quads})))
+    with staged_output(out_dir) as out:
+        (out / "config.yaml").write_text(dump_config(config))
+        tuned = jax.tree.map(lambda a, ref: jax.numpy.asarray(a, dtype=ref.dtype), result.gains,
+                             params.controller.gains)
+        n_quads = scene.quadrotor.n_quads
+        per_quad = [gains_to_dict(result.gains, q) for q in range(n_quads)]
+        gains_doc = {"controller": per_quad[0]} if n_quads == 1 else {"quadrotors": [{"controller": g} for g in per_quad]}
+        header = (f"# PID gains tuned by scripts/tune_pid.py on {args.config} ({horizon:g} s horizon, "
+                  f"{args.iterations} Adam steps, lr {args.lr:g}).\n# Use: python scripts/simulate.py SCENE "
+                  f"--gains {out_dir / 'gains.yaml'}\n")
+        (out / "gains.yaml").write_text(header + yaml.safe_dump(gains_doc, sort_keys=False))
+        quads = [q.model_copy(update={"controller": q.controller.model_copy(update={
+            "position": q.controller.position.model_validate(g["position"]),
+            "attitude": q.controller.attitude.model_validate(g["attitude"])})})
+            for q, g in zip(config.quadrotors, per_quad)]
+        (out / "tuned_config.yaml").write_text(dump_config(config.model_copy(update={"quadrotors": quads})))
 
-    metrics = {
-        "scene": config.name,
-        "horizon_s": n_steps * scene.dt,
-        "iterations": args.iterations,
-        "learning_rate": args.lr,
-        "clip_norm": args.clip,
-        "wall_time_s": wall,
-        "loss_initial_m2": result.initial_loss,
-        "loss_best_m2": result.best_loss,
-        "best_iteration": result.best_iteration,
-        "tuned_gains": per_quad,
-        "evaluation": {},
-    }
+        metrics = {
+            "scene": config.name,
+            "horizon_s": n_steps * scene.dt,
+            "iterations": args.iterations,
+            "learning_rate": args.lr,
+            "clip_norm": args.clip,
+            "wall_time_s": wall,
+            "loss_initial_m2": result.initial_loss,
+            "loss_best_m2": result.best_loss,
+            "best_iteration": result.best_iteration,
+            "tuned_gains": per_quad,
+            "evaluation": {},
+        }
 
-    def evaluate(name, sc, pa, st):
-        before = evaluate_tracking(sc, pa, st)
-        after = evaluate_tracking(sc, with_gains(pa, tuned), st)
-        rows = {}
-        for body in before:
-            b, a = before[body]["rms_position_error_m"], after[body]["rms_position_error_m"]
-            rows[body] = {"before": before[body], "after": after[body], "rms_reduction": 1.0 - a / b}
-            print(f"{name} {body}: RMS {b:.4g} m -> {a:.4g} m ({100 * (1 - a / b):+.1f} % reduction), "
-                  f"max {before[body]['max_position_error_m']:.4g} m -> {after[body]['max_position_error_m']:.4g} m")
-        metrics["evaluation"][name] = rows
+        def evaluate(name, sc, pa, st):
+            before = evaluate_tracking(sc, pa, st)
+            after = evaluate_tracking(sc, with_gains(pa, tuned), st)
+            rows = {}
+            for body in before:
+                b, a = before[body]["rms_position_error_m"], after[body]["rms_position_error_m"]
+                rows[body] = {"before": before[body], "after": after[body], "rms_reduction": 1.0 - a / b}
+                print(f"{name} {body}: RMS {b:.4g} m -> {a:.4g} m ({100 * (1 - a / b):+.1f} % reduction), "
+                      f"max {before[body]['max_position_error_m']:.4g} m -> {after[body]['max_position_error_m']:.4g} m")
+            metrics["evaluation"][name] = rows
 
-    evaluate(config.name, scene, params, state)
-    for cfg, (hs, hp, hst) in zip(heldout, held):
-        evaluate(cfg.name, hs, hp, hst)
+        evaluate(config.name, scene, params, state)
+        for cfg, (hs, hp, hst) in zip(heldout, held):
+            evaluate(cfg.name, hs, hp, hst)
 
-    _plot_losses(result, out / "loss_curve.png", config.name)
-    if args.horizon_study:
-        horizons = [float(h) for h in args.study_horizons.split(",") if h.strip()]
-        rows = horizon_study(scene, params, state, horizons, every=args.every, progress=not args.no_progress)
-        metrics["horizon_study"] = rows
-        (out / "horizon_study.json").write_text(json.dumps(rows, indent=2))
-        (out / "horizon_study.md").write_text(_study_table(rows))
-        print(_study_table(rows))
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+        _plot_losses(result, out / "loss_curve.png", config.name)
+        if args.horizon_study:
+            horizons = [float(h) for h in args.study_horizons.split(",") if h.strip()]
+            rows = horizon_study(scene, params, state, horizons, every=args.every, progress=not args.no_progress)
+            metrics["horizon_study"] = rows
+            (out / "horizon_study.json").write_text(json.dumps(rows, indent=2))
+            (out / "horizon_study.md").write_text(_study_table(rows))
+            print(_study_table(rows))
+        (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     print(f"{config.name}: tuned in {wall:.1f} s (compile included); best RMS {np.sqrt(result.best_loss):.4g} m "
           f"(from {np.sqrt(result.initial_loss):.4g} m, sampled every {args.every} steps) at iteration "
-          f"{result.best_iteration}; wrote {out}/gains.yaml, tuned_config.yaml, loss_curve.png, metrics.json")
+          f"{result.best_iteration}; wrote {out_dir}/gains.yaml, tuned_config.yaml, loss_curve.png, metrics.json")
     return 0
 
 

@@ -102,11 +102,12 @@ def test_network_stability_limit_brackets_the_measured_blow_up(ea):
     for factor in (0.9, 1.1):
         dt = factor * limit
         cfg = config_from_dict(_raw(), "x", ["sim.integrator=semi_implicit_euler", "sim.precision=float64",
-                                             f"sim.dt={dt!r}", f"sim.output_dt={dt!r}", "sim.t_end=1"] + ropes)
+                                             f"sim.dt={dt!r}", f"sim.output_dt={dt!r}", f"sim.t_end={round(1 / dt) * dt!r}"] + ropes)
         if factor > 1:   # above the limit the check refuses; build the same scene at a stable dt and
             # step it with the larger one (Scene.dt is static, the check is build-time only)
             cfg = config_from_dict(_raw(), "x", ["sim.integrator=semi_implicit_euler", "sim.precision=float64",
-                                                 f"sim.dt={0.5 * limit!r}", f"sim.output_dt={0.5 * limit!r}"] + ropes)
+                                                 f"sim.dt={0.5 * limit!r}", f"sim.output_dt={0.5 * limit!r}",
+                                                 f"sim.t_end={2 * round(1 / limit) * 0.5 * limit!r}"] + ropes)
         scene, params, state = build(cfg)
         scene = dataclasses.replace(scene, dt=dt, output_dt=dt)
         pos = state.phys.point_pos + 1e-6 * rng.standard_normal(state.phys.point_pos.shape)

@@ -59,7 +59,7 @@ def test_scripts_reject_bad_input_before_compiling(tmp_path):
     res = _run("tune_pid.py", CONFIGS / "rope_net.yaml", "--out", tmp_path / "x")
     assert res.returncode == 2 and "no controlled quadrotor" in res.stderr
     res = _run("simulate.py", CONFIGS / "uav_track_small.yaml", "--out", tmp_path / "y", "--gains", tmp_path / "no.yaml")
-    assert res.returncode == 2 and "no.yaml: no such file" in res.stderr
+    assert res.returncode == 2 and "no.yaml: no such gains file" in res.stderr
     bad = tmp_path / "bad.yaml"
     bad.write_text("controller:\n  position: {kp: [1, 2], ki: [0, 0, 0], kd: [0, 0, 0]}\n"
                    "  attitude: {kp: [1, 1, 1], ki: [0, 0, 0], kd: [0, 0, 0]}\n")

@@ -27,8 +27,8 @@ misspelt group or a pattern that matches nothing is an error naming the field.
 ``friction`` is left out (or ``null``) for frictionless contact. ``smoothing`` is used by
 ``model: smooth`` only (see :mod:`mysim_jax.contact.law`).
 
-This module imports nothing from :mod:`mysim_jax.config` (which imports it), so it
-declares its own small pydantic base with the same rules (unknown keys are errors).
+This module imports nothing from :mod:`mysim_jax.config` (which imports it); its models
+share the base and field types of :mod:`mysim_jax.config_base`.
 """
 
 from __future__ import annotations
@@ -36,30 +36,24 @@ from __future__ import annotations
 import fnmatch
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import Field, model_validator
+
+from mysim_jax.config_base import Finite, Name, NonNegFloat, PosFloat, StrictModel
 
 GROUND = "ground"
 
-_PosFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
-_NonNegFloat = Annotated[float, Field(ge=0, allow_inf_nan=False)]
-_Name = Annotated[str, Field(min_length=1, pattern=r"^[A-Za-z_][A-Za-z0-9_]*$")]
 
-
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-
-class FrictionConfig(_Strict):
+class FrictionConfig(StrictModel):
     """Velocity-dependent Coulomb friction (paper Eq. collsion miu-v, made C¹).
 
     |μ| rises from 0 at zero slip to ``mu_static`` at ``v_static`` and settles to
     ``mu_dynamic`` from ``v_dynamic`` on (:func:`mysim_jax.contact.law.friction_coefficient`).
     """
 
-    mu_static: _NonNegFloat = 0.04
-    mu_dynamic: _NonNegFloat = 0.03
-    v_static: _PosFloat = 0.01       # m/s
-    v_dynamic: _PosFloat = 0.1       # m/s
+    mu_static: NonNegFloat = 0.04
+    mu_dynamic: NonNegFloat = 0.03
+    v_static: PosFloat = 0.01       # m/s
+    v_dynamic: PosFloat = 0.1       # m/s
 
     @model_validator(mode="after")
     def _ordered(self):
@@ -71,7 +65,7 @@ class FrictionConfig(_Strict):
         return self
 
 
-class SmoothingConfig(_Strict):
+class SmoothingConfig(StrictModel):
     """Widths of the smooth contact model (``model: smooth``).
 
     ``depth`` [m]: softplus width of the penetration and of the max(0, ·) on the normal
@@ -79,19 +73,19 @@ class SmoothingConfig(_Strict):
     ``velocity`` [m/s]: regularisation of the tangential slip speed, ``√(|v_t|² + v²)``.
     """
 
-    depth: _PosFloat = 1e-6
-    velocity: _PosFloat = 1e-4
+    depth: PosFloat = 1e-6
+    velocity: PosFloat = 1e-4
 
 
-class ContactGroupConfig(_Strict):
+class ContactGroupConfig(StrictModel):
     """A named set of collision objects, each carrying a sphere of ``radius`` [m]."""
 
-    name: _Name
+    name: Name
     members: Annotated[list[str], Field(min_length=1)]
-    radius: _PosFloat
+    radius: PosFloat
 
 
-class ContactConfig(_Strict):
+class ContactConfig(StrictModel):
     """Penalty contact between spheres (and with the ground plane z = 0).
 
     Normal force (paper Eq. compact_force, IMPACT form) with penetration δ ≥ 0:
@@ -99,10 +93,10 @@ class ContactConfig(_Strict):
     """
 
     model: Literal["sharp", "smooth"] = "sharp"
-    stiffness: _PosFloat                                  # k [N/m^n]
-    exponent: Annotated[float, Field(ge=1, allow_inf_nan=False)] = 1.0   # n
-    damping: _NonNegFloat = 0.0                           # c [N s/m]
-    damping_depth: _PosFloat                              # p [m]
+    stiffness: PosFloat                                  # k [N/m^n]
+    exponent: Annotated[Finite, Field(ge=1, le=10)] = 1.0   # n
+    damping: NonNegFloat = 0.0                           # c [N s/m]
+    damping_depth: PosFloat                              # p [m]
     friction: FrictionConfig | None = None
     smoothing: SmoothingConfig = SmoothingConfig()
     groups: Annotated[list[ContactGroupConfig], Field(min_length=1)]
@@ -162,3 +156,32 @@ def resolve_members(contact: ContactConfig, point_names: list[str], body_names: 
             radius_of.setdefault(name, (group.radius, gi))
         members[group.name] = [(o, group.radius) for o in objects if o in chosen]
     return members, problems
+
+
+def pair_counts(contact: ContactConfig, members) -> list[int]:
+    """Number of object pairs (or spheres on the ground) each entry of ``contact.pairs`` lists."""
+    counts = []
+    for ga, gb in contact.pairs:
+        if GROUND in (ga, gb):
+            counts.append(len(members[gb if ga == GROUND else ga]))
+        else:
+            names_a = [n for n, _ in members[ga]]
+            names_b = [n for n, _ in members[gb]]
+            counts.append(len({(min(a, b), max(a, b)) for a in names_a for b in names_b if a != b}))
+    return counts
+
+
+def contact_problems(contact: ContactConfig, point_names: list[str], body_names: list[str],
+                     anchor_names: set[str] | frozenset[str] = frozenset()) -> list[str]:
+    """Everything wrong with ``contact`` in a scene with these objects, as field-named strings:
+    members that match nothing, objects with two radii, pairs that list no pair."""
+    members, problems = resolve_members(contact, point_names, body_names, anchor_names)
+    if problems:
+        return problems
+    for i, ((ga, gb), n) in enumerate(zip(contact.pairs, pair_counts(contact, members))):
+        if n == 0:
+            problems.append(
+                f"contact.pairs.{i}: [{ga}, {gb}] lists no pair of objects (an object never touches itself; "
+                f"group '{ga}' has {len(members.get(ga, []))} member(s)"
+                + ("" if ga == gb else f", group '{gb}' {len(members.get(gb, []))}") + ")")
+    return problems

@@ -22,12 +22,8 @@ import numpy as np
 from mysim_jax.config import BodyConfig, JointConfig, MarkerConfig, SceneConfig
 from mysim_jax.control.pid import ControlParams, ControlState, PIDGains
 from mysim_jax.control.reference import ReferenceParams
-from mysim_jax.dynamics.quadrotor import (
-    QuadrotorParams,
-    QuadrotorScene,
-    allocation_matrix_np,
-    rotor_positions_np,
-)
+from mysim_jax.dynamics.quadrotor import QuadrotorParams, QuadrotorScene
+from mysim_jax.dynamics.rotor_layout import allocation_matrix_np, rotor_positions_np
 
 NO_LAG_TIME_CONSTANT = 1e-9   # s: exp(-dt/τ) underflows to 0, the motor follows its command
 R_Y_90 = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])

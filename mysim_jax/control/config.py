@@ -23,25 +23,10 @@ import math
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, model_validator
+from pydantic import Field, model_validator
 
-PosFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
-NonNegFloat = Annotated[float, Field(ge=0, allow_inf_nan=False)]
-Finite = Annotated[float, Field(allow_inf_nan=False)]
-Vec3 = tuple[Finite, Finite, Finite]
-NonNegVec3 = tuple[NonNegFloat, NonNegFloat, NonNegFloat]
-PosVec4 = tuple[PosFloat, PosFloat, PosFloat, PosFloat]
-Vec4 = tuple[Finite, Finite, Finite, Finite]
-Pair = tuple[Finite, Finite]
-PosPair = tuple[PosFloat, PosFloat]
-Name = Annotated[str, Field(min_length=1, pattern=r"^[A-Za-z_][A-Za-z0-9_]*$")]
-
-
-def _unit_quat(q):
-    n = math.sqrt(sum(c * c for c in q))
-    if n < 1e-12:
-        raise ValueError("quaternion [w, x, y, z] must be non-zero")
-    return tuple(c / n for c in q)
+from mysim_jax.config_base import (Finite, Name, NonNegFloat, NonNegVec3, Pair, PosFloat, PosPair, PosVec4,
+                                   StrictModel, UnitQuat, Vec3, Vec4)
 
 
 def _rotate(q, v):
@@ -50,8 +35,6 @@ def _rotate(q, v):
     t = 2.0 * np.cross(u, v)
     return np.asarray(v, dtype=float) + w * t + np.cross(u, t)
 
-
-UnitQuat = Annotated[tuple[Finite, Finite, Finite, Finite], AfterValidator(_unit_quat)]
 
 # --- paper defaults ------------------------------------------------------------------
 # Table UAV_model lists the rotor angles as 0.785, 2.36, 3.93, 5.50 rad: pi/4 + k pi/2
@@ -74,11 +57,7 @@ PAPER_CAMERA_INERTIA = (2.17e-6, 4.83e-6, 5.67e-6)              # kg m^2
 PAPER_CAMERA_MASS = 0.02                                        # kg
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-
-class RotorConfig(_Strict):
+class RotorConfig(StrictModel):
     """Four rotors at ``d_i = l_i [sin θ_i, cos θ_i, 0]`` (body frame), thrust ``c_i ω_i²``
     along body z, reaction torque ``spin_i k_i ω_i²`` about body z (``spin = +1``: the
     rotor turns clockwise seen from above, so its drag torque on the body points up).
@@ -101,7 +80,7 @@ class RotorConfig(_Strict):
     def _check(self):
         if self.omega_min >= self.omega_max:
             raise ValueError(f"omega_min ({self.omega_min:g}) must be below omega_max ({self.omega_max:g})")
-        from mysim_jax.dynamics.quadrotor import allocation_matrix_np
+        from mysim_jax.dynamics.rotor_layout import allocation_matrix_np
 
         m = allocation_matrix_np(self.arm_length, self.angle, self.lift_coefficient,
                                  self.torque_coefficient, self.spin)
@@ -111,7 +90,7 @@ class RotorConfig(_Strict):
         return self
 
 
-class GainSet(_Strict):
+class GainSet(StrictModel):
     """Per-axis PID gains ``[x, y, z]`` (position loop: world axes; attitude loop: body
     roll, pitch, yaw axes). All gains are non-negative."""
 
@@ -120,7 +99,7 @@ class GainSet(_Strict):
     kd: NonNegVec3
 
 
-class ControllerConfig(_Strict):
+class ControllerConfig(StrictModel):
     """The cascaded PID of paper Fig. entire_controller_pd (see :mod:`mysim_jax.control.pid`).
 
     ``position`` gains are in N/m, N/(m s), N s/m (Table PID_controller). ``attitude``
@@ -147,13 +126,13 @@ class ControllerConfig(_Strict):
     attitude: GainSet = GainSet(**PAPER_ATTITUDE_GAINS)
     attitude_gain_units: Literal["dyne_cm", "rotor_speed_squared", "torque"] = "dyne_cm"
     feedforward: Literal["none", "acceleration", "full"] = "full"
-    max_tilt: Annotated[float, Field(gt=0, lt=math.pi / 2)] = 0.8
+    max_tilt: Annotated[Finite, Field(gt=0, lt=math.pi / 2)] = 0.8
     position_integral_limit: PosFloat = 2.0
     attitude_integral_limit: PosFloat = 1.0
     mass: PosFloat | None = None
 
 
-class YawReference(_Strict):
+class YawReference(StrictModel):
     """``ψ_d(t) = center + amplitude sin(multiple φ(t) + phase)`` (rad)."""
 
     center: Finite = 0.0
@@ -162,7 +141,7 @@ class YawReference(_Strict):
     phase: Finite = 0.0
 
 
-class ReferenceConfig(_Strict):
+class ReferenceConfig(StrictModel):
     """A Lissajous reference ``r_d(t) = center + amplitude ⊙ sin(multiple ⊙ φ(t) + phase)``
     with ``φ(t) = 2π s(t) / period``. ``s(t)`` ramps the speed up smoothly over ``ramp``
     seconds (quintic smooth step on ``ṡ``, so position, velocity and acceleration of the
@@ -182,7 +161,7 @@ class ReferenceConfig(_Strict):
     yaw: YawReference = YawReference()
 
 
-class WindConfig(_Strict):
+class WindConfig(StrictModel):
     """Wind as a world-frame force on the UAV body (N): a constant part plus one
     ``1 − cos`` gust ``½ gust_force (1 − cos(2π (t − gust_start)/gust_duration))`` for
     ``gust_start <= t <= gust_start + gust_duration``."""
@@ -193,7 +172,7 @@ class WindConfig(_Strict):
     gust_duration: PosFloat = 1.0
 
 
-class ServoConfig(_Strict):
+class ServoConfig(StrictModel):
     """PD angle servo of a gimbal: torque ``kp (a_cmd − a) − kd ȧ`` on each of the two
     axes (N m/rad, N m s/rad). The defaults give the Table camera a ~10 Hz, well
     damped servo (ω_n ≈ 60 rad/s, ζ ≈ 0.8)."""
@@ -202,7 +181,7 @@ class ServoConfig(_Strict):
     kd: PosPair = (5.0e-4, 5.0e-4)
 
 
-class GimbalCommand(_Strict):
+class GimbalCommand(StrictModel):
     """Commanded gimbal angles ``angle + amplitude sin(2π t / period)`` (rad, per axis)."""
 
     angle: Pair = (0.0, 0.0)
@@ -210,7 +189,7 @@ class GimbalCommand(_Strict):
     period: PosPair = (1.0, 1.0)
 
 
-class CameraConfig(_Strict):
+class CameraConfig(StrictModel):
     """A camera body attached to the UAV (paper Fig. camera_fixed / camera_universal).
 
     ``mount: fixed`` — a fixed joint at ``offset`` (UAV body frame); the camera frame is
@@ -256,7 +235,7 @@ class CameraConfig(_Strict):
         return self
 
 
-class QuadrotorConfig(_Strict):
+class QuadrotorConfig(StrictModel):
     """A quadrotor: rotor forces on the rigid body ``body``, optionally under a
     controller tracking ``reference``, with optional drag, wind and cameras.
 
@@ -309,16 +288,16 @@ def quadrotor_problems(scene) -> list[str]:
     return problems
 
 
-class GainsFile(_Strict):
+class GainsFile(StrictModel):
     """A gains file (``scripts/tune_pid.py`` writes one; ``simulate.py --gains`` reads it):
     either one ``controller`` section for every quadrotor, or a ``quadrotors`` list of
     ``{controller: ...}`` by index."""
 
-    class _Controller(_Strict):
+    class _Controller(StrictModel):
         position: GainSet
         attitude: GainSet
 
-    class _Quad(_Strict):
+    class _Quad(StrictModel):
         controller: "GainsFile._Controller"
 
     controller: _Controller | None = None
@@ -334,27 +313,22 @@ class GainsFile(_Strict):
 def gain_overrides(gains_path, config_path) -> list[str]:
     """``--set``-style overrides that put the gains of ``gains_path`` into the scene file
     ``config_path``. Raises :class:`~mysim_jax.config.ConfigError` naming the problem."""
-    from pathlib import Path
-
-    import yaml
     from pydantic import ValidationError
 
-    from mysim_jax.config import ConfigError, _format_validation_error
+    from mysim_jax.config_base import ConfigError, format_validation_error, read_yaml_file
 
-    gains_path, config_path = Path(gains_path), Path(config_path)
-    for p in (gains_path, config_path):
-        if not p.is_file():
-            raise ConfigError(f"{p}: no such file")
+    raw_gains = read_yaml_file(gains_path, "gains file")
+    raw = read_yaml_file(config_path, "config file")
+    if not isinstance(raw_gains, dict):
+        raise ConfigError(f"{gains_path}: a gains file must be a YAML mapping at the top level "
+                          "('controller:' or 'quadrotors:')")
     try:
-        gains = GainsFile.model_validate(yaml.safe_load(gains_path.read_text()))
-        raw = yaml.safe_load(config_path.read_text()) or {}
+        gains = GainsFile.model_validate(raw_gains)
     except ValidationError as err:
-        raise ConfigError(f"{gains_path}: invalid gains file\n{_format_validation_error(err)}") from None
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"broken YAML: {exc}") from None
+        raise ConfigError(f"{gains_path}: invalid gains file\n{format_validation_error(err)}") from None
     n_quads = len(raw.get("quadrotors") or []) if isinstance(raw, dict) else 0
     if n_quads == 0:
-        raise ConfigError(f"--gains {gains_path}: scene {config_path} has no quadrotors")
+        raise ConfigError(f"{gains_path}: the gains file is for quadrotors, and scene {config_path} has none")
     per_quad = [gains.controller] * n_quads if gains.controller is not None else [q.controller for q in gains.quadrotors]
     if len(per_quad) != n_quads:
         raise ConfigError(f"{gains_path}: quadrotors: {len(per_quad)} entries, the scene has {n_quads} quadrotors")

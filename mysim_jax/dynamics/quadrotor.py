@@ -106,19 +106,6 @@ class ActuatorInputs:
 # --- geometry and allocation -----------------------------------------------------------
 
 
-def rotor_positions_np(arm_length, angle) -> np.ndarray:
-    """``d_i = l_i [sin θ_i, cos θ_i, 0]`` as a ``(4, 3)`` NumPy array."""
-    arm, ang = np.asarray(arm_length, float), np.asarray(angle, float)
-    return np.stack([arm * np.sin(ang), arm * np.cos(ang), np.zeros_like(arm)], axis=-1)
-
-
-def allocation_matrix_np(arm_length, angle, lift, torque_coefficient, spin) -> np.ndarray:
-    """The allocation matrix ``M`` (4, 4) from config values, NumPy (host-side checks)."""
-    d = rotor_positions_np(arm_length, angle)
-    c, k, s = (np.asarray(x, float) for x in (lift, torque_coefficient, spin))
-    return np.stack([c, c * d[:, 1], -c * d[:, 0], s * k])
-
-
 def allocation_matrix(qp: QuadrotorParams):
     """``M`` ``(n_quads, 4, 4)``: ``(T, τ_x, τ_y, τ_z) = M (ω_1², …, ω_4²)``."""
     c = qp.lift_coefficient

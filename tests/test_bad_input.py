@@ -1,0 +1,355 @@
+"""Bad input through ``scripts/simulate.py``: every case is a clear error or a documented
+acceptance, never a traceback, never exit 0 with non-finite output, never half-written.
+
+A corpus of the input mistakes users make, one test per category: files that are not
+UTF-8 YAML text (as the scene or as ``--gains``), YAML that nests or expands without
+bound or repeats a key, unusable ``--out`` folders, numbers beyond the accepted range or
+booleans where numbers belong, run lengths that do not fit the output grid, contact pairs
+that list nothing, joints that cannot be solved, and runs that turn non-finite at run
+time. The property-based half (random edits of every shipped scene) is in
+``tests/test_fuzz_config.py``.
+
+Input errors are checked in-process (``simulate.main``, exit code 2, before JAX is even
+imported by the script); the two cases that run (exit code 3) use a subprocess, since a
+float64 scene switches JAX to 64-bit mode for the rest of its process.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import gzip
+import importlib.util
+import io
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import yaml
+
+from mysim_jax.io.trajectory import read_trajectory_csv
+
+from conftest import CONFIGS, ROOT
+
+SCRIPT = ROOT / "scripts" / "simulate.py"
+ROPE = CONFIGS / "rope_net.yaml"
+UAV = CONFIGS / "uav_track_small.yaml"
+
+
+def _load_script():
+    spec = importlib.util.spec_from_file_location("simulate_script", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+simulate_script = _load_script()
+
+
+def _main(*args) -> tuple[int, str]:
+    """Run ``simulate.py`` in-process; exit code and stderr. A traceback fails the test."""
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+        code = simulate_script.main([str(a) for a in args])
+    return code, err.getvalue()
+
+
+def _rejected(tmp_path, *args, expect: str | tuple[str, ...]):
+    """The run exits 2 with one error naming ``expect``, and writes nothing."""
+    out = tmp_path / "out"
+    before = set(os.listdir(tmp_path))
+    code, err = _main(*args, "--out", out) if "--out" not in args else _main(*args)
+    assert code == 2, err
+    assert err.startswith("error: ") and "Traceback" not in err, err
+    for text in (expect,) if isinstance(expect, str) else expect:
+        assert text in err, err
+    assert set(os.listdir(tmp_path)) == before, "an input error left files behind"
+
+
+# --- files that are not UTF-8 YAML text -------------------------------------------------
+
+def _bad_files(tmp_path):
+    rope = ROPE.read_text()
+    files = {
+        "binary": (os.urandom(64) + b"\x00" + os.urandom(64), "binary data"),
+        "utf16": (rope.encode("utf-16"), "UTF-16 text"),
+        "utf32": (rope.encode("utf-32"), "UTF-32 text"),
+        "latin1": ("name: café\n".encode("latin-1"), "not UTF-8 text (byte 0xe9"),
+        "png": (b"\x89PNG\r\n\x1a\n" + bytes(range(1, 200)), "not UTF-8 text (byte 0x89"),
+        "gzip": (gzip.compress(rope.encode()), "binary data"),
+        "deep": (("a: " + "[" * 5000 + "]" * 5000 + "\n").encode(), "nested deeper than 64 levels"),
+        "deep_map": (("a:\n" + "".join(" " * (i + 1) + "b:\n" for i in range(200))).encode(),
+                     "nested deeper than 64 levels"),
+        "alias_bomb": (("a: &a [x, x, x, x, x, x, x, x, x, x]\n" + "".join(
+            f"{k}: &{k} [{', '.join(['*' + p] * 10)}]\n" for p, k in zip("abcdefgh", "bcdefghi"))).encode(),
+            "expands to more than 1,000,000 values"),
+        "duplicate_key": ((rope + "\nsim: {t_end: 1, dt: 1.0e-4, output_dt: 1.0e-3}\n").encode(),
+                          "found duplicate key 'sim'"),
+        "broken": (b"name: [unclosed\n", "broken YAML"),
+        "too_large": (b"# " + b"x" * (16 * 1024 * 1024 + 10) + b"\n", "too large"),
+    }
+    paths = {}
+    for name, (data, expect) in files.items():
+        path = tmp_path / f"{name}.yaml"
+        path.write_bytes(data)
+        paths[name] = (path, expect)
+    return paths
+
+
+def test_scene_files_that_are_not_utf8_yaml_text_are_named(tmp_path):
+    files = tmp_path / "files"
+    files.mkdir()
+    for name, (path, expect) in _bad_files(files).items():
+        _rejected(tmp_path, path, expect=(str(path), expect))
+    _rejected(tmp_path, files, expect=(str(files), "is a directory, not a config file"))
+    _rejected(tmp_path, "/dev/null", expect="/dev/null: is not a regular file")
+    _rejected(tmp_path, tmp_path / "missing.yaml", expect="missing.yaml: no such config file")
+    (files / "list.yaml").write_text("- 1\n- 2\n")
+    _rejected(tmp_path, files / "list.yaml", expect="must be a YAML mapping")
+    (files / "empty.yaml").write_text("")
+    _rejected(tmp_path, files / "empty.yaml", expect="must be a YAML mapping")
+
+
+def test_gains_files_that_are_broken_are_named(tmp_path):
+    files = tmp_path / "files"
+    files.mkdir()
+    bad = _bad_files(files)
+    for name in ("binary", "utf16", "latin1", "deep", "duplicate_key", "broken"):
+        path, expect = bad[name]
+        _rejected(tmp_path, UAV, "--gains", path, expect=(str(path), "gains file", expect))
+    _rejected(tmp_path, UAV, "--gains", files, expect=(str(files), "is a directory, not a gains file"))
+    _rejected(tmp_path, UAV, "--gains", "/dev/null", expect="/dev/null: is not a regular file")
+    (files / "scalar.yaml").write_text("3\n")
+    _rejected(tmp_path, UAV, "--gains", files / "scalar.yaml", expect=("scalar.yaml", "YAML mapping"))
+    (files / "bool.yaml").write_text("controller:\n  position: {kp: [1, 1, true], ki: [0, 0, 0], kd: [0, 0, 0]}\n"
+                                     "  attitude: {kp: [1, 1, 1], ki: [0, 0, 0], kd: [0, 0, 0]}\n")
+    _rejected(tmp_path, UAV, "--gains", files / "bool.yaml",
+              expect=("bool.yaml: invalid gains file", "controller.position.kp.2", "boolean"))
+
+
+# --- output folders -----------------------------------------------------------------------
+
+def test_unusable_output_folders_are_refused_before_any_work(tmp_path):
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    _rejected(tmp_path, ROPE, "--out", afile, expect="exists and is not a folder")
+    _rejected(tmp_path, ROPE, "--out", "/dev/null", expect="exists and is not a folder")
+    _rejected(tmp_path, ROPE, "--out", afile / "sub", expect="is an existing file, not a folder")
+    _rejected(tmp_path, ROPE, "--out", tmp_path / ("x" * 300), expect="longer than the file system allows")
+    _rejected(tmp_path, ROPE, "--out", "", expect="--out: empty path")
+    _rejected(tmp_path, ROPE, "--out", "   ", expect="--out: empty path")
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root may write into any folder: no unwritable folder to test with")
+def test_an_unwritable_output_folder_is_refused(tmp_path):
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    locked.chmod(0o500)
+    try:
+        _rejected(tmp_path, ROPE, "--out", locked / "run", expect="no permission to write")
+    finally:
+        locked.chmod(0o700)
+
+
+# --- values ---------------------------------------------------------------------------------
+
+HUGE = [
+    ("ropes.0.EA=1e308", "ropes.0.EA"),
+    ("points.0.pos=[1e308, 0, 0]", "points.0.pos.0"),
+    ("points.0.vel=[0, 0, -1e300]", "points.0.vel.2"),
+    ("gravity=[0, 0, -1e308]", "gravity.2"),
+    ("anchors.0.pos=[1e308, 0, 0]", "anchors.0.pos.0"),
+    ("sim.t_end=1e308", "sim.t_end"),
+    ("sim.dt=1e308", "sim.dt"),
+    ("sim.output_dt=1e308", "sim.output_dt"),
+    ("ropes.0.n_masses=1000000000000", "ropes.0.n_masses"),
+    ("ropes.1.damping=1e200", "ropes.1.damping"),
+    ("points.0.mass=1e-300", "points.0.mass"),
+    ("ropes.0.length=5e-324", "ropes.0.length"),
+    ("sim.max_steps=100000000000000", "sim.max_steps"),
+    ("sim.substeps=1000000000000", "sim.substeps"),
+]
+
+
+@pytest.mark.parametrize("override,field", HUGE, ids=[h[1] for h in HUGE])
+def test_numbers_beyond_the_accepted_range_are_named(tmp_path, override, field):
+    _rejected(tmp_path, ROPE, "--set", override, expect=field)
+
+
+UAV_HUGE = [
+    ("quadrotors.0.rotors.omega_max=1e308", "quadrotors.0.rotors.omega_max"),
+    ("bodies.0.inertia=[1e308, 1e308, 1e308]", "bodies.0.inertia"),
+    ("bodies.0.inertia=[1e-300, 1e-300, 1e-300]", "bodies.0.inertia"),
+    ("bodies.0.quat=[1e200, 0, 0, 0]", "bodies.0.quat.0"),
+    ("quadrotors.0.controller.position.kp=[1e308, 1, 1]", "quadrotors.0.controller.position.kp.0"),
+]
+
+
+@pytest.mark.parametrize("override,field", UAV_HUGE, ids=[h[0].split("=")[0] + str(i) for i, h in enumerate(UAV_HUGE)])
+def test_quadrotor_numbers_beyond_the_accepted_range_are_named(tmp_path, override, field):
+    _rejected(tmp_path, UAV, "--set", override, expect=field)
+
+
+BOOLEANS = [
+    ("points.0.mass=true", "points.0.mass"),
+    ("points.0.mass=yes", "points.0.mass"),
+    ("ropes.0.n_masses=on", "ropes.0.n_masses"),
+    ("points.0.pos=[true, 0, 0]", "points.0.pos.0"),
+    ("sim.substeps=true", "sim.substeps"),
+    ("gravity=[0, 0, false]", "gravity.2"),
+    ("name=true", "name"),
+]
+
+
+@pytest.mark.parametrize("override,field", BOOLEANS, ids=[b[0] for b in BOOLEANS])
+def test_booleans_are_not_numbers(tmp_path, override, field):
+    _rejected(tmp_path, ROPE, "--set", override, expect=(field, "boolean"))
+
+
+def test_rotor_spin_rejects_a_boolean(tmp_path):
+    _rejected(tmp_path, UAV, "--set", "quadrotors.0.rotors.spin=[true, -1, 1, -1]",
+              expect=("quadrotors.0.rotors.spin.0", "boolean"))
+
+
+GRID = [
+    ("sim.t_end=5e-4", "shorter than one output interval"),
+    ("sim.t_end=1.0005", "must be a whole multiple of output_dt"),
+    ("sim.output_dt=1.5e-4", "must be a whole multiple of dt"),
+    ("sim.output_dt=5e-5", "shorter than dt"),
+    ("sim.t_end=1e6", "environment steps"),
+]
+
+
+@pytest.mark.parametrize("override,expect", GRID, ids=[g[0] for g in GRID])
+def test_run_lengths_that_do_not_fit_the_output_grid(tmp_path, override, expect):
+    _rejected(tmp_path, ROPE, "--set", override, expect=("sim", expect))
+
+
+def test_a_run_too_large_to_save_is_refused(tmp_path):
+    _rejected(tmp_path, ROPE, "--set", "sim.t_end=100000", "--set", "sim.output_dt=1.0e-3",
+              "--set", "sim.dt=1.0e-3", "--set", "sim.integrator=tsit5",
+              expect=("raise sim.output_dt or shorten sim.t_end",))
+
+
+def test_an_output_interval_within_round_off_of_the_grid_runs_to_t_end(tmp_path):
+    """Documented acceptance: ``output_dt`` within 1e-6 (relative) of a multiple of ``dt``
+    is snapped to it, and the run still covers ``t_end`` exactly (it used to stop one
+    output short)."""
+    out = tmp_path / "out"
+    code, err = _main(ROPE, "--out", out, "--set", "sim.t_end=0.02", "--set", "sim.output_dt=0.001000000001",
+                      "--set", "sim.precision=float32", "--no-progress")
+    assert code == 0, err
+    cols = read_trajectory_csv(out / "trajectory.csv")
+    assert len(cols["time"]) == 21 and cols["time"][-1] == pytest.approx(0.02, abs=1e-15)
+
+
+# --- structure ----------------------------------------------------------------------------
+
+def _collision_with(pairs, groups):
+    raw = yaml.safe_load((CONFIGS / "collision_light.yaml").read_text())
+    raw["contact"]["groups"] = groups
+    raw["contact"]["pairs"] = pairs
+    return raw
+
+
+def test_contact_pairs_that_list_no_pair_are_named(tmp_path):
+    path = tmp_path / "zero_pairs.yaml"
+    path.write_text(yaml.safe_dump(_collision_with([["ball", "ball"]], [
+        {"name": "ball", "members": ["ball"], "radius": 0.03}])))
+    _rejected(tmp_path, path, expect=("contact.pairs.0", "lists no pair", "group 'ball' has 1 member"))
+    path.write_text(yaml.safe_dump(_collision_with([["a", "b"]], [
+        {"name": "a", "members": ["ball"], "radius": 0.03}, {"name": "b", "members": ["ball"], "radius": 0.03}])))
+    _rejected(tmp_path, path, expect=("contact.pairs.0", "lists no pair"))
+
+
+def _pendulum(joint_type, marker_quat):
+    return {
+        "name": "pendulum",
+        "sim": {"t_end": 0.01, "dt": 1.0e-3, "output_dt": 1.0e-3, "integrator": "rk4"},
+        "anchors": [{"name": "pivot", "pos": [0, 0, 0]}],
+        "bodies": [{"name": "bob", "mass": 1.0, "inertia": [0.01, 0.01, 0.01], "pos": [0, 0, -0.5],
+                    "markers": [{"name": "top", "pos": [0, 0, 0.5], "quat": marker_quat}]}],
+        "joints": [{"name": "hinge", "type": joint_type, "marker_i": "pivot", "marker_j": "bob.top"}],
+    }
+
+
+def test_joints_that_cannot_be_solved_are_named(tmp_path):
+    path = tmp_path / "joint.yaml"
+    # universal joint: both z axes along world z (the frames must have perpendicular z axes)
+    path.write_text(yaml.safe_dump(_pendulum("universal", [1, 0, 0, 0])))
+    _rejected(tmp_path, path, expect=("joints.0 ('hinge')", "z axes", "parallel"))
+    # the same joint assembled (marker turned 90 degrees about x) is accepted
+    path.write_text(yaml.safe_dump(_pendulum("universal", [0.7071067811865476, 0.7071067811865476, 0, 0])))
+    code, err = _main(path, "--out", tmp_path / "ok", "--no-progress")
+    assert code == 0, err
+    # fixed joint whose frames are a quarter turn apart about z: x_I . y_J = 1
+    path.write_text(yaml.safe_dump(_pendulum("fixed", [0.7071067811865476, 0, 0, 0.7071067811865476])))
+    _rejected(tmp_path, path, expect=("joints.0 ('hinge')", "singular configuration"))
+    # two fixed joints between the same pair of frames: redundant rows
+    raw = _pendulum("fixed", [1, 0, 0, 0])
+    raw["joints"].append({"name": "again", "type": "fixed", "marker_i": "pivot", "marker_j": "bob.top"})
+    path.write_text(yaml.safe_dump(raw))
+    _rejected(tmp_path, path, expect=("'hinge'", "'again'", "more than once"))
+
+
+# --- runs that turn non-finite -----------------------------------------------------------------
+
+def _run_subprocess(*args):
+    return subprocess.run([sys.executable, str(SCRIPT), *map(str, args), "--no-progress"],
+                          capture_output=True, text=True, cwd=ROOT)
+
+
+def test_a_run_that_turns_non_finite_stops_names_the_body_and_keeps_the_finite_part(tmp_path):
+    """A body spun at 1e12 rad/s (accepted: every number is in range) overflows float32
+    within a step; the run stops with exit code 3, says when and in which body, and OUT
+    holds the finite rows with ``status: failed``."""
+    out = tmp_path / "spin"
+    res = _run_subprocess(UAV, "--out", out, "--set", "bodies.0.angvel=[1e12, 1e12, 1e12]", "--set", "sim.t_end=0.1")
+    assert res.returncode == 3, res.stderr
+    assert "Traceback" not in res.stderr
+    assert "turned non-finite between t = 0 s and 0.01 s" in res.stderr and "body 'uav0'" in res.stderr
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["status"] == "failed" and "uav0" in metrics["failure"]
+    cols = read_trajectory_csv(out / "trajectory.csv")
+    assert len(cols["time"]) == metrics["n_outputs"] == 1
+    assert all(np.isfinite(v).all() for v in cols.values())
+
+
+def test_an_adaptive_solve_that_runs_out_of_steps_says_so(tmp_path):
+    out = tmp_path / "steps"
+    res = _run_subprocess(CONFIGS / "collision_light.yaml", "--out", out, "--set", "sim.max_steps=100",
+                          "--set", "sim.t_end=0.1")
+    assert res.returncode == 3, res.stderr
+    assert "Traceback" not in res.stderr
+    assert "gave up after t = " in res.stderr and "raise sim.max_steps" in res.stderr
+    cols = read_trajectory_csv(out / "trajectory.csv")
+    assert 1 < len(cols["time"]) < 101 and all(np.isfinite(v).all() for v in cols.values())
+    assert json.loads((out / "metrics.json").read_text())["status"] == "failed"
+
+
+def test_a_failed_run_leaves_nothing_half_written(tmp_path, monkeypatch):
+    """Outputs go to a hidden temporary folder first: if writing fails half-way (here:
+    the plot step raises), OUT does not appear and no temporary folder is left."""
+    import mysim_jax.io.plots as plots
+
+    def broken(*args, **kwargs):
+        raise OSError("disk full (simulated)")
+
+    monkeypatch.setattr(plots, "plot_kinematics", broken)
+    with pytest.raises(OSError, match="disk full"):
+        _main(ROPE, "--out", tmp_path / "run", "--set", "sim.t_end=0.01", "--set", "sim.precision=float32",
+              "--no-progress")
+    assert os.listdir(tmp_path) == []
+
+
+def test_validating_every_shipped_scene_does_not_import_jax():
+    """Config checks run before JAX is imported (scripts report bad input in a fraction of
+    a second); a module that pulls JAX into the config path breaks that."""
+    code = ("import sys, glob\nfrom mysim_jax.config import load_config\n"
+            "for f in sorted(glob.glob('configs/*.yaml')):\n    load_config(f)\n"
+            "print('jax' in sys.modules)\n")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.strip() == "False"
