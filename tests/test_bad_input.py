@@ -227,6 +227,11 @@ def test_run_lengths_that_do_not_fit_the_output_grid(tmp_path, override, expect)
     _rejected(tmp_path, ROPE, "--set", override, expect=("sim", expect))
 
 
+def test_an_adaptive_first_step_longer_than_the_run_is_refused(tmp_path):
+    _rejected(tmp_path, ROPE, "--set", "sim.integrator=tsit5", "--set", "sim.dt=3", "--set", "sim.output_dt=3",
+              expect=("sim", "t_end (2 s) is shorter than one output interval (3 s)"))
+
+
 def test_a_run_too_large_to_save_is_refused(tmp_path):
     _rejected(tmp_path, ROPE, "--set", "sim.t_end=100000", "--set", "sim.output_dt=1.0e-3",
               "--set", "sim.dt=1.0e-3", "--set", "sim.integrator=tsit5",
