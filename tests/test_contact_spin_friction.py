@@ -25,6 +25,7 @@ pytestmark = pytest.mark.float64
 K, EXPONENT, DAMPING, DEPTH_P = 2e6, 1.5, 300.0, 1e-3
 MU_S, MU_D, V_S, V_D = 0.5, 0.3, 0.01, 0.1
 R_PAIR, R_GROUND = 0.05, 0.04
+EPS_DEPTH, EPS_VEL = 5e-5, 3e-3       # smooth model: widths large enough to matter here
 
 # name: position, velocity, attitude (rotation vector), body-frame angular velocity
 SPHERES = {
@@ -50,13 +51,14 @@ def _states():
     return out
 
 
-def _scene():
+def _scene(model):
     raw = {
         "name": "spin_friction",
         "sim": {"t_end": 0.01, "dt": 1e-4, "output_dt": 1e-4, "integrator": "tsit5", "precision": "float64"},
         "gravity": [0.0, 0.0, -9.81],
         "bodies": [],
-        "contact": {"stiffness": K, "exponent": EXPONENT, "damping": DAMPING, "damping_depth": DEPTH_P,
+        "contact": {"model": model, "smoothing": {"depth": EPS_DEPTH, "velocity": EPS_VEL},
+                    "stiffness": K, "exponent": EXPONENT, "damping": DAMPING, "damping_depth": DEPTH_P,
                     "friction": {"mu_static": MU_S, "mu_dynamic": MU_D, "v_static": V_S, "v_dynamic": V_D},
                     "groups": [{"name": "pair", "members": ["a", "b"], "radius": R_PAIR},
                                {"name": "roller", "members": ["g"], "radius": R_GROUND}],
@@ -82,51 +84,66 @@ def _mu(speed):
     return _step(speed, V_S, MU_S, V_D, MU_D)
 
 
-def _normal_force(depth, rate):
-    return max(0.0, K * depth ** EXPONENT + _step(depth, 0.0, 0.0, DEPTH_P, DAMPING) * rate)
+def _softplus(x):
+    return np.logaddexp(0.0, x)
 
 
-def _friction(fn, slip):
+def _normal_force(depth, rate, model):
+    if model == "sharp":
+        return max(0.0, K * depth ** EXPONENT + _step(depth, 0.0, 0.0, DEPTH_P, DAMPING) * rate)
+    pen = EPS_DEPTH * _softplus(depth / EPS_DEPTH)
+    width = K * EPS_DEPTH ** EXPONENT
+    inner = K * pen ** EXPONENT + _step(pen, 0.0, 0.0, DEPTH_P, DAMPING) * rate
+    return width * _softplus(inner / width) / (1.0 + np.exp(-depth / EPS_DEPTH))
+
+
+def _friction(fn, slip, model):
     speed = np.linalg.norm(slip)
-    return -_mu(speed) * fn * slip / speed, speed
+    seen = speed if model == "sharp" else np.sqrt(speed ** 2 + EPS_VEL ** 2)
+    return -_mu(seen) * fn * slip / seen, speed
 
 
-def _reference():
+def _reference(model):
     """Force (world) and torque (body frame) on each sphere, and the slip speeds."""
     s = _states()
     (xa, va, ra, wa), (xb, vb, rb, wb), (xg, vg, rg, wg) = s["a"], s["b"], s["g"]
     d = xb - xa
     n = d / np.linalg.norm(d)
     depth = 2 * R_PAIR - np.linalg.norm(d)
-    fn = _normal_force(depth, -(vb - va) @ n)
+    fn = _normal_force(depth, -(vb - va) @ n, model)
     lever_a, lever_b = (R_PAIR - 0.5 * depth) * n, -(R_PAIR - 0.5 * depth) * n
     v_rel = vb + np.cross(rb @ wb, lever_b) - va - np.cross(ra @ wa, lever_a)
-    fr, pair_speed = _friction(fn, v_rel - (v_rel @ n) * n)
+    fr, pair_speed = _friction(fn, v_rel - (v_rel @ n) * n, model)
     force = {"b": fn * n + fr, "a": -(fn * n + fr)}
     torque = {"b": rb.T @ np.cross(lever_b, fr), "a": ra.T @ np.cross(lever_a, -fr)}
     up = np.array([0.0, 0.0, 1.0])
     depth_g = R_GROUND - xg[2]
-    fn_g = _normal_force(depth_g, -vg[2])
+    fn_g = _normal_force(depth_g, -vg[2], model)
     lever_g = -(R_GROUND - 0.5 * depth_g) * up
     v_contact = vg + np.cross(rg @ wg, lever_g)
-    fr_g, ground_speed = _friction(fn_g, v_contact - (v_contact @ up) * up)
+    fr_g, ground_speed = _friction(fn_g, v_contact - (v_contact @ up) * up, model)
     force["g"] = fn_g * up + fr_g
     torque["g"] = rg.T @ np.cross(lever_g, fr_g)
     return force, torque, pair_speed, ground_speed
 
 
-def test_friction_of_spinning_spheres_matches_numpy():
-    scene, params, state = _scene()
+@pytest.mark.parametrize("model", ["sharp", "smooth"])
+def test_friction_of_spinning_spheres_matches_numpy(model):
+    scene, params, state = _scene(model)
     loads = jax.jit(lambda ph: contact_forces(scene, params, ph))(state.phys)
-    force, torque, pair_speed, ground_speed = _reference()
+    force, torque, pair_speed, ground_speed = _reference(model)
     # the cases are the ones meant: the pair slides fast (μ = μ_d), the ground contact slips
     # in the Stribeck transition between v_s and v_d
     assert pair_speed > V_D and V_S < ground_speed < V_D, (pair_speed, ground_speed)
     for i, name in enumerate(scene.body_names):
-        # measured max abs error: 2.3e-12 N on forces of 15-55 N, 4.2e-14 N m on torques of
+        # measured max abs error (both models): 2.3e-12 N on forces of 15-55 N, 4.3e-14 N m on torques of
         # 0.07-0.8 N m: round-off, amplified ~250x by the depth 2r − |d| (4e-4 m out of 0.1 m)
         np.testing.assert_allclose(np.asarray(loads.body_force[i]), force[name], rtol=0, atol=2e-11)
         np.testing.assert_allclose(np.asarray(loads.body_torque[i]), torque[name], rtol=0, atol=4e-13)
     # friction is a sizeable part of each force, not round-off
     for name in ("a", "g"):
         assert np.linalg.norm(np.cross(force[name], [0, 0, 1] if name == "g" else PAIR_NORMAL)) > 1.0
+    if model == "smooth":   # and the smoothing changes the forces well beyond the tolerance
+        sharp_force, sharp_torque, _, _ = _reference("sharp")
+        assert np.abs(force["g"] - sharp_force["g"]).max() > 1e-2       # 0.029 N
+        assert np.abs(force["a"] - sharp_force["a"]).max() > 5e-3       # 0.011 N
