@@ -1,5 +1,5 @@
-"""The fixed-step integrators, one step at a time against hand-written updates, and the
-unit quaternion over a long float32 RK4 run.
+"""The fixed-step integrators, one step at a time against hand-written updates; sub-steps;
+and the unit quaternion over a long float32 run.
 
 The test problem: a point mass on a damped linear spring to an anchor, under gravity
 (a nonlinear force in the position: the spring acts along the current direction), and
@@ -11,7 +11,8 @@ are re-derived in NumPy; the integrator updates are written out by hand:
   ``ω' = ω + h ω̇(ω)``, ``q' = q ⊗ exp(½ h ω')`` — and not explicit Euler
   (``x' = x + h v``), which differs by ``h² a``;
 * classical RK4 on ``(x, v, p, q, v_b, ω)`` with ``q̇ = ½ q ⊗ (0, ω)``, ``q`` renormalised
-  after the step.
+  after the step;
+* an environment step of ``dt`` with ``substeps: n`` is ``n`` steps of ``dt/n``.
 """
 
 import jax
