@@ -358,3 +358,19 @@ def test_validating_every_shipped_scene_does_not_import_jax():
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
     assert res.returncode == 0, res.stderr
     assert res.stdout.strip() == "False"
+
+
+def test_simulate_reports_an_infinite_state_and_keeps_no_non_finite_row():
+    """Library use: ``simulate`` given a state holding inf (not NaN) stops at t = 0, names
+    the point and the quantity, and returns no rows rather than rows with inf in them."""
+    import jax.numpy as jnp
+
+    from mysim_jax.build import build
+    from mysim_jax.config import load_config
+    from mysim_jax.sim import simulate
+
+    scene, params, state = build(load_config(ROPE, ["sim.precision=float32", "sim.t_end=0.01"]))
+    vel = state.phys.point_vel.at[3, 2].set(jnp.inf)
+    traj = simulate(scene, params, state.replace(phys=state.phys.replace(point_vel=vel)), progress=False)
+    assert not traj.ok and "at t = 0 s" in traj.failure and "point 'r0_2' (vel)" in traj.failure
+    assert len(traj.time) == 0 and traj.phys.point_pos.shape == (0, 21, 3) and traj.acc.point_acc.shape[0] == 0
