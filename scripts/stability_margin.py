@@ -198,7 +198,7 @@ def random_scene(seed: int) -> dict:
                     add_rope(f"k{i}_{j}", f"k{i + 1}_{j}", ea, like=module)
                 if j + 1 < ny:
                     add_rope(f"k{i}_{j}", f"k{i}_{j + 1}", ea, like=module)
-        corners = [f"k0_0", f"k{nx - 1}_0", f"k0_{ny - 1}", f"k{nx - 1}_{ny - 1}"]
+        corners = ["k0_0", f"k{nx - 1}_0", f"k0_{ny - 1}", f"k{nx - 1}_{ny - 1}"]
         kind = int(rng.integers(0, 3))      # 0 anchors, 1 a body (UAV) per corner, 2 one body holds two
         shared = add_body("carrier", [0.5 * (nx - 1) * spacing, -0.5, 1.0], 2) if kind == 2 else []
         for c, corner in enumerate(corners):

@@ -26,7 +26,7 @@ from mysim_jax.dynamics.stability import (NETWORK_STEP_SAFETY, network_stable_st
                                           stable_step_all_below)
 from mysim_jax.sim import rollout
 
-from conftest import CONFIGS, ROOT
+from conftest import ROOT
 
 N_ENVS = 256
 SPEED = 10.0      # m/s, largest initial speed of every mass (as in the measurements)
