@@ -23,10 +23,13 @@ offset), and counts the envs that blow up (any state not finite, or a position b
 larger fractions are not run (``-`` in the table). One jit per step size.
 
 Scenes: ``rope_net`` (``configs/rope_net.yaml``) and ``random_<seed>`` scenes drawn from
-the config schema by :func:`random_scene` (anchors, free knots, an optional rigid body
-with one or two markers, ropes between them and onto each other's masses, free springs;
-random n_masses, EA, damping, masses, linear or tension_only, slack or stretched), their
-stiffness and damping scaled so that the semi-implicit Euler bound is ~1e-4 to 3e-4 s.
+the config schema by :func:`random_scene` (by ``seed % 3``: a tree of unlike ropes, knots,
+free springs and a body; a star of identical ropes from one knot, maybe to a body's marker;
+a net of identical ropes held at its corners by anchors or bodies), random n_masses, EA,
+damping, masses, linear or tension_only, slack or stretched, their stiffness and damping
+scaled so that the semi-implicit Euler bound is ``--target`` x 0.5-1.5. A ``:spherical``
+suffix gives every body an isotropic inertia of the same trace (no gyroscopic term), to
+tell blow-ups of the bodies' rotation from the network's.
 
 Writes a markdown report (``--out``, default ``docs/stability.md``) with the tables and a
 plot of the blown-up fraction against ``h / bound`` next to it.
