@@ -269,3 +269,16 @@ def test_baumgarte_limit_uses_the_damping_2_alpha():
     start, end = errors[0.98 * limit]
     assert start > 0.04 and end < 1e-6 * start          # decays by over 6 orders in 4 s
     assert not errors[between][1] < 1.0                   # diverged (or not finite)
+
+
+def test_large_networks_use_a_conservative_eigenvalue_bound(monkeypatch):
+    """Above EXACT_EIG_MAX_NODES the top eigenvalue is a Gershgorin row-sum bound: never a
+    larger step than the exact one."""
+    import mysim_jax.dynamics.stability as stability
+
+    raw = _raw("random_5")
+    scene, params, state = SM.built(raw, "semi_implicit_euler")
+    exact, _ = SM.limits(scene, params, state, "semi_implicit_euler")
+    monkeypatch.setattr(stability, "EXACT_EIG_MAX_NODES", 0)
+    gershgorin, _ = SM.limits(scene, params, state, "semi_implicit_euler")
+    assert 0.5 * exact < gershgorin <= exact       # not far below either
