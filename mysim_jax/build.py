@@ -19,7 +19,7 @@ from mysim_jax.config import FIXED_STEP_INTEGRATORS, ConfigError, SceneConfig
 from mysim_jax.contact.build import build_contact, contact_stable_step
 from mysim_jax.control.build import build_quadrotors, expand_cameras
 from mysim_jax.dynamics.joint_check import joint_problems
-from mysim_jax.dynamics.stability import network_stable_step, stable_step
+from mysim_jax.dynamics.stability import NETWORK_STEP_SAFETY, scene_network_stable_step, stable_step
 from mysim_jax.net.rope import build_rope
 from mysim_jax.types import JointBucket, Params, PhysState, Scene, State
 
@@ -28,8 +28,11 @@ from mysim_jax.types import JointBucket, Params, PhysState, Scene, State
 MATMUL_ACCUMULATE_MAX_NODES = 128
 
 # ``substeps: auto`` takes sub-steps of at most this fraction of the per-element explicit
-# stability limit: the per-element estimate ignores coupling between elements (which can
-# raise the top frequency by up to ~√2) and the nonlinearity of contact forces.
+# stability limits of contact pairs and Baumgarte terms: a per-element estimate ignores
+# coupling between elements (which can raise the top frequency by up to ~√2) and the
+# nonlinearity of contact forces. The spring network's limit needs no such factor: it is a
+# bound over all configurations with its own measured margin (NETWORK_STEP_SAFETY), so
+# ``auto`` uses it as the check does, and an auto step always passes the check.
 AUTO_SUBSTEP_SAFETY = 0.5
 
 
@@ -231,8 +234,7 @@ def build(config: SceneConfig):
     body_mass = np.asarray([b.mass for b in config.bodies], float).reshape(-1)
     inertia = np.asarray([_inertia_matrix(b.inertia) for b in config.bodies], float).reshape(-1, 3, 3)
     substeps = _check_stability(config, scene, point_mass, body_mass, inertia, t.marker_pos,
-                                np.asarray(stiffness, float), np.asarray(damping, float),
-                                np.asarray(t.point_pos, float).reshape(-1, 3))
+                                np.asarray(stiffness, float), np.asarray(damping, float))
     scene = dataclasses.replace(scene, substeps=substeps)
 
     dtype = scene.dtype
@@ -329,71 +331,44 @@ def _joint_buckets(config: SceneConfig, body_index, anchor_index, marker_names) 
     return tuple(out)
 
 
-def _initial_node_positions(config, scene, point_pos, marker_pos) -> np.ndarray:
-    """World positions ``(n_nodes, 3)`` of all nodes in the initial configuration."""
-    rows = [np.asarray(point_pos, float).reshape(-1, 3)]
-    bodies = config.bodies
-    rows.append(np.asarray([np.asarray(bodies[b].pos, float) + _np_rotate(np.asarray(bodies[b].quat, float), marker_pos[m])
-                            for m, b in enumerate(scene.marker_body)], float).reshape(-1, 3))
-    rows.append(np.asarray([a.pos for a in config.anchors], float).reshape(-1, 3))
-    return np.concatenate(rows, axis=0)
-
-
-def _check_stability(config, scene, point_mass, body_mass, inertia, marker_pos, stiffness, damping,
-                     node_pos_points) -> int:
+def _check_stability(config, scene, point_mass, body_mass, inertia, marker_pos, stiffness, damping) -> int:
     """Reject a fixed step above the explicit limit of the stiffest spring, joint or
     contact; resolve ``substeps: auto``. Returns the number of sub-steps to take."""
     integrator = config.sim.integrator
     auto = config.sim.substeps == "auto"
     if integrator not in FIXED_STEP_INTEGRATORS:
         return 1 if auto else config.sim.substeps
-    h = config.sim.dt / (1 if auto else config.sim.substeps)
+    # compared with a relative tolerance that ``auto`` rounds within, so an auto step passes
+    h = config.sim.dt / (1 if auto else config.sim.substeps) / (1.0 + 1e-9)
     n_points, n_markers = scene.n_points, scene.n_markers
     marker_pos = np.asarray(marker_pos, float).reshape(-1, 3)
 
-    problems, limits = [], []
+    def node_name(node):
+        if node < n_points:
+            return scene.point_names[node]
+        if node < n_points + n_markers:
+            return scene.marker_names[node - n_points]
+        return scene.anchor_names[node - n_points - n_markers]
+
+    problems, limits, auto_steps = [], [], []
     if scene.n_springs:
-        # the spring network: one 3-DOF node per point mass and per body (a force at an
-        # offset marker also turns the body: 1/m_eff <= 1/m + r²/I_min); anchors are fixed
-        inv_mass = list(1.0 / np.asarray(point_mass, float))
-        for b, body in enumerate(config.bodies):
-            i_min = float(np.linalg.eigvalsh(inertia[b]).min())
-            r2 = max([float(marker_pos[m] @ marker_pos[m]) for m in range(n_markers)
-                      if scene.marker_body[m] == b] or [0.0])
-            inv_mass.append(1.0 / body_mass[b] + r2 / i_min)
-
-        def dof_node(node):
-            if node < n_points:
-                return node
-            if node < n_points + n_markers:
-                return n_points + scene.marker_body[node - n_points]
-            return -1
-
-        def node_name(node):
-            if node < n_points:
-                return scene.point_names[node]
-            if node < n_points + n_markers:
-                return scene.marker_names[node - n_points]
-            return scene.anchor_names[node - n_points - n_markers]
-
-        world = _initial_node_positions(config, scene, node_pos_points, marker_pos)
-        d = world[list(scene.spring_node_b)] - world[list(scene.spring_node_a)]
-        length = np.linalg.norm(d, axis=1, keepdims=True)
-        direction = np.where(length > 0, d / np.where(length > 0, length, 1.0), 0.0)
-        limit, worst = network_stable_step(
-            integrator, [dof_node(x) for x in scene.spring_node_a], [dof_node(x) for x in scene.spring_node_b],
-            stiffness, damping, inv_mass, direction)
+        bound, worst = scene_network_stable_step(integrator, scene, point_mass, body_mass, inertia, marker_pos,
+                                                 stiffness, damping)
+        limit = NETWORK_STEP_SAFETY * bound
         limits.append(limit)
+        auto_steps.append(limit)
         if h > limit:
             problems.append(
                 f"the spring network (its top mode strains spring '{scene.spring_names[worst]}' most: "
                 f"k = {stiffness[worst]:.4g} N/m, c = {damping[worst]:.4g} N s/m, joining "
                 f"'{node_name(scene.spring_node_a[worst])}' and '{node_name(scene.spring_node_b[worst])}') "
-                f"is stable only below {limit:.3g} s"
+                f"is stable only below "
+                f"{limit:.3g} s ({NETWORK_STEP_SAFETY:g} x {bound:.3g} s, its bound over all configurations)"
             )
     if config.joints:
         beta, alpha = config.baumgarte.beta, config.baumgarte.alpha
         limits.append(stable_step(integrator, beta, 2.0 * alpha))
+        auto_steps.append(AUTO_SUBSTEP_SAFETY * limits[-1])
         if h > limits[-1]:
             problems.append(
                 f"Baumgarte constants (alpha = {alpha:g}, beta = {beta:g} 1/s) are stable only "
@@ -402,11 +377,12 @@ def _check_stability(config, scene, point_mass, body_mass, inertia, marker_pos, 
     if scene.contact is not None:
         limit, what = contact_stable_step(integrator, config.contact, scene.contact, point_mass, body_mass)
         limits.append(limit)
+        auto_steps.append(AUTO_SUBSTEP_SAFETY * limit)
         if h > limit:
             problems.append(f"{what} is stable only below {limit:.3g} s")
     if auto:
-        finite = [x for x in limits if math.isfinite(x)]
-        return max(1, math.ceil(config.sim.dt / (AUTO_SUBSTEP_SAFETY * min(finite)) - 1e-9)) if finite else 1
+        finite = [x for x in auto_steps if math.isfinite(x)]
+        return max(1, math.ceil(config.sim.dt / min(finite) - 1e-9)) if finite else 1
     if problems:
         substeps = math.ceil(config.sim.dt / min(limits))
         raise ConfigError(
