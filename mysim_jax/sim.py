@@ -208,9 +208,10 @@ def step(scene: Scene, params: Params, state: State, control=None) -> State:
 
         phys = state.phys
         if scene.substeps == 1:
-            phys = integrator.step(accel, phys, h)
+            phys = integrator.step(accel, phys, h, params.body_inertia)
         else:
-            phys = jax.lax.fori_loop(0, scene.substeps, lambda _, p: integrator.step(accel, p, h), phys)
+            phys = jax.lax.fori_loop(0, scene.substeps,
+                                     lambda _, p: integrator.step(accel, p, h, params.body_inertia), phys)
     else:
         phys = solve_adaptive(scene, params, state.phys, state.time, state.time + scene.dt, inputs=control)
     return state.replace(phys=phys, time=state.time + jnp.asarray(scene.dt, dtype=state.time.dtype),

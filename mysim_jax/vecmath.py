@@ -40,3 +40,11 @@ def safe_unit(v, tiny: float = 1e-30):
     n = safe_norm(v, tiny)
     denom = jnp.where(n > 0.0, n, 1.0)
     return n, v / denom[..., None]
+
+
+def skew(v):
+    """Cross-product matrix ``(..., 3, 3)`` of ``v`` ``(..., 3)``: ``skew(a) @ b = a × b``."""
+    x, y, z = v[..., 0], v[..., 1], v[..., 2]
+    zero = jnp.zeros_like(x)
+    return jnp.stack([jnp.stack([zero, -z, y], -1), jnp.stack([z, zero, -x], -1),
+                      jnp.stack([-y, x, zero], -1)], axis=-2)

@@ -75,6 +75,7 @@ def _blow_ups(raw, integrator, h, key=0):
     ("rope_net", "semi_implicit_euler"),
     ("random_1", "semi_implicit_euler"),    # a star of identical ropes
     ("random_5", "semi_implicit_euler"),    # a net held at its corners
+    ("random_2", "semi_implicit_euler"),    # a net carried by four spinning bodies (gyroscopic term)
     ("rope_net", "rk4"),
 ])
 def test_randomised_runs_at_the_largest_accepted_step_stay_finite(name, integrator):

@@ -5,7 +5,10 @@ a :class:`~mysim_jax.types.PhysState` by ``h`` given ``accel_fn(phys) -> Acceler
 They hold no memory between steps.
 
 * :class:`SemiImplicitEuler` — symplectic Euler: velocities first, then positions with
-  the new velocities; attitude by the exact exponential map ``q ⊗ exp(½ ω h)``.
+  the new velocities; attitude by the exact exponential map ``q ⊗ exp(½ ω h)``. The
+  gyroscopic term of Euler's equations is taken implicitly (:func:`implicit_gyroscopic`):
+  explicit in it, a body spinning about an axis of unequal moments gains energy every
+  step and, tied to stiff ropes, blows up at steps the spring network allows.
   First order, cheap, energy-stable; the default for RL-scale batches.
 * :class:`RK4` — classical 4th-order Runge-Kutta on (positions, quaternions, velocities)
   with ``dq/dt = ½ q ⊗ ω``; quaternions renormalised after each step.
@@ -22,6 +25,7 @@ from typing import Callable
 import jax
 import jax.numpy as jnp
 
+from mysim_jax import vecmath
 from mysim_jax.dynamics.quaternion import quat_derivative, quat_integrate, quat_normalize
 from mysim_jax.types import Accelerations, PhysState
 
@@ -31,12 +35,30 @@ AccelFn = Callable[[PhysState], Accelerations]
 class Integrator(abc.ABC):
     """Advance a multibody state by one fixed step.
 
-    ``step(accel_fn, phys, h)`` must be pure: no state is kept on the integrator.
+    ``step(accel_fn, phys, h, body_inertia)`` must be pure: no state is kept on the
+    integrator. ``body_inertia`` ``(n_bodies, 3, 3)`` (body frame) is for integrators that
+    treat part of Euler's equations implicitly; others ignore it.
     """
 
     @abc.abstractmethod
-    def step(self, accel_fn: AccelFn, phys: PhysState, h) -> PhysState:
+    def step(self, accel_fn: AccelFn, phys: PhysState, h, body_inertia=None) -> PhysState:
         ...
+
+
+def implicit_gyroscopic(inertia, omega, angacc, h):
+    """Angular acceleration ``(n, 3)`` that advances ``ω`` by one Newton step of backward
+    Euler on the gyroscopic term.
+
+    ``angacc = J⁻¹(τ − ω × Jω)`` is the explicit acceleration (with any constraint
+    correction). Backward Euler asks for ``J (ω' − ω) + h (ω' × Jω' − τ) = 0``; one Newton
+    step from ``ω`` gives ``ω' = ω + h (J + h (ω̂ J − (Jω)^))⁻¹ J angacc`` (ω̂ the cross-product
+    matrix), the update of Catto (GDC 2015) and Bullet's implicit gyroscopic forces. It
+    equals the explicit one to first order in ``h``, does not feed energy into a free
+    spin, and leaves a body without spin (``ω = 0``) exactly as before.
+    """
+    j_omega = jnp.einsum("nij,nj->ni", inertia, omega)
+    jacobian = inertia + h * (jnp.einsum("nij,njk->nik", vecmath.skew(omega), inertia) - vecmath.skew(j_omega))
+    return jnp.linalg.solve(jacobian, jnp.einsum("nij,nj->ni", inertia, angacc)[..., None])[..., 0]
 
 
 def state_derivative(phys: PhysState, acc: Accelerations) -> PhysState:
@@ -54,11 +76,14 @@ def state_derivative(phys: PhysState, acc: Accelerations) -> PhysState:
 class SemiImplicitEuler(Integrator):
     """Symplectic (semi-implicit) Euler."""
 
-    def step(self, accel_fn, phys, h):
+    def step(self, accel_fn, phys, h, body_inertia=None):
         acc = accel_fn(phys)
         point_vel = phys.point_vel + h * acc.point_acc
         body_vel = phys.body_vel + h * acc.body_acc
-        body_angvel = phys.body_angvel + h * acc.body_angacc
+        angacc = acc.body_angacc
+        if body_inertia is not None and body_inertia.shape[0]:
+            angacc = implicit_gyroscopic(body_inertia, phys.body_angvel, angacc, h)
+        body_angvel = phys.body_angvel + h * angacc
         return PhysState(
             point_pos=phys.point_pos + h * point_vel,
             point_vel=point_vel,
@@ -80,7 +105,7 @@ class RK4(Integrator):
     _A = (0.0, 0.5, 0.5, 1.0)          # stage offsets c_i = a_i,i-1
     _W = (1.0 / 6, 2.0 / 6, 2.0 / 6, 1.0 / 6)
 
-    def step(self, accel_fn, phys, h):
+    def step(self, accel_fn, phys, h, body_inertia=None):
         def f(y):
             return state_derivative(y, accel_fn(y))
 

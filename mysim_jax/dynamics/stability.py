@@ -42,10 +42,13 @@ net: four ropes from a payload to the corners of a square) it rejects steps that
 fact run; docs/stability.md shows how far below the measured onset the accepted step sits.
 ``substeps: auto`` uses the same limit (no extra factor), so an auto step always passes.
 
-Not covered (and not a spring-network effect): semi-implicit Euler integrates a rigid
-body's gyroscopic term ``ω × Iω`` explicitly, so a fast-spinning body with unequal
-principal moments gains energy every step; ropes that jerk a body at an offset marker can
-spin it up that far (docs/stability.md, ``random_2``).
+Not a spring-network effect, and so not bounded here: a rigid body's gyroscopic term
+``ω × Iω``. Taken explicitly, a fast-spinning body with unequal principal moments gains
+energy every step, and ropes that jerk a body at an offset marker spin it up far enough
+to blow up a net carried by bodies at accepted steps; semi-implicit Euler therefore takes
+that term implicitly (:func:`mysim_jax.dynamics.integrators.implicit_gyroscopic`), and
+docs/stability.md (``random_2`` against ``random_2:spherical``) shows the bodies' rotation
+no longer sets the limit.
 """
 
 from __future__ import annotations
