@@ -78,8 +78,8 @@ class SimConfig(StrictModel):
     it in ``substeps`` equal sub-steps of ``dt / substeps`` (fixed-step integrators), or
     adaptively with ``rtol``/``atol`` starting from ``dt / substeps`` (diffrax solvers).
     ``substeps: auto`` lets :func:`mysim_jax.build.build` choose the number of sub-steps
-    from the explicit stability limit of the stiffest spring, joint or contact (with a
-    safety factor; 1 for the adaptive solvers).
+    from the explicit stability limits: the spring network's accepted step, half the
+    per-element limits of contact pairs and Baumgarte terms (1 for the adaptive solvers).
 
     ``output_dt`` must be a whole multiple of ``dt`` and ``t_end`` a whole multiple of
     ``output_dt`` (to a relative 1e-6; the run then uses the exact multiples,
