@@ -18,7 +18,7 @@ import numpy as np
 from mysim_jax.config import FIXED_STEP_INTEGRATORS, ConfigError, SceneConfig
 from mysim_jax.contact.build import build_contact, contact_stable_step
 from mysim_jax.control.build import build_quadrotors, expand_cameras
-from mysim_jax.dynamics.joint_check import joint_problems
+from mysim_jax.dynamics.joint_check import joint_groups, joint_problems
 from mysim_jax.dynamics.stability import NETWORK_STEP_SAFETY, scene_network_stable_step, stable_step
 from mysim_jax.net.rope import build_rope
 from mysim_jax.types import JointBucket, Params, PhysState, Scene, State
@@ -278,13 +278,6 @@ def _joint_buckets(config: SceneConfig, body_index, anchor_index, marker_names) 
     """Split joints into connected groups of bodies and stack equal-structure groups."""
     if not config.joints:
         return ()
-    parent = list(range(len(config.bodies)))
-
-    def find(i):
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
 
     def side(ref):
         if ref in anchor_index:
@@ -292,13 +285,7 @@ def _joint_buckets(config: SceneConfig, body_index, anchor_index, marker_names) 
         return body_index[ref.split(".")[0]], marker_names.index(ref)
 
     sides = [(side(j.marker_i), side(j.marker_j)) for j in config.joints]
-    for (bi, _), (bj, _) in sides:
-        if bi is not None and bj is not None:
-            parent[find(bi)] = find(bj)
-    groups: dict[int, list[int]] = {}
-    for ji, ((bi, _), (bj, _)) in enumerate(sides):
-        root = find(bi if bi is not None else bj)
-        groups.setdefault(root, []).append(ji)
+    groups = joint_groups(len(config.bodies), [[b for b, _ in pair if b is not None] for pair in sides])
 
     buckets: dict[tuple, list] = {}
     for root, joint_ids in groups.items():

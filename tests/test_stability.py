@@ -4,21 +4,20 @@ The check bounds a spring network's top eigenvalue over every configuration the 
 take (``mysim_jax/dynamics/stability.py``) and accepts steps up to ``NETWORK_STEP_SAFETY``
 of the resulting step. ``scripts/stability_margin.py`` measures where randomised runs blow
 up against it (``docs/stability.md``); these tests check the same thing at the largest
-accepted step on a smaller batch, and that the check refuses a step where runs blow up.
-
-What the check does not cover is left out here too: semi-implicit Euler integrates a rigid
-body's gyroscopic term explicitly, and a fast-spinning body with unequal principal moments
-can blow up a run at an accepted step (``random_2`` in docs/stability.md).
+accepted step on a smaller batch, with the same scenes and batches
+(:mod:`mysim_jax.bench.stability_margin`), and that the check refuses a step where runs
+blow up. A net carried by spinning bodies is among them: semi-implicit Euler takes the
+gyroscopic term implicitly, and taken explicitly it blows that scene up at accepted steps.
 """
 
 import dataclasses
-import importlib.util
 
 import jax
 import numpy as np
 import pytest
 import yaml
 
+from mysim_jax.bench import stability_margin as SM
 from mysim_jax.build import build
 from mysim_jax.config import ConfigError, config_from_dict
 from mysim_jax.dynamics.constraints import constraint_error
@@ -26,22 +25,12 @@ from mysim_jax.dynamics.stability import (NETWORK_STEP_SAFETY, network_stable_st
                                           stable_step_all_below)
 from mysim_jax.sim import rollout
 
-from conftest import ROOT
 
 N_ENVS = 256
 SPEED = 10.0      # m/s, largest initial speed of every mass (as in the measurements)
 T_END = 2.0       # s
 
 
-def _margin_script():
-    """``scripts/stability_margin.py`` as a module: its scenes, random states and blow-up test."""
-    spec = importlib.util.spec_from_file_location("stability_margin", ROOT / "scripts" / "stability_margin.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-SM = _margin_script()
 
 
 def _raw(name):

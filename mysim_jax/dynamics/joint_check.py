@@ -99,6 +99,30 @@ def _why_singular(config, joint) -> str:
             f"the fixed joint's rows lose their gradient ({cosines}; aligned frames give 0)")
 
 
+def joint_groups(n_bodies: int, joint_bodies) -> dict[int, list[int]]:
+    """Joints grouped by the connected set of bodies they join (anchors join nothing).
+
+    ``joint_bodies[j]`` lists the body indices of joint ``j`` (one or two). Returns
+    ``{representative body: [joint indices, in joint order]}``, groups in order of their
+    first joint.
+    """
+    parent = list(range(n_bodies))
+
+    def find(k):
+        while parent[k] != k:
+            parent[k] = parent[parent[k]]
+            k = parent[k]
+        return k
+
+    for bodies in joint_bodies:
+        for b in bodies[1:]:
+            parent[find(b)] = find(bodies[0])
+    groups: dict[int, list[int]] = {}
+    for j, bodies in enumerate(joint_bodies):
+        groups.setdefault(find(bodies[0]), []).append(j)
+    return groups
+
+
 def joint_problems(config) -> list[str]:
     """Joints that start singular, and groups of joints that are redundant, as strings
     naming the joints (empty when every group can be solved)."""
@@ -115,26 +139,8 @@ def joint_problems(config) -> list[str]:
         jacobians.append(jac)
     if problems:
         return problems
-    # connected groups of bodies (anchors join nothing)
     n = len(config.bodies)
-    parent = list(range(n))
-
-    def find(k):
-        while parent[k] != k:
-            parent[k] = parent[parent[k]]
-            k = parent[k]
-        return k
-
-    def bodies_of(jac):
-        return [b for b in range(n) if np.any(jac[:, 6 * b:6 * b + 6])]
-
-    for jac in jacobians:
-        bs = bodies_of(jac)
-        for b in bs[1:]:
-            parent[find(b)] = find(bs[0])
-    groups: dict[int, list[int]] = {}
-    for i, jac in enumerate(jacobians):
-        groups.setdefault(find(bodies_of(jac)[0]), []).append(i)
+    groups = joint_groups(n, [[b for b in range(n) if np.any(jac[:, 6 * b:6 * b + 6])] for jac in jacobians])
     for members in groups.values():
         if len(members) < 2:
             continue
