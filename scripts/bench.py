@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import datetime as _dt
 import os
 import platform
@@ -851,14 +852,15 @@ class AccuracyRow:
 
 def run_method(case: AccuracyCase, method: Method, ref_times, ref_q, cfg) -> AccuracyRow:
     """Run one integrator setting; error of the case's quantity against the reference."""
-    overrides = list(case.overrides) + list(method.overrides) + [f"sim.precision={method.precision}",
-                                                                  f"sim.t_end={case.t_end:g}"]
-    # the output grid must hold whole steps and land on the reference grid
+    overrides = list(case.overrides) + list(method.overrides) + [f"sim.precision={method.precision}"]
+    # the output grid must hold whole steps and land on the reference grid; the run ends on
+    # the last output at or before case.t_end (t_end must be a whole multiple of output_dt)
     dt = float(next((o.split("=", 1)[1] for o in method.overrides if o.startswith("sim.dt=")), case.reference_dt))
     mult = 1
     while abs(round(mult * case.reference_dt / dt) - mult * case.reference_dt / dt) > 1e-9:
         mult += 1
-    overrides.append(f"sim.output_dt={mult * case.reference_dt:g}")
+    out_dt = mult * case.reference_dt
+    overrides += [f"sim.output_dt={out_dt:g}", f"sim.t_end={math.floor(case.t_end / out_dt + 1e-9) * out_dt!r}"]
     if method.max_steps is not None:
         overrides.append(f"sim.max_steps={method.max_steps}")
     with precision_mode(method.precision):
@@ -969,8 +971,9 @@ def section_d(cfg, results) -> list[str]:
             "",
             f"Reference: `{case.config.relative_to(ROOT)}` with `{' '.join(case.reference)}` "
             f"(its wall time {ref_wall:.1f} s). Error = max over the output grid of |{case.quantity_label.split(' [')[0]} − "
-            f"reference| from 0 to {case.t_end:g} s (grid {case.reference_dt:g} s; for steps that do not divide "
-            f"{case.reference_dt:g} s, the nearest common multiple, e.g. 3 ms for dt = 3e-4). "
+            f"reference| over the output grid up to {case.t_end:g} s (grid {case.reference_dt:g} s; for steps that do not "
+            f"divide {case.reference_dt:g} s, the nearest common multiple, e.g. 3 ms for dt = 3e-4, and the run ends at "
+            f"the last output at or before {case.t_end:g} s). "
             "Cost = wall time per simulated second of one env: the whole run AOT-compiled with `jax.jit` "
             "(fixed-step: one `mysim_jax.sim.rollout` scan saving every output step; adaptive: "
             "`mysim_jax.sim.solve_adaptive` saving at the grid), timed after compilation, median of up to "
