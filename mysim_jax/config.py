@@ -385,7 +385,8 @@ class SceneConfig(StrictModel):
                 problems.append(f"output.plot.{i}: '{name}' is not a point or body")
         if self.contact is not None:
             points = [p.name for p in self.points] + [f"{r.name}_{j}" for r in self.ropes for j in range(r.n_masses)]
-            problems += contact_problems(self.contact, points, [b.name for b in self.bodies], self.anchor_names())
+            problems += contact_problems(self.contact, points, [b.name for b in self.bodies], self.anchor_names(),
+                                         ropes=self.ropes, springs=self.springs)
         problems += quadrotor_problems(self)
         if problems:
             raise ValueError("; ".join(problems))

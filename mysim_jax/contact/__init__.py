@@ -1,4 +1,5 @@
-"""Penalty contact between spheres and with the ground plane (paper Sec. 2.1).
+"""Penalty contact between spheres, with the ground plane (paper Sec. 2.1), and between
+spheres and capsules on rope and spring segments.
 
 * :mod:`~mysim_jax.contact.config` — the ``contact:`` block of a scene file;
 * :mod:`~mysim_jax.contact.law` — normal force (IMPACT-style, Hermite damping ramp),

@@ -4,6 +4,11 @@
 :class:`~mysim_jax.contact.types.ContactScene`, traced
 :class:`~mysim_jax.contact.types.ContactParams`, and the explicit stability limit of the
 stiffest contact for fixed-step integrators (:func:`contact_stable_step`).
+
+Capsules are listed by the scene's spring names (``rope[j]``); their end nodes are looked
+up in the :class:`~mysim_jax.types.Scene`'s spring tables when the force stage is traced
+(:func:`mysim_jax.contact.forces.capsule_nodes`), so node numbering stays the scene
+builder's business.
 """
 
 from __future__ import annotations
@@ -13,20 +18,48 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
-from mysim_jax.contact.config import GROUND, ContactConfig, resolve_members
+from mysim_jax.contact.config import (GROUND, ContactConfig, capsule_pairs, resolve_members, resolve_segments,
+                                      sphere_and_segment_groups)
 from mysim_jax.contact.types import ContactParams, ContactScene
 from mysim_jax.dynamics.stability import spring_stable_steps
 
 
-def build_contact(contact: ContactConfig, point_names, body_names, dtype):
-    """``(ContactScene, ContactParams)`` of a scene; names resolved by the config check."""
+def build_contact(contact: ContactConfig, point_names, body_names, dtype, segments=None):
+    """``(ContactScene, ContactParams)`` of a scene; names resolved by the config check.
+
+    ``segments``: the scene's springs as :func:`~mysim_jax.contact.config.segment_table`
+    lists them; by default the table recorded on ``contact`` when the scene config was
+    validated (:func:`~mysim_jax.contact.config.contact_problems`). Only segment groups
+    need it.
+    """
     members, problems = resolve_members(contact, list(point_names), list(body_names))
+    capsule_groups = [g for g in contact.groups if g.is_segments]
+    capsules: dict = {}
+    if capsule_groups:
+        if segments is None:
+            segments = contact._scene_segments
+        if segments is None:
+            raise ValueError("contact.groups: segment groups need the scene's ropes and springs: validate the "
+                             "scene (SceneConfig) first, or pass segments=segment_table(ropes, springs)")
+        capsules, more = resolve_segments(contact, tuple(segments), list(point_names) + list(body_names))
+        problems += more
     if problems:       # the config validator has already reported these; defensive only
         raise ValueError("; ".join(problems))
     radius_of: dict[str, float] = {}
     used_pairs: set[tuple[str, str]] = set()
     used_ground: set[str] = set()
+    used_capsule_pairs: set[tuple[str, str]] = set()     # (sphere name, spring name)
+    capsule_of: dict[str, tuple] = {}                     # spring name -> (Segment, radius)
     for ga, gb in contact.pairs:
+        groups = sphere_and_segment_groups(contact, ga, gb)
+        if groups is not None:
+            sphere_radius = dict(members[groups[0]])
+            capsule_radius = {seg.name: (seg, r) for seg, r in capsules[groups[1]]}
+            for name, seg in capsule_pairs(contact, ga, gb, members, capsules, body_names):
+                radius_of[name] = sphere_radius[name]
+                capsule_of[seg.name] = capsule_radius[seg.name]
+                used_capsule_pairs.add((name, seg.name))
+            continue
         if GROUND in (ga, gb):
             group = gb if ga == GROUND else ga
             for name, r in members[group]:
@@ -47,6 +80,20 @@ def build_contact(contact: ContactConfig, point_names, body_names, dtype):
     sphere_names = on_points + on_bodies
     sphere = {n: i for i, n in enumerate(sphere_names)}
     pairs = sorted((min(sphere[x], sphere[y]), max(sphere[x], sphere[y])) for x, y in used_pairs)
+    # capsules in scene spring order, then (sphere, capsule) pairs sorted by sphere
+    order = {seg.name: i for i, seg in enumerate(segments or ())}
+    capsule_names = sorted(capsule_of, key=order.__getitem__)
+    capsule = {n: i for i, n in enumerate(capsule_names)}
+    cpairs = sorted((sphere[x], capsule[c]) for x, c in used_capsule_pairs)
+
+    def end_object(ref: str) -> int:
+        """Index into points then bodies of the mass an end node moves, −1 for an anchor."""
+        if ref in point_index:
+            return point_index[ref]
+        body = ref.split(".", 1)[0]
+        return len(point_index) + body_index[body] if body in body_index else -1
+
+    ends = [capsule_of[n][0] for n in capsule_names]
     cscene = ContactScene(
         sphere_names=tuple(sphere_names),
         sphere_point=tuple(point_index[n] for n in on_points),
@@ -54,6 +101,12 @@ def build_contact(contact: ContactConfig, point_names, body_names, dtype):
         pair_a=tuple(p[0] for p in pairs),
         pair_b=tuple(p[1] for p in pairs),
         ground_sphere=tuple(sorted(sphere[n] for n in used_ground)),
+        capsule_names=tuple(capsule_names),
+        capsule_end_names=tuple((seg.start, seg.end) for seg in ends),
+        capsule_end_object_a=tuple(end_object(seg.start) for seg in ends),
+        capsule_end_object_b=tuple(end_object(seg.end) for seg in ends),
+        capsule_pair_sphere=tuple(p[0] for p in cpairs),
+        capsule_pair_capsule=tuple(p[1] for p in cpairs),
         model=contact.model,
         friction=contact.friction is not None,
     )
@@ -74,6 +127,8 @@ def build_contact(contact: ContactConfig, point_names, body_names, dtype):
         v_dynamic=scalar(fr.v_dynamic if fr else 2.0),
         smooth_depth=scalar(contact.smoothing.depth),
         smooth_velocity=scalar(contact.smoothing.velocity),
+        capsule_radius=(jnp.asarray(np.asarray([capsule_of[n][1] for n in capsule_names], float), dtype=dtype)
+                        if capsule_names else None),
     )
     return cscene, cparams
 
@@ -89,16 +144,30 @@ def contact_stable_step(integrator: str, contact: ContactConfig, cscene: Contact
     the centres of mass, so rotational inertia does not enter. Friction is not counted:
     its force is bounded by μ·f, so an explicit step that over-shoots zero slip chatters
     at an amplitude of order ``h·μ·f/m`` instead of diverging.
+
+    A sphere against a capsule: the segment point at parameter s moves like a mass of
+    inverse ``(1 − s)²/m_a + s²/m_b`` (the force splits (1 − s), s onto the end nodes, and
+    the point moves with the same weights). That is convex in s, so its largest value over
+    the segment is at an end, ``max(1/m_a, 1/m_b)``: this bound is used, which is exact for
+    a sphere at either end and safe in between. An end on a body (its centre or a marker)
+    counts the body's mass — a stand-in that ignores the body's rotation (a marker away from
+    the centre of mass moves more easily); an anchor end is infinitely heavy (1/m = 0).
     """
-    if cscene.n_pairs == 0 and cscene.n_ground == 0:
+    if cscene.n_pairs == 0 and cscene.n_ground == 0 and cscene.n_capsule_pairs == 0:
         return math.inf, ""
     k_lin = contact.exponent * contact.stiffness * contact.damping_depth ** (contact.exponent - 1.0)
-    inv_mass = np.concatenate([1.0 / np.asarray(point_mass, float)[list(cscene.sphere_point)],
-                               1.0 / np.asarray(body_mass, float)[list(cscene.sphere_body)]])
-    ends_a = list(cscene.pair_a) + list(cscene.ground_sphere)
+    point_inv = 1.0 / np.asarray(point_mass, float).reshape(-1)
+    body_inv = 1.0 / np.asarray(body_mass, float).reshape(-1)
+    inv_mass = np.concatenate([point_inv[list(cscene.sphere_point)], body_inv[list(cscene.sphere_body)]])
+    object_inv = np.concatenate([point_inv, body_inv, [0.0]])      # index −1: an anchor
+    capsule_inv = [max(object_inv[a], object_inv[b])
+                   for a, b in zip(cscene.capsule_end_object_a, cscene.capsule_end_object_b)]
+    ends_a = list(cscene.pair_a) + list(cscene.ground_sphere) + list(cscene.capsule_pair_sphere)
     inv_a = [inv_mass[i] for i in ends_a]
-    inv_b = [inv_mass[i] for i in cscene.pair_b] + [0.0] * cscene.n_ground
-    names = cscene.pair_names() + [f"{cscene.sphere_names[i]}|ground" for i in cscene.ground_sphere]
+    inv_b = ([inv_mass[i] for i in cscene.pair_b] + [0.0] * cscene.n_ground
+             + [capsule_inv[c] for c in cscene.capsule_pair_capsule])
+    names = (cscene.pair_names() + [f"{cscene.sphere_names[i]}|ground" for i in cscene.ground_sphere]
+             + cscene.capsule_pair_names())
     # equal (k, c, 1/m) give equal limits: evaluate each distinct mass combination once
     keys = sorted(set(zip(inv_a, inv_b)))
     limits = spring_stable_steps(integrator, [k_lin] * len(keys), [contact.damping] * len(keys),

@@ -2,7 +2,8 @@
 
 ``E = kinetic (points, bodies: ½mv² + ½ωᵀJω) + gravity (−m g·x)
       + springs (½k(s − s̄)², tension-only springs only while taut)
-      + contacts (k·δⁿ⁺¹/(n+1) for every overlapping pair and ground contact)``
+      + contacts (k·δⁿ⁺¹/(n+1) for every overlapping pair, ground contact and
+                  sphere–capsule contact)``
 
 Dampers, the clipped part of the contact force and friction only take energy out, so for
 a scene without actuators or applied loads ``E(t) ≤ E(0)`` holds for the exact solution:
@@ -18,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from mysim_jax import vecmath
-from mysim_jax.contact.forces import pair_penetration, sphere_kinematics
+from mysim_jax.contact.forces import capsule_geometry, pair_penetration, sphere_kinematics
 from mysim_jax.dynamics.forces import spring_lengths
 from mysim_jax.dynamics.markers import node_states
 from mysim_jax.types import Params, PhysState, Scene
@@ -54,4 +55,7 @@ def mechanical_energy(scene: Scene, params: Params, phys: PhysState):
         if cs.n_ground:
             g = np.asarray(cs.ground_sphere, np.int32)
             energy = energy + _contact_potential(cp.radius[g] - pos[g, 2], cp)
+        if cs.n_capsule_pairs:
+            node_pos, _ = node_states(scene, params, phys)
+            energy = energy + _contact_potential(capsule_geometry(scene, params, pos, node_pos)[4], cp)
     return energy

@@ -1,4 +1,4 @@
-"""The ``contact_forces`` stage: sphere–sphere and sphere–ground penalty contact.
+"""The ``contact_forces`` stage: sphere–sphere, sphere–ground and sphere–capsule penalty contact.
 
 For a pair (a, b) with centres ``x_a``, ``x_b`` and radii ``r_a``, ``r_b``:
 
@@ -15,6 +15,33 @@ For a pair (a, b) with centres ``x_a``, ``x_b`` and radii ``r_a``, ``r_b``:
 
 The ground is the plane z = 0 with normal +z (penetration ``r − z``).
 
+Sphere against capsule
+----------------------
+A capsule is the set of points within ``r_c`` of a segment between two nodes ``a`` and
+``b`` (point masses, body markers or anchors: the ``(node_pos, node_vel)`` table of the
+force pipeline). For a sphere of centre ``x`` and radius ``r``:
+
+* closest segment point ``p = a + s·(b − a)`` with
+  ``s = clip((x − a)·(b − a)/|b − a|², 0, 1)``; a segment shorter than
+  :data:`MIN_SEGMENT_LENGTH` counts as the point ``a`` (``s = 0``, finite gradients);
+* normal ``n = (x − p)/|x − p|`` (world +z when x lies on the axis), penetration
+  ``δ = r + r_c − |x − p|``; the segment point moves at ``v_p = (1 − s)·v_a + s·v_b`` and
+  ``dδ/dt = −(v_x − v_p)·n`` (exact: the motion of s itself is perpendicular to n);
+* the same normal and friction laws as sphere pairs; friction opposes the tangential slip
+  of the sphere's contact point (at lever ``−(r − δ/2)·n``, with ω × lever for a body
+  sphere) relative to the segment point ``p``;
+* the force ``F`` on the sphere acts through its centre (plus the friction torque), and
+  ``−F`` is shared by the end nodes as ``−(1 − s)·F`` on ``a`` and ``−s·F`` on ``b``:
+  node forces, so points take them directly, markers pass them to their bodies
+  (``distribute_node_forces``) and anchors drop them.
+
+Forces balance exactly. Without friction the moments about the sphere centre balance too
+(``p − x`` is parallel to ``F``); friction acts on the segment at ``p`` rather than at the
+capsule's surface, so its moment arm ``r_c`` about the axis is not transmitted (a segment
+between two nodes cannot take a torque about itself). The normal force is the gradient of
+``k·δⁿ⁺¹/(n+1)`` (s is a minimiser, so ∂δ/∂s = 0), so sharp contact without damping
+conserves energy (:mod:`mysim_jax.contact.energy` counts it).
+
 Forces land on point masses as node forces and on bodies as force at the centre of mass
 plus body-frame torque (:class:`~mysim_jax.dynamics.forces.Loads`).
 """
@@ -27,9 +54,12 @@ import numpy as np
 from mysim_jax import vecmath
 from mysim_jax.contact import law
 from mysim_jax.dynamics.forces import Loads
-from mysim_jax.dynamics.markers import scatter_rows
+from mysim_jax.dynamics.markers import node_states, scatter_rows
 from mysim_jax.dynamics.quaternion import quat_rotate, quat_rotate_inv
 from mysim_jax.types import Params, PhysState, Scene
+
+MIN_SEGMENT_LENGTH = 1e-9
+"""[m] A capsule's segment shorter than this is treated as its first end point."""
 
 
 def _normal_force(scene: Scene, cp, depth, depth_rate):
@@ -92,6 +122,87 @@ def _pair_forces(scene, cp, pos, vel, omega):
     return force_b, torque_a, torque_b
 
 
+def closest_point_on_segment(x, a, b):
+    """Parameter ``s`` ``(k,)`` in [0, 1] and point ``a + s·(b − a)`` ``(k, 3)`` of each
+    segment closest to ``x``; ``s = 0`` on a segment shorter than :data:`MIN_SEGMENT_LENGTH`
+    (no NaN in values or gradients at zero length)."""
+    ab = b - a
+    length_sq = vecmath.dot(ab, ab)
+    long_enough = length_sq > MIN_SEGMENT_LENGTH * MIN_SEGMENT_LENGTH
+    t = vecmath.dot(x - a, ab) / jnp.where(long_enough, length_sq, 1.0)
+    s = jnp.where(long_enough, jnp.clip(t, 0.0, 1.0), 0.0)
+    return s, a + s[:, None] * ab
+
+
+def _node_name(scene: Scene, node: int) -> str:
+    if node < scene.n_points:
+        return scene.point_names[node]
+    if node < scene.n_points + scene.n_markers:
+        return scene.marker_names[node - scene.n_points]
+    return scene.anchor_names[node - scene.n_points - scene.n_markers]
+
+
+def capsule_nodes(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
+    """End node indices ``(n_capsules,)`` at s = 0 and s = 1 of every capsule, looked up in
+    the scene's spring tables by name (static, when the stage is traced).
+
+    Raises ``ValueError`` if a capsule's spring is missing or joins other nodes than the
+    contact scene was built for (a contact scene built from another scene's springs).
+    """
+    cs = scene.contact
+    spring = {name: k for k, name in enumerate(scene.spring_names)}
+    node_a, node_b = [], []
+    for name, ends in zip(cs.capsule_names, cs.capsule_end_names):
+        k = spring.get(name)
+        if k is None or (_node_name(scene, scene.spring_node_a[k]), _node_name(scene, scene.spring_node_b[k])) != ends:
+            raise ValueError(f"contact capsule '{name}' ({ends[0]} - {ends[1]}) is not a spring of scene "
+                             f"'{scene.name}': the contact scene was built for other springs")
+        node_a.append(scene.spring_node_a[k])
+        node_b.append(scene.spring_node_b[k])
+    return np.asarray(node_a, np.int32), np.asarray(node_b, np.int32)
+
+
+def capsule_geometry(scene: Scene, params: Params, sphere_pos, node_pos):
+    """``(s, p, distance, n, penetration)`` of every sphere–capsule pair: segment
+    parameter ``(k,)``, closest segment point ``(k, 3)``, its distance to the sphere centre
+    ``(k,)``, unit normal from the segment to the sphere ``(k, 3)`` (+z on the axis) and
+    penetration ``(k,)`` (negative: the gap)."""
+    cs, cp = scene.contact, params.contact
+    sph = np.asarray(cs.capsule_pair_sphere, dtype=np.int32)
+    cap = np.asarray(cs.capsule_pair_capsule, dtype=np.int32)
+    node_a, node_b = capsule_nodes(scene)
+    x = sphere_pos[sph]
+    s, p = closest_point_on_segment(x, node_pos[node_a[cap]], node_pos[node_b[cap]])
+    dist, n = vecmath.safe_unit(x - p)
+    up = jnp.zeros_like(n).at[:, 2].set(1.0)
+    n = jnp.where((dist > 0.0)[:, None], n, up)
+    depth = cp.radius[sph] + cp.capsule_radius[cap] - dist
+    return s, p, dist, n, depth
+
+
+def _capsule_forces(scene, params, pos, vel, omega, node_pos, node_vel):
+    """Force on the sphere (world) ``(k, 3)``, its torque (world, None without friction),
+    and the segment parameter ``s`` ``(k,)`` of every sphere–capsule pair."""
+    cs, cp = scene.contact, params.contact
+    sph = np.asarray(cs.capsule_pair_sphere, dtype=np.int32)
+    cap = np.asarray(cs.capsule_pair_capsule, dtype=np.int32)
+    node_a, node_b = capsule_nodes(scene)
+    s, _, _, n, depth = capsule_geometry(scene, params, pos, node_pos)
+    v_seg = (1.0 - s)[:, None] * node_vel[node_a[cap]] + s[:, None] * node_vel[node_b[cap]]
+    dv = vel[sph] - v_seg
+    fn = _normal_force(scene, cp, depth, -vecmath.dot(dv, n))
+    force = fn[:, None] * n
+    torque = None
+    if cs.friction:
+        lever = -(cp.radius[sph] - 0.5 * depth)[:, None] * n
+        v_rel = dv + vecmath.cross(omega[sph], lever)
+        slip = v_rel - vecmath.dot(v_rel, n)[:, None] * n
+        friction = _friction(scene, cp, fn, slip)
+        force = force + friction
+        torque = vecmath.cross(lever, friction)
+    return force, torque, s
+
+
 def _ground_forces(scene, cp, pos, vel, omega):
     """Force ``(n_ground, 3)`` and torque (world) on each sphere touching the ground."""
     cs = scene.contact
@@ -113,7 +224,12 @@ def _ground_forces(scene, cp, pos, vel, omega):
 
 
 def contact_forces(scene: Scene, params: Params, phys: PhysState, nodes=None, inputs=None) -> Loads:
-    """Force stage ``fn(scene, params, phys, nodes, inputs) -> Loads`` of all contacts."""
+    """Force stage ``fn(scene, params, phys, nodes, inputs) -> Loads`` of all contacts.
+
+    ``nodes`` is the ``(node_pos, node_vel)`` table (computed here if None); only
+    sphere–capsule pairs read it. Sphere forces are summed with one scatter onto the
+    sphere table, capsule reactions with one more onto the node table.
+    """
     cs = scene.contact
     cp = params.contact
     pos, vel, omega = sphere_kinematics(scene, phys)
@@ -131,6 +247,17 @@ def contact_forces(scene: Scene, params: Params, phys: PhysState, nodes=None, in
         force, torque = _ground_forces(scene, cp, pos, vel, omega)
         rows.append(jnp.concatenate([force, torque], -1) if with_torque else force)
         index.append(cs.ground_sphere)
+    if cs.n_capsule_pairs:
+        node_pos, node_vel = node_states(scene, params, phys) if nodes is None else nodes
+        force, torque, s = _capsule_forces(scene, params, pos, vel, omega, node_pos, node_vel)
+        rows.append(jnp.concatenate([force, torque], -1) if with_torque else force)
+        index.append(cs.capsule_pair_sphere)
+        # the reaction −F shared by the capsule's end nodes: one scatter onto the node table
+        node_a, node_b = capsule_nodes(scene)
+        cap = np.asarray(cs.capsule_pair_capsule, dtype=np.int32)
+        on_ends = jnp.concatenate([-(1.0 - s)[:, None] * force, -s[:, None] * force], 0)
+        capsule_node_force = scatter_rows(on_ends, np.concatenate([node_a[cap], node_b[cap]]),
+                                          scene.n_nodes, scene.accumulate)
     # one scatter of all contributions onto the sphere table
     per_sphere = scatter_rows(jnp.concatenate(rows, 0), np.concatenate([np.asarray(i, np.int32) for i in index]),
                               n_spheres, scene.accumulate)
@@ -139,6 +266,8 @@ def contact_forces(scene: Scene, params: Params, phys: PhysState, nodes=None, in
     node_force = jnp.zeros((scene.n_nodes, 3), dtype=dtype)
     if n_pt:
         node_force = node_force.at[np.asarray(cs.sphere_point, np.int32)].add(per_sphere[:n_pt, :3])
+    if cs.n_capsule_pairs:
+        node_force = node_force + capsule_node_force
     body_force = jnp.zeros((scene.n_bodies, 3), dtype=dtype)
     body_torque = jnp.zeros((scene.n_bodies, 3), dtype=dtype)
     if len(cs.sphere_body):

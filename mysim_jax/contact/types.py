@@ -5,6 +5,12 @@ Spheres are numbered in one table: first the spheres on point masses, then those
 rigid bodies (each centred on the body's centre of mass). Pairs and ground contacts are
 static index tuples into that table; all of them are evaluated every step and the ones
 not touching contribute exactly zero (sharp model) — no data-dependent shapes.
+
+Capsules (rope and spring segments with a radius) are numbered in a second table, in the
+order of the scene's springs; ``capsule_names`` are the springs' names in
+``Scene.spring_names``, whose node tables give the capsules' end nodes. Sphere–capsule
+pairs are index tuples into the two tables. A scene without capsules has empty capsule
+tuples and ``ContactParams.capsule_radius = None``.
 """
 
 from __future__ import annotations
@@ -25,6 +31,12 @@ class ContactScene:
     pair_a: tuple[int, ...] = ()           # (n_pairs,) sphere index
     pair_b: tuple[int, ...] = ()           # (n_pairs,) sphere index (force on b along a -> b)
     ground_sphere: tuple[int, ...] = ()    # (n_ground,) spheres that touch the plane z = 0
+    capsule_names: tuple[str, ...] = ()    # (n_capsules,) spring names (Scene.spring_names)
+    capsule_end_names: tuple[tuple[str, str], ...] = ()   # (n_capsules, 2) end node names at s = 0, 1
+    capsule_end_object_a: tuple[int, ...] = ()   # (n_capsules,) mass moving end a: point index,
+    capsule_end_object_b: tuple[int, ...] = ()   # n_points + body index (body/marker), −1 anchor
+    capsule_pair_sphere: tuple[int, ...] = ()    # (n_capsule_pairs,) sphere index
+    capsule_pair_capsule: tuple[int, ...] = ()   # (n_capsule_pairs,) capsule index
     model: str = "sharp"                   # "sharp" | "smooth"
     friction: bool = False
 
@@ -43,6 +55,18 @@ class ContactScene:
     def pair_names(self) -> list[str]:
         return [f"{self.sphere_names[a]}|{self.sphere_names[b]}" for a, b in zip(self.pair_a, self.pair_b)]
 
+    @property
+    def n_capsules(self) -> int:
+        return len(self.capsule_names)
+
+    @property
+    def n_capsule_pairs(self) -> int:
+        return len(self.capsule_pair_sphere)
+
+    def capsule_pair_names(self) -> list[str]:
+        return [f"{self.sphere_names[a]}|{self.capsule_names[c]}"
+                for a, c in zip(self.capsule_pair_sphere, self.capsule_pair_capsule)]
+
 
 @struct.dataclass
 class ContactParams:
@@ -59,3 +83,4 @@ class ContactParams:
     v_dynamic: jnp.ndarray         # () m/s
     smooth_depth: jnp.ndarray      # () m, width of the smooth model
     smooth_velocity: jnp.ndarray   # () m/s, slip regularisation of the smooth model
+    capsule_radius: jnp.ndarray | None = None   # (n_capsules,) m; None without capsules
