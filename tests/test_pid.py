@@ -10,7 +10,8 @@ import pytest
 
 from mysim_jax.build import build
 from mysim_jax.config import config_from_dict, load_config
-from mysim_jax.control.pid import CONTROLLERS, flat_body_rates
+from mysim_jax.control.pid import CONTROLLERS, control_time, flat_body_rates
+from mysim_jax.control.setpoint import reference_setpoint
 from mysim_jax.control.reference import reference_derivatives, reference_pose
 from mysim_jax.control.tracking import evaluate_tracking
 from mysim_jax.dynamics.quadrotor import allocation_matrix
@@ -30,7 +31,8 @@ def _raw(units="dyne_cm", feedforward="full", reference=None, **controller):
 
 
 # compiled once per distinct (hashable) Scene
-_controller = jax.jit(lambda scene, p, s: CONTROLLERS["cascaded_pid"].command(scene, p, s), static_argnums=0)
+_controller = jax.jit(lambda scene, p, s: CONTROLLERS["cascaded_pid"].command(
+    scene, p, s, reference_setpoint(p, control_time(scene, s.controller))), static_argnums=0)
 
 
 def _command(scene, params, state):
@@ -89,7 +91,8 @@ def test_anti_windup_freezes_integrators_while_saturated():
     scene, params, state = build(config_from_dict(raw, "t"))
     _, memory = _command(scene, params, state)            # 2 cm below the reference: integrates
     np.testing.assert_allclose(np.asarray(memory.position_integral[0]), [0.0, 0.0, 0.02 * 1e-3], rtol=1e-12)
-    raw = _raw(reference={"center": [0.0, 0.0, 30.0]})    # 29 m below: the motors hit omega_max
+    raw = _raw(reference={"center": [0.0, 0.0, 30.0]},    # 29 m below: the motors hit omega_max
+               flyable_box={"high": [10.0, 10.0, 40.0]})
     scene, params, state = build(config_from_dict(raw, "t"))
     omega, memory = _controller(scene, params, state)
     np.testing.assert_allclose(np.asarray(omega[0]), 2440.0, rtol=1e-12)

@@ -25,7 +25,8 @@ from scipy.spatial.transform import Rotation
 
 from mysim_jax.build import build
 from mysim_jax.config import config_from_dict
-from mysim_jax.control.pid import CONTROLLERS
+from mysim_jax.control.pid import CONTROLLERS, control_time
+from mysim_jax.control.setpoint import reference_setpoint
 
 pytestmark = pytest.mark.float64
 
@@ -35,7 +36,8 @@ POS0 = np.array([0.0, 0.0, 1.0])
 I_POS0 = np.array([0.1, -0.05, 0.02])        # integrator memory before the step (m s)
 I_ATT0 = np.array([0.01, -0.02, 0.005])      # (rad s)
 
-_command = jax.jit(lambda scene, p, s: CONTROLLERS["cascaded_pid"].command(scene, p, s), static_argnums=0)
+_command = jax.jit(lambda scene, p, s: CONTROLLERS["cascaded_pid"].command(
+    scene, p, s, reference_setpoint(p, control_time(scene, s.controller))), static_argnums=0)
 
 
 def _run(center, tilt_rotvec=(0.0, 0.0, 0.0), max_tilt=0.8, omega_max=2440.0):

@@ -13,6 +13,7 @@ from scipy.spatial.transform import Rotation
 from mysim_jax.build import build
 from mysim_jax.config import ConfigError, config_from_dict, load_config
 from mysim_jax.control.pid import CONTROLLERS
+from mysim_jax.control.setpoint import reference_setpoint
 from mysim_jax.dynamics.quadrotor import allocation_inverse, allocation_matrix, motor_response, rotor_wrench, wind_force
 from mysim_jax.sim import rollout
 
@@ -157,7 +158,8 @@ def test_drag_and_wind_give_the_analytic_terminal_velocity():
 def test_hover_speed_is_analytic():
     """At the hover point the controller commands sqrt(m g / (4 c)) on every motor."""
     scene, params, state = build(config_from_dict(_uav(), "t"))
-    omega, _ = jax.jit(lambda p, s: CONTROLLERS["cascaded_pid"].command(scene, p, s))(params, state)
+    command = CONTROLLERS["cascaded_pid"].command
+    omega, _ = jax.jit(lambda p, s: command(scene, p, s, reference_setpoint(p, 0.0)))(params, state)
     analytic = math.sqrt(M * G / (4 * C))
     assert abs(analytic - 1544.14) < 0.01
     np.testing.assert_allclose(np.asarray(omega[0]), analytic, rtol=1e-6)
@@ -193,7 +195,6 @@ def test_hover_holds_position_for_10_s():
      "quadrotors.0.controller.attitude.kp.2"),
     ({"controller": {"attitude_gain_units": "furlongs"}}, "quadrotors.0.controller.attitude_gain_units"),
     ({"controller": {"max_tilt": 2.0}}, "quadrotors.0.controller.max_tilt"),
-    ({"reference": None}, "quadrotors.0.reference: a quadrotor with a controller needs a reference"),
     ({"reference": {"center": [0, 0, 1], "period": 0}}, "quadrotors.0.reference.period"),
     ({"drag": [0.1, -0.1, 0.1]}, "quadrotors.0.drag.1"),
     ({"cameras": [{"name": "uav0", "mount": "fixed"}]}, "quadrotors.0.cameras.0.name: 'uav0' is already used"),

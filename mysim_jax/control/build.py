@@ -184,6 +184,7 @@ def build_quadrotors(config: SceneConfig, body_names, marker_names, dtype):
         controller="none" if quads[0].controller is None else quads[0].controller.type,
         feedforward=tuple(q.controller.feedforward if q.controller else "none" for q in quads),
         attitude_gain_units=tuple(q.controller.attitude_gain_units if q.controller else "torque" for q in quads),
+        setpoint_mode=quads[0].controller.setpoint_mode if quads[0].controller else "position",
         has_motor_lag=any(q.rotors.time_constant is not None for q in quads),
         has_drag=any(q.drag is not None for q in quads),
         has_wind=any(q.wind is not None for q in quads),
@@ -248,6 +249,20 @@ def build_quadrotors(config: SceneConfig, body_names, marker_names, dtype):
         return qs, qp, None, memory
 
     refs = [q.reference for q in quads]
+    reference = None
+    if refs[0] is not None:     # every quadrotor has a reference or none has (config check)
+        reference = ReferenceParams(
+            center=arr([r.center for r in refs], (-1, 3)),
+            amplitude=arr([r.amplitude for r in refs], (-1, 3)),
+            multiple=arr([r.multiple for r in refs], (-1, 3)),
+            phase=arr([r.phase for r in refs], (-1, 3)),
+            period=arr([r.period for r in refs], (-1,)),
+            ramp=arr([r.ramp for r in refs], (-1,)),
+            yaw_center=arr([r.yaw.center for r in refs], (-1,)),
+            yaw_amplitude=arr([r.yaw.amplitude for r in refs], (-1,)),
+            yaw_multiple=arr([r.yaw.multiple for r in refs], (-1,)),
+            yaw_phase=arr([r.yaw.phase for r in refs], (-1,)),
+        )
     cp = ControlParams(
         gains=PIDGains(**{
             f"{loop}_{k}": arr([getattr(getattr(q.controller, loop), k) for q in quads], (-1, 3))
@@ -259,17 +274,9 @@ def build_quadrotors(config: SceneConfig, body_names, marker_names, dtype):
         max_tilt=arr([q.controller.max_tilt for q in quads], (-1,)),
         position_integral_limit=arr([q.controller.position_integral_limit for q in quads], (-1,)),
         attitude_integral_limit=arr([q.controller.attitude_integral_limit for q in quads], (-1,)),
-        reference=ReferenceParams(
-            center=arr([r.center for r in refs], (-1, 3)),
-            amplitude=arr([r.amplitude for r in refs], (-1, 3)),
-            multiple=arr([r.multiple for r in refs], (-1, 3)),
-            phase=arr([r.phase for r in refs], (-1, 3)),
-            period=arr([r.period for r in refs], (-1,)),
-            ramp=arr([r.ramp for r in refs], (-1,)),
-            yaw_center=arr([r.yaw.center for r in refs], (-1,)),
-            yaw_amplitude=arr([r.yaw.amplitude for r in refs], (-1,)),
-            yaw_multiple=arr([r.yaw.multiple for r in refs], (-1,)),
-            yaw_phase=arr([r.yaw.phase for r in refs], (-1,)),
-        ),
+        box_low=arr([q.controller.flyable_box.low for q in quads], (-1, 3)),
+        box_high=arr([q.controller.flyable_box.high for q in quads], (-1, 3)),
+        max_speed=arr([q.controller.max_speed for q in quads], (-1,)),
+        reference=reference,
     )
     return qs, qp, cp, memory

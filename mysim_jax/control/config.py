@@ -5,7 +5,8 @@ Every default is the paper's (Table UAV_model, Table PID_controller, Table camer
 its docstring says otherwise. This module only depends on pydantic so that
 :mod:`mysim_jax.config` can import it; :func:`quadrotor_problems` is the whole-scene
 check that :class:`~mysim_jax.config.SceneConfig` calls (bodies that do not exist,
-name clashes, a controller without a reference, ...).
+name clashes, a reference outside the flyable box, ...); :func:`check_setpoint` checks
+setpoints written in a file or script against the same limits.
 
 A minimal quadrotor names its rigid body (mass and inertia live on the body) and a
 reference::
@@ -25,8 +26,8 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import Field, model_validator
 
-from mysim_jax.config_base import (Finite, Name, NonNegFloat, NonNegVec3, Pair, PosFloat, PosPair, PosVec4,
-                                   StrictModel, UnitQuat, Vec3, Vec4)
+from mysim_jax.config_base import (ConfigError, Finite, Name, NonNegFloat, NonNegVec3, Pair, PosFloat, PosPair,
+                                   PosVec4, StrictModel, UnitQuat, Vec3, Vec4)
 
 
 def _rotate(q, v):
@@ -55,6 +56,13 @@ PAPER_ATTITUDE_GAINS = {"kp": (7.0e4, 7.0e4, 6.0e4), "ki": (0.0, 0.0, 5.0e2), "k
 PAPER_CAMERA_OFFSET = (0.03, 0.0, -0.03)                        # m, UAV body frame
 PAPER_CAMERA_INERTIA = (2.17e-6, 4.83e-6, 5.67e-6)              # kg m^2
 PAPER_CAMERA_MASS = 0.02                                        # kg
+# Setpoint limits (the paper gives none). The box is a 20 m x 20 m x 10 m flight volume
+# around the world origin; its floor sits 0.1 m above the ground plane z = 0 (the
+# paper's vehicle is 0.27 m across), so no setpoint asks the vehicle into the ground.
+# 10 m/s leaves room above the shipped references (uav_track_large is the fastest).
+DEFAULT_BOX_LOW = (-10.0, -10.0, 0.1)                           # m, world
+DEFAULT_BOX_HIGH = (10.0, 10.0, 10.0)                           # m, world
+DEFAULT_MAX_SPEED = 10.0                                        # m/s
 
 
 class RotorConfig(StrictModel):
@@ -99,6 +107,21 @@ class GainSet(StrictModel):
     kd: NonNegVec3
 
 
+class FlyableBox(StrictModel):
+    """An axis-aligned box ``low ≤ r ≤ high`` (m, world) that position setpoints are
+    clipped to (see :mod:`mysim_jax.control.setpoint`)."""
+
+    low: Vec3 = DEFAULT_BOX_LOW
+    high: Vec3 = DEFAULT_BOX_HIGH
+
+    @model_validator(mode="after")
+    def _check(self):
+        bad = [f"{a}: low {lo:g} >= high {hi:g}" for a, lo, hi in zip("xyz", self.low, self.high) if lo >= hi]
+        if bad:
+            raise ValueError(f"low must be below high on every axis ({'; '.join(bad)})")
+        return self
+
+
 class ControllerConfig(StrictModel):
     """The cascaded PID of paper Fig. entire_controller_pd (see :mod:`mysim_jax.control.pid`).
 
@@ -119,6 +142,12 @@ class ControllerConfig(StrictModel):
     ``±attitude_integral_limit`` (rad s) and frozen while a motor saturates
     (anti-windup). ``mass`` is the mass the controller assumes (default: the UAV body
     plus its cameras).
+
+    Setpoints (:mod:`mysim_jax.control.setpoint`): ``setpoint_mode: position`` (default)
+    tracks a position with an optional velocity feed-forward; ``velocity`` tracks a
+    velocity (every quadrotor of a scene has the same mode). Inside the step, position
+    setpoints are clipped to ``flyable_box`` (m, world; default x, y in ±10 m, z from
+    0.1 m to 10 m) and velocity setpoints to the speed ``max_speed`` (m/s, default 10).
     """
 
     type: Literal["cascaded_pid"] = "cascaded_pid"
@@ -130,6 +159,9 @@ class ControllerConfig(StrictModel):
     position_integral_limit: PosFloat = 2.0
     attitude_integral_limit: PosFloat = 1.0
     mass: PosFloat | None = None
+    setpoint_mode: Literal["position", "velocity"] = "position"
+    flyable_box: FlyableBox = FlyableBox()
+    max_speed: PosFloat = DEFAULT_MAX_SPEED
 
 
 class YawReference(StrictModel):
@@ -237,11 +269,14 @@ class CameraConfig(StrictModel):
 
 class QuadrotorConfig(StrictModel):
     """A quadrotor: rotor forces on the rigid body ``body``, optionally under a
-    controller tracking ``reference``, with optional drag, wind and cameras.
+    controller, with optional drag, wind and cameras.
 
-    ``drag`` (N s/m, body axes) is linear body drag ``F = −R D Rᵀ v``. ``controller:
-    null`` leaves the motors to the ``control`` argument of ``step`` (commanded motor
-    speeds, rad/s).
+    The controller tracks ``reference`` when ``step`` is called without ``control``, or
+    the :class:`~mysim_jax.control.setpoint.Setpoint` passed as ``control``; a scene
+    driven by setpoints only (a script, a policy) leaves ``reference`` out. Either every
+    controlled quadrotor of a scene has a reference or none has. ``drag`` (N s/m, body
+    axes) is linear body drag ``F = −R D Rᵀ v``. ``controller: null`` leaves the motors
+    to the ``control`` argument of ``step`` (commanded motor speeds, rad/s).
     """
 
     body: Name
@@ -262,6 +297,8 @@ def quadrotor_problems(scene) -> list[str]:
     taken |= {f"{r.name}_{j}" for r in scene.ropes for j in range(r.n_masses)}
     seen_bodies: dict[str, int] = {}
     has_controller = [q.controller is not None for q in scene.quadrotors]
+    has_reference = [q.reference is not None for q in scene.quadrotors if q.controller is not None]
+    modes = [q.controller.setpoint_mode for q in scene.quadrotors if q.controller is not None] or ["position"]
     for i, q in enumerate(scene.quadrotors):
         where = f"quadrotors.{i}"
         if q.body not in bodies:
@@ -271,12 +308,19 @@ def quadrotor_problems(scene) -> list[str]:
             problems.append(f"{where}.body: body '{q.body}' is already quadrotors.{seen_bodies[q.body]}")
         else:
             seen_bodies[q.body] = i
-        if q.controller is not None and q.reference is None:
-            problems.append(f"{where}.reference: a quadrotor with a controller needs a reference trajectory")
         if q.controller is None and q.reference is not None:
             problems.append(f"{where}.reference: only used by a controller (controller is null)")
         if any(has_controller) and not all(has_controller):
             problems.append(f"{where}.controller: either every quadrotor has a controller or none has")
+        if q.controller is not None:
+            if any(has_reference) and not all(has_reference):
+                problems.append(f"{where}.reference: either every quadrotor has a reference or none has "
+                                "(a scene without references is driven by setpoints passed to step)")
+            if q.controller.setpoint_mode != modes[0]:
+                problems.append(f"{where}.controller.setpoint_mode: '{q.controller.setpoint_mode}', and "
+                                f"quadrotors.0 has '{modes[0]}': every quadrotor of a scene has the same mode")
+            if q.reference is not None:
+                problems += reference_problems(q.reference, q.controller, where)
         marker_names = {m.name for m in bodies[q.body].markers} if q.body in bodies else set()
         for j, cam in enumerate(q.cameras):
             if cam.name in taken:
@@ -286,6 +330,98 @@ def quadrotor_problems(scene) -> list[str]:
                 problems.append(f"{where}.cameras.{j}.name: body '{q.body}' already has a marker "
                                 f"'{cam.name}_mount' (the camera's mount marker)")
     return problems
+
+
+def reference_speed_bound(ref: ReferenceConfig) -> float:
+    """An upper bound (m/s) on the reference's speed: ``|ṙ_d| ≤ 2π/period · |amplitude ⊙
+    multiple|`` (the time warp's ``ṡ`` never exceeds 1)."""
+    return 2.0 * math.pi / ref.period * float(np.linalg.norm(np.multiply(ref.amplitude, ref.multiple)))
+
+
+def reference_problems(ref: ReferenceConfig, controller: ControllerConfig, where: str) -> list[str]:
+    """The reference of ``where`` (``quadrotors.i``) against its controller's limits: its
+    extent ``center ± |amplitude|`` inside ``flyable_box``, its speed within ``max_speed``
+    (setpoints are clipped to both inside the step, so a reference beyond them would not
+    be flown as written)."""
+    problems = []
+    box = controller.flyable_box
+    center, amplitude = np.asarray(ref.center), np.abs(ref.amplitude)
+    for k, axis in enumerate("xyz"):
+        lo, hi = box.low[k], box.high[k]
+        if not lo <= center[k] <= hi:
+            problems.append(f"{where}.reference.center: {axis} = {center[k]:g} m is outside the flyable box "
+                            f"[{lo:g}, {hi:g}] m (controller.flyable_box)")
+        elif center[k] - amplitude[k] < lo or center[k] + amplitude[k] > hi:
+            problems.append(f"{where}.reference.amplitude: on {axis} the reference spans "
+                            f"[{center[k] - amplitude[k]:g}, {center[k] + amplitude[k]:g}] m, beyond the flyable box "
+                            f"[{lo:g}, {hi:g}] m (controller.flyable_box)")
+    speed = reference_speed_bound(ref)
+    if speed > controller.max_speed:
+        problems.append(f"{where}.controller.max_speed: {controller.max_speed:g} m/s, and the reference may reach "
+                        f"{speed:.4g} m/s (2π/period · |amplitude ⊙ multiple|): raise max_speed or slow the reference")
+    return problems
+
+
+def _field(setpoint, name):
+    if isinstance(setpoint, dict):
+        return setpoint.get(name)
+    return getattr(setpoint, name, None)
+
+
+def setpoint_problems(setpoint, quadrotors, where: str = "setpoint") -> list[str]:
+    """Problems of a setpoint given on the host (a mapping or an object with
+    ``position (n_quads, 3)`` m, ``velocity (n_quads, 3)`` m/s, ``yaw (n_quads,)`` rad;
+    any of them may be missing) against the controllers of ``quadrotors`` (a list of
+    :class:`QuadrotorConfig`): shapes, finite values, positions inside each flyable box
+    and speeds within each ``max_speed``. Each problem names ``where.field.quad``."""
+    quads = [q for q in quadrotors if q.controller is not None]
+    if not quads:
+        return [f"{where}: setpoints need quadrotors with a controller, and there are none"]
+    n_q = len(quads)
+    problems = []
+    values = {}
+    for name, shape, unit in (("position", (n_q, 3), "m"), ("velocity", (n_q, 3), "m/s"), ("yaw", (n_q,), "rad")):
+        raw = _field(setpoint, name)
+        if raw is None:
+            continue
+        try:
+            value = np.asarray(raw, dtype=float)
+        except (TypeError, ValueError):
+            problems.append(f"{where}.{name}: not an array of numbers ({unit})")
+            continue
+        if name == "yaw" and value.ndim == 0:
+            value = np.full(shape, float(value))
+        if value.shape != shape:
+            problems.append(f"{where}.{name}: shape {value.shape}, expected {shape} ({unit}, one row per quadrotor)")
+            continue
+        if not np.isfinite(value).all():
+            problems.append(f"{where}.{name}: non-finite values")
+            continue
+        values[name] = value
+    for i, q in enumerate(quads):
+        box, ctrl = q.controller.flyable_box, q.controller
+        if "position" in values:
+            p = values["position"][i]
+            for k, axis in enumerate("xyz"):
+                if not box.low[k] <= p[k] <= box.high[k]:
+                    problems.append(f"{where}.position.{i}: {axis} = {p[k]:g} m is outside the flyable box "
+                                    f"[{box.low[k]:g}, {box.high[k]:g}] m (quadrotors.{i}.controller.flyable_box)")
+        if "velocity" in values:
+            speed = float(np.linalg.norm(values["velocity"][i]))
+            if speed > ctrl.max_speed:
+                problems.append(f"{where}.velocity.{i}: speed {speed:g} m/s is above max_speed "
+                                f"{ctrl.max_speed:g} m/s (quadrotors.{i}.controller.max_speed)")
+    return problems
+
+
+def check_setpoint(setpoint, config, where: str = "setpoint") -> None:
+    """Raise :class:`~mysim_jax.config.ConfigError` naming every field of ``setpoint``
+    that :func:`setpoint_problems` rejects. ``config``: a SceneConfig, or its list of
+    quadrotors. (Inside the step, setpoints beyond the limits are clipped instead.)"""
+    quads = config.quadrotors if hasattr(config, "quadrotors") else config
+    problems = setpoint_problems(setpoint, quads, where)
+    if problems:
+        raise ConfigError("invalid setpoint:\n" + "\n".join(f"  {p}" for p in problems))
 
 
 class GainsFile(StrictModel):

@@ -1,33 +1,58 @@
 """Cascaded PID for quadrotors (paper Fig. entire_controller_pd, Table PID_controller).
 
-One call per environment step (the command is held over the step's sub-steps):
+One call per environment step (the command is held over the step's sub-steps). The
+controller tracks a :class:`~mysim_jax.control.setpoint.Setpoint` — position ``r_s``,
+velocity ``v_s``, yaw ``ψ_s`` and optional feed-forward acceleration ``a_s``, body rate
+``ω_s`` and body angular acceleration ``α_s`` — which the control stage
+(:mod:`mysim_jax.control.actuation`) takes from the caller or from the scene's reference
+(:func:`~mysim_jax.control.setpoint.reference_setpoint`) and limits to the flyable box
+and ``max_speed`` first.
 
-1. **Position loop** (world axes, gains in N/m, N/(m s), N s/m). With ``e = r_d − r``,
-   ``ė = v_d − v`` and ``I = ∫ e dt``, the desired thrust vector is
+1. **Position loop** (world axes, gains in N/m, N/(m s), N s/m), by ``setpoint_mode``:
 
-       F_d = m (g↑ + a_d) + K_p e + K_i I + K_d ė
+   * ``position`` (default): with ``e = r_s − r``, ``ė = v_s − v`` and ``I = ∫ e dt``,
+
+         F_d = m (g↑ + a_s) + K_p e + K_i I + K_d ė
+
+     (``v_s`` is a velocity feed-forward: zero for a plain position setpoint, the
+     reference's velocity when the reference is the source);
+   * ``velocity``: the position error is dropped and the loop tracks ``v_s``,
+
+         F_d = m (g↑ + a_s) + K_d (v_s − v)
+
+     with the position loop's ``K_d``. There is no integral term: the one gain of the
+     position loop with the units for ``∫(v_s − v) dt`` (m) is ``K_p``, and
+     ``K_p ∫(v_s − v) dt`` makes the loop the position loop again, tracking the path
+     the setpoint integrates — lightly damped with the paper's gains (so velocity steps
+     overshoot), and winding up whenever the speed limit or the box stops the vehicle
+     short of that path. With P alone each axis follows its setpoint as a first-order
+     lag of time constant ``m / K_d``, without overshoot; a constant force ``F`` (wind,
+     a taut tether) leaves a velocity error ``F / K_d``, which the caller corrects with
+     its next setpoints. The position integrator stays untouched.
 
    ``F_d`` is limited to ``max_tilt`` from vertical (and to at least a tenth of the
    weight upwards).
 2. **Desired attitude** (Lee, Leok & McClamroch 2010): ``b₃ = F_d/|F_d|``,
-   ``b₂ = b₃ × (cos ψ_d, sin ψ_d, 0)`` normalised, ``b₁ = b₂ × b₃``; thrust
+   ``b₂ = b₃ × (cos ψ_s, sin ψ_s, 0)`` normalised, ``b₁ = b₂ × b₃``; thrust
    ``T = F_d · (R e_z)``.
 3. **Attitude loop** (body axes): attitude error ``e_R = ½ (R_dᵀR − RᵀR_d)^∨`` (rad for
-   small errors), rate error ``e_ω = ω − RᵀR_d ω_d``,
+   small errors), rate error ``e_ω = ω − RᵀR_d ω_s``,
    ``u = −(K_p e_R + K_i ∫e_R dt + K_d e_ω)``, torque ``τ = s ⊙ u + τ_ff`` with
-   ``τ_ff = ω × Jω − J(ω × RᵀR_d ω_d − RᵀR_d α_d)``.
+   ``τ_ff = ω × Jω − J(ω × RᵀR_d ω_s − RᵀR_d α_s)``.
 4. **Allocation** about the centre of mass of the whole vehicle: cameras move it to
    ``r_c`` (body frame), so the rotors must add ``r_c × (0, 0, T)`` to hold the attitude;
    ``ω² = M⁻¹ (T, τ + r_c × T e_z)``, clipped to the motor limits.
 5. **Anti-windup**: both integrators are clamped to their limits and frozen while any
    motor of that quadrotor saturates; the position integrator also while the tilt
-   limit is active.
+   limit is active (position mode; velocity mode has none).
 
 **Feed-forward** (``feedforward``; the paper: "utilizing its differential flatness
-property"). ``full`` (default): ``m a_d`` in step 1, and ``ω_d``, ``α_d`` — the body
-rate and acceleration of the attitude the reference alone asks for, from its jerk and
-snap (:func:`flat_body_rates`) — in step 3. ``acceleration``: ``m a_d`` only (``ω_d = α_d = 0``, ``τ_ff = 0``). ``none``: plain PID. The paper's gains
-are soft (position loop ω_n ≈ 1.2 rad/s, ζ = 0.2–0.4; attitude ω_n ≈ 7 rad/s), so the
+property"). ``full`` (default): ``m a_s`` in step 1, and ``ω_s``, ``α_s`` in step 3 —
+for the reference, the body rate and acceleration of the attitude it alone asks for,
+from its jerk and snap (:func:`flat_body_rates`). ``acceleration``: ``m a_s`` only
+(``ω_s = α_s = 0``, ``τ_ff = 0``). ``none``: plain PID. A setpoint without feed-forward
+terms (``None``) feeds zeros. The paper's gains are soft (position loop
+ω_n ≈ 1.2 rad/s, ζ = 0.2–0.4; attitude ω_n ≈ 7 rad/s), so along a reference the
 feed-forward carries the tracking and the PID corrects (README "Quadrotor & control"
 has the numbers for all three).
 
@@ -64,7 +89,7 @@ import numpy as np
 from flax import struct
 
 from mysim_jax import vecmath
-from mysim_jax.control.reference import ReferenceParams, reference, reference_derivatives
+from mysim_jax.control.reference import ReferenceParams, reference_derivatives
 from mysim_jax.dynamics.quadrotor import allocation_inverse, allocation_matrix
 from mysim_jax.dynamics.quaternion import quat_to_matrix
 
@@ -86,7 +111,8 @@ class PIDGains:
 
 @struct.dataclass
 class ControlParams:
-    """Traced controller parameters: gains, the controller's model, references."""
+    """Traced controller parameters: gains, the controller's model, setpoint limits,
+    references (None in a scene driven by setpoints only)."""
 
     gains: PIDGains
     mass: jnp.ndarray                     # (n_quads,) kg, what the controller assumes
@@ -95,7 +121,10 @@ class ControlParams:
     max_tilt: jnp.ndarray                 # (n_quads,) rad
     position_integral_limit: jnp.ndarray  # (n_quads,) m s
     attitude_integral_limit: jnp.ndarray  # (n_quads,) rad s
-    reference: ReferenceParams
+    box_low: jnp.ndarray                  # (n_quads, 3) m, world: flyable box, lower corner
+    box_high: jnp.ndarray                 # (n_quads, 3) m, world: flyable box, upper corner
+    max_speed: jnp.ndarray                # (n_quads,) m/s, limit of velocity setpoints
+    reference: ReferenceParams | None
 
 
 @struct.dataclass
@@ -120,14 +149,16 @@ def control_time(scene, memory):
 class Controller(abc.ABC):
     """A quadrotor controller, evaluated once per environment step.
 
-    ``command(scene, params, state)`` returns ``(omega_cmd (n_quads, 4) rad/s, memory)``:
-    the motor speeds to hold over the step and the updated :class:`ControlState`
-    (``motor_speed``/``motor_command`` are filled in afterwards by the motor model).
-    Must be pure and written for one environment.
+    ``command(scene, params, state, setpoint)`` returns ``(omega_cmd (n_quads, 4) rad/s,
+    memory)``: the motor speeds to hold over the step towards ``setpoint`` (a
+    :class:`~mysim_jax.control.setpoint.Setpoint`, already limited, in the state's
+    dtype) and the updated :class:`ControlState` (``motor_speed``/``motor_command`` are
+    filled in afterwards by the motor model). Must be pure and written for one
+    environment.
     """
 
     @abc.abstractmethod
-    def command(self, scene, params, state):
+    def command(self, scene, params, state, setpoint):
         ...
 
 
@@ -146,22 +177,28 @@ def attitude_torque_gain(scene, qp):
     return jnp.where(squared, per_sq, jnp.asarray(scale, dtype=per_sq.dtype))
 
 
-def desired_thrust(scene, params, state):
-    """Position loop: ``(F_d (n_quads, 3), tilt_limited (n_quads,), e (n_quads, 3), ref)``."""
+def desired_thrust(scene, params, state, setpoint):
+    """Position loop: ``(F_d (n_quads, 3), tilt_limited (n_quads,), e (n_quads, 3))``, ``e``
+    the position error (zeros in velocity mode)."""
     qs, cp = scene.quadrotor, params.controller
     body = np.asarray(qs.body, dtype=np.int32)
     phys = state.phys
-    ref = reference(cp.reference, control_time(scene, state.controller))
     g = cp.gains
-    e = ref.pos - phys.body_pos[body]
-    e_dot = ref.vel - phys.body_vel[body]
+    e_dot = setpoint.velocity - phys.body_vel[body]
     up = -params.gravity
     acc = up[None, :]
     ff = np.asarray([f in ("acceleration", "full") for f in qs.feedforward])
-    if ff.any():
-        acc = acc + jnp.where(ff[:, None], ref.acc, 0.0)
-    force = cp.mass[:, None] * acc + g.position_kp * e + g.position_ki * state.controller.position_integral \
-        + g.position_kd * e_dot
+    if ff.any() and setpoint.acceleration is not None:
+        acc = acc + jnp.where(ff[:, None], setpoint.acceleration, 0.0)
+    if qs.setpoint_mode == "position":
+        e = setpoint.position - phys.body_pos[body]
+        force = cp.mass[:, None] * acc + g.position_kp * e + g.position_ki * state.controller.position_integral \
+            + g.position_kd * e_dot
+    elif qs.setpoint_mode == "velocity":
+        e = jnp.zeros_like(e_dot)
+        force = cp.mass[:, None] * acc + g.position_kd * e_dot
+    else:
+        raise ValueError(f"unknown setpoint_mode '{qs.setpoint_mode}' (position | velocity)")
     # tilt limit: at least a tenth of the weight upwards, horizontal part within max_tilt
     f_z = jnp.maximum(force[:, 2], 0.1 * cp.mass * vecmath.safe_norm(up))
     horizontal = force.at[:, 2].set(0.0)
@@ -170,7 +207,7 @@ def desired_thrust(scene, params, state):
     tilt_limited = h_norm > h_max
     scale = jnp.minimum(1.0, h_max / jnp.maximum(h_norm, 1e-12))
     force = (horizontal * scale[:, None]).at[:, 2].set(f_z)
-    return force, tilt_limited, e, ref
+    return force, tilt_limited, e
 
 
 def attitude_error(rot_d, rot):
@@ -223,28 +260,29 @@ def flat_body_rates(params, t):
 class CascadedPID(Controller):
     """Position PID → desired attitude → attitude PID → allocation (module docstring)."""
 
-    def command(self, scene, params, state):
+    def command(self, scene, params, state, setpoint):
         qs, qp, cp = scene.quadrotor, params.quadrotor, params.controller
         body = np.asarray(qs.body, dtype=np.int32)
         phys, memory = state.phys, state.controller
         g = cp.gains
         dt = jnp.asarray(scene.dt, dtype=phys.body_pos.dtype)
 
-        force, tilt_limited, e_pos, ref = desired_thrust(scene, params, state)
+        force, tilt_limited, e_pos = desired_thrust(scene, params, state, setpoint)
         rot = quat_to_matrix(phys.body_quat[body])
-        rot_d = desired_rotation(force, ref.yaw)
+        rot_d = desired_rotation(force, setpoint.yaw)
         thrust = vecmath.dot(force, rot[..., 2])
         e_att = attitude_error(rot_d, rot)
         omega = phys.body_angvel[body]
         full = np.asarray([f == "full" for f in qs.feedforward])[:, None]
+        omega_ref = alpha_ref = jnp.zeros_like(omega)
         if full.any():
-            # flatness feed-forward (Lee et al. 2010): track the reference's body rates
-            omega_d, alpha_d = flat_body_rates(params, control_time(scene, memory))
+            # flatness feed-forward (Lee et al. 2010): track the setpoint's body rates
             to_body = jnp.einsum("...ki,...kj->...ij", rot, rot_d)        # Rᵀ R_d
-            omega_ref = jnp.where(full, jnp.einsum("qij,qj->qi", to_body, omega_d), 0.0)
-            alpha_ref = jnp.where(full, jnp.einsum("qij,qj->qi", to_body, alpha_d), 0.0)
-        else:
-            omega_ref = alpha_ref = jnp.zeros_like(omega)
+            if setpoint.body_rate is not None:
+                omega_ref = jnp.where(full, jnp.einsum("qij,qj->qi", to_body, setpoint.body_rate), 0.0)
+            if setpoint.body_angular_acceleration is not None:
+                alpha_ref = jnp.where(full, jnp.einsum("qij,qj->qi", to_body, setpoint.body_angular_acceleration),
+                                      0.0)
         u = -(g.attitude_kp * e_att + g.attitude_ki * memory.attitude_integral
               + g.attitude_kd * (omega - omega_ref))
         torque = attitude_torque_gain(scene, qp) * u
@@ -265,12 +303,15 @@ class CascadedPID(Controller):
 
         pos_lim = cp.position_integral_limit[:, None]
         att_lim = cp.attitude_integral_limit[:, None]
-        new_pos = jnp.clip(memory.position_integral + e_pos * dt, -pos_lim, pos_lim)
         new_att = jnp.clip(memory.attitude_integral + e_att * dt, -att_lim, att_lim)
-        hold_pos = (saturated | tilt_limited)[:, None]
+        position_integral = memory.position_integral       # velocity mode: no position integrator
+        if qs.setpoint_mode == "position":
+            new_pos = jnp.clip(memory.position_integral + e_pos * dt, -pos_lim, pos_lim)
+            hold_pos = (saturated | tilt_limited)[:, None]
+            position_integral = jnp.where(hold_pos, memory.position_integral, new_pos)
         hold_att = saturated[:, None]
         memory = memory.replace(
-            position_integral=jnp.where(hold_pos, memory.position_integral, new_pos),
+            position_integral=position_integral,
             attitude_integral=jnp.where(hold_att, memory.attitude_integral, new_att),
         )
         return omega_cmd, memory

@@ -17,6 +17,9 @@ from mysim_jax.control.reference import reference
 
 def reference_along(params, times):
     """References of all quadrotors at ``times`` ``(n,)``: a Reference with leaves ``(n, n_quads, …)``."""
+    if params.controller is None or params.controller.reference is None:
+        raise ValueError("the scene has no reference trajectory (quadrotors.i.reference) to measure tracking "
+                         "errors against")
     return jax.vmap(lambda t: reference(params.controller.reference, t))(jnp.asarray(times))
 
 
@@ -29,7 +32,7 @@ def position_errors(scene, params, states):
 
 def reference_columns(scene, params, times) -> dict[str, np.ndarray]:
     """``NAME_ref_x/y/z`` (m) and ``NAME_ref_yaw`` (rad) for every controlled quadrotor."""
-    if scene.quadrotor is None or params.controller is None:
+    if scene.quadrotor is None or params.controller is None or params.controller.reference is None:
         return {}
     ref = jax.tree.map(np.asarray, reference_along(params, times))
     cols = {}
