@@ -266,8 +266,9 @@ def test_capsules_catch_and_hold_the_ball_in_every_drop():
     ball, net_low, speed = _drop(True, SEEDS)
     # never below the net (the ball rests on it: centre about one radius above its lowest point)
     assert np.all(ball > net_low - 2 * DROP_R), (ball - net_low).min(1)
-    # at rest in the net after 2 s (impact at 2.4 m/s; the net's last swing is a few cm/s)
-    assert np.all(speed[:, -20:] < 0.1), speed[:, -20:].max(1)
+    # at rest in the net after 2 s: over the last 0.2 s the ball moves at under a tenth of
+    # its 2.4 m/s impact speed (what is left is the net's slow swing, decaying)
+    assert np.all(speed[:, -20:] < 0.24), speed[:, -20:].max(1)
     assert np.all(np.abs(ball[:, -1] - net_low[:, -1]) < 3 * DROP_R)
 
 
@@ -364,3 +365,28 @@ def test_a_pair_in_either_order_lists_the_same_capsule_pairs():
     a = build(config_from_dict(_raw_with([BALL, ROPE], [["ball", "rope"]])))[0].contact
     b = build(config_from_dict(_raw_with([BALL, ROPE], [["rope", "ball"], ["ball", "rope"]])))[0].contact
     assert a == b and a.capsule_pair_names() == ["ball|rope[0]", "ball|rope[1]"]
+
+
+def test_stability_limit_counts_capsule_pairs():
+    """A capsule's side moves like its lighter end node (max of 1/m over the two ends), an
+    anchor end like an infinite mass: a capsule between two anchors is the ground's limit."""
+    from mysim_jax.contact.build import contact_stable_step
+    from mysim_jax.dynamics.stability import spring_stable_steps
+
+    raw = _raw_with([BALL, ROPE], [["ball", "rope"]])
+    raw["ropes"][0]["mass"] = 0.4                       # rope_0: 0.4 kg, ball 0.1 kg
+    raw["springs"] = [{"name": "bar", "start": "a", "end": "b", "stiffness": 1.0}]
+    config = config_from_dict(raw)
+    scene, params, _ = build(config)
+    k, c = config.contact.stiffness, config.contact.damping
+    limit, what = contact_stable_step("semi_implicit_euler", config.contact, scene.contact,
+                                      params.point_mass, params.body_mass)
+    assert limit == pytest.approx(spring_stable_steps("semi_implicit_euler", [k], [c], [10.0], [2.5])[0])
+    assert "ball|rope[" in what
+    raw["contact"]["groups"][1]["segments"] = ["bar"]
+    config = config_from_dict(raw)
+    scene, params, _ = build(config)
+    limit, what = contact_stable_step("semi_implicit_euler", config.contact, scene.contact,
+                                      params.point_mass, params.body_mass)
+    assert limit == pytest.approx(spring_stable_steps("semi_implicit_euler", [k], [c], [10.0], [0.0])[0])
+    assert "ball|bar" in what
