@@ -390,3 +390,28 @@ def test_stability_limit_counts_capsule_pairs():
                                       params.point_mass, params.body_mass)
     assert limit == pytest.approx(spring_stable_steps("semi_implicit_euler", [k], [c], [10.0], [0.0])[0])
     assert "ball|bar" in what
+
+
+@pytest.mark.float64
+def test_capsule_force_is_minus_the_gradient_of_the_energy_it_counts():
+    """Sharp law, no damper, no friction: the forces on the points are −∂U/∂x, with U the
+    capsule part of :func:`mechanical_energy` (E minus E with the capsules shrunk away)."""
+    from mysim_jax.contact.energy import mechanical_energy
+
+    scene, params, state = build(_small_scene("sharp", False, box_sphere=False))
+    cp = params.contact.replace(damping=jnp.zeros_like(params.contact.damping))
+    far = cp.replace(capsule_radius=cp.capsule_radius - 1.0)
+
+    def potential(point_pos, phys):
+        phys = phys.replace(point_pos=point_pos)
+        return (mechanical_energy(scene, params.replace(contact=cp), phys)
+                - mechanical_energy(scene, params.replace(contact=far), phys))
+
+    rng = np.random.default_rng(5)
+    for _ in range(10):
+        phys = _random_phys(rng, state.phys)
+        force = contact_forces(scene, params.replace(contact=cp), phys).node_force[:scene.n_points]
+        grad = jax.grad(potential)(phys.point_pos, phys)
+        scale = max(1.0, float(jnp.abs(force).max()))
+        np.testing.assert_allclose(np.asarray(grad), -np.asarray(force), rtol=0, atol=1e-9 * scale)
+        assert potential(phys.point_pos, phys) >= 0.0
