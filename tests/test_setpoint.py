@@ -146,7 +146,7 @@ def test_position_setpoint_step_converges_with_the_paper_gains():
     # hover first: the setpoint at the start position holds it
     held, pos, _ = _run_jit(scene, params, state, Setpoint.hold(jnp.asarray([[0.0, 0.0, 1.0]])), 250)
     assert np.abs(np.asarray(pos)[:, 0] - [0.0, 0.0, 1.0]).max() < 1e-9
-    final, pos, vel = _run_jit(scene, params, held, Setpoint.hold(jnp.asarray([target])), 10_000)
+    _, pos, vel = _run_jit(scene, params, held, Setpoint.hold(jnp.asarray([target])), 10_000)
     pos = np.asarray(pos)[:, 0]
     assert np.linalg.norm(pos[-1] - target) < 0.06
     assert np.linalg.norm(np.asarray(vel)[-1, 0]) < 0.06
@@ -162,7 +162,7 @@ def test_velocity_setpoint_is_tracked_without_overshoot():
     velocity (the position error term is gone)."""
     scene, params, state = build(config_from_dict(_uav("velocity"), "t"))
     v_set = np.array([0.5, -0.3, 0.2])
-    final, pos, vel = _run_jit(scene, params, state, Setpoint.from_velocity(jnp.asarray([v_set]), yaw=0.4), 2500)
+    final, _, vel = _run_jit(scene, params, state, Setpoint.from_velocity(jnp.asarray([v_set]), yaw=0.4), 2500)
     vel = np.asarray(vel)[:, 0]
     assert np.linalg.norm(vel[-1] - v_set) < 0.04
     assert (vel * np.sign(v_set) <= np.abs(v_set) * (1 + 1e-3)).all()
@@ -219,7 +219,7 @@ def test_velocity_mode_limits_speed_and_stops_at_the_box():
     on_floor = state.phys.body_pos.at[0, 2].set(0.1)
     lim = limit_setpoint(Setpoint.from_velocity(jnp.asarray([[0.2, 0.0, -0.3]])), cp, "velocity", on_floor)
     np.testing.assert_allclose(np.asarray(lim.velocity), [[0.2, 0.0, 0.0]])
-    final, _, vel = _run_jit(scene, params, state, sp, 2500)
+    _, _, vel = _run_jit(scene, params, state, sp, 2500)
     np.testing.assert_allclose(np.linalg.norm(np.asarray(vel)[-1, 0]), 0.5, rtol=0.05)
     # a normalised action maps onto ±max_speed (velocity mode) or onto the box (position mode)
     action = jnp.asarray([[1.0, -0.5, 0.0]])
