@@ -15,11 +15,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mysim_jax.config import FIXED_STEP_INTEGRATORS, ConfigError, SceneConfig
+from mysim_jax.config import FIXED_STEP_INTEGRATORS, ConfigError, SceneConfig, expand_capture
 from mysim_jax.contact.build import build_contact, contact_stable_step
+from mysim_jax.contact.config import segment_table
 from mysim_jax.control.build import build_quadrotors, expand_cameras
 from mysim_jax.dynamics.joint_check import joint_groups, joint_problems
 from mysim_jax.dynamics.stability import NETWORK_STEP_SAFETY, scene_network_stable_step, stable_step
+from mysim_jax.effects import EFFECTS, BuildContext
 from mysim_jax.net.rope import build_rope
 from mysim_jax.types import JointBucket, Params, PhysState, Scene, State
 
@@ -68,7 +70,12 @@ def build(config: SceneConfig):
             "mode; enable it first with jax.config.update('jax_enable_x64', True) or "
             "`with jax.enable_x64(True):` (scripts/simulate.py does this for you)"
         )
-    # quadrotor cameras become bodies, markers and joints (a new config; the input is not touched)
+    # the net becomes knots, ropes and tether markers, the target a body, quadrotor cameras
+    # bodies, markers and joints (new configs; the input is not touched)
+    effect_config = config
+    config, problems = expand_capture(config)
+    if problems:      # the config validator has reported these already; defensive only
+        raise ConfigError("; ".join(problems))
     config = expand_cameras(config)
     problems = joint_problems(config)
     if problems:
@@ -194,7 +201,8 @@ def build(config: SceneConfig):
     if config.contact is not None:
         contact_scene, contact_params = build_contact(
             config.contact, t.point_names, [b.name for b in config.bodies],
-            jnp.float64 if config.sim.precision == "float64" else jnp.float32)
+            jnp.float64 if config.sim.precision == "float64" else jnp.float32,
+            segments=segment_table(config.ropes, config.springs))
     quad_scene, quad_params, control_params, control_state = build_quadrotors(
         config, [b.name for b in config.bodies], t.marker_names,
         jnp.float64 if config.sim.precision == "float64" else jnp.float32)
@@ -229,6 +237,19 @@ def build(config: SceneConfig):
         contact=contact_scene,
         quadrotor=quad_scene,
     )
+    ctx = BuildContext(body_names=scene.body_names, point_names=scene.point_names,
+                       marker_names=scene.marker_names,
+                       quadrotor_bodies=() if quad_scene is None else quad_scene.body, dtype=scene.dtype)
+    effect_static, effect_params, effect_memory = [], {}, {}
+    for name, effect in EFFECTS.items():
+        try:
+            parts = effect.build(effect_config, ctx)
+        except ValueError as err:
+            raise ConfigError(str(err)) from None
+        if parts is not None:
+            effect_static.append((name, parts[0]))
+            effect_params[name], effect_memory[name] = parts[1], parts[2]
+    scene = dataclasses.replace(scene, effects=tuple(effect_static))
 
     point_mass = np.asarray(t.point_mass, float).reshape(-1)
     body_mass = np.asarray([b.mass for b in config.bodies], float).reshape(-1)
@@ -261,6 +282,7 @@ def build(config: SceneConfig):
         contact=contact_params,
         quadrotor=quad_params,
         controller=control_params,
+        effects=effect_params,
     )
     phys = PhysState(
         point_pos=arr(t.point_pos, (-1, 3)),
@@ -270,7 +292,12 @@ def build(config: SceneConfig):
         body_vel=arr([b.vel for b in config.bodies], (-1, 3)),
         body_angvel=arr([b.angvel for b in config.bodies], (-1, 3)),
     )
-    state = State(phys=phys, time=jnp.zeros((), dtype=dtype), controller=control_state)
+    state = State(phys=phys, time=jnp.zeros((), dtype=dtype), controller=control_state, effects=effect_memory)
+    if effect_config.target is not None:
+        # the spawn is a draw from the target's key: reproducible from target.seed
+        from mysim_jax.tasks.target import spawn_target
+
+        state = spawn_target(scene, params, state, state.effects["target"].key)
     return scene, params, state
 
 

@@ -36,6 +36,8 @@ from mysim_jax.config_base import (MIN_POSITIVE, ConfigError, Finite, Name, NonN
                                    parse_yaml, read_yaml_file)
 from mysim_jax.contact.config import ContactConfig, contact_problems
 from mysim_jax.control.config import QuadrotorConfig, quadrotor_problems
+from mysim_jax.net.config import NetConfig, net_elements
+from mysim_jax.tasks.config import TargetConfig, TeamConfig
 
 __all__ = ["ConfigError", "SceneConfig", "load_config", "config_from_dict", "apply_override", "dump_config"]
 
@@ -297,9 +299,40 @@ class SceneConfig(StrictModel):
     output: OutputConfig = OutputConfig()
     contact: ContactConfig | None = None     # see mysim_jax/contact/config.py
     quadrotors: list[QuadrotorConfig] = []   # see mysim_jax/control/config.py
+    net: NetConfig | None = None             # see mysim_jax/net/config.py
+    target: TargetConfig | None = None       # see mysim_jax/tasks/config.py
+    team: TeamConfig | None = None           # see mysim_jax/tasks/config.py
 
     @model_validator(mode="after")
     def _references(self):
+        # the net and the target are checked as what they expand to (points, ropes, a body)
+        full, problems = expand_capture(self)
+        problems += full._reference_problems()
+        problems += self._team_problems()
+        if problems:
+            raise ValueError("; ".join(problems))
+        return self
+
+    def _team_problems(self) -> list[str]:
+        team = self.team
+        if team is None:
+            return []
+        if not self.quadrotors:
+            return ["team: the scene has no quadrotors to give setpoints to"]
+        problems = []
+        if team.policy == "scripted" and self.target is None:
+            problems.append("team.policy: scripted intercepts a target, and the scene has none")
+        for i, q in enumerate(self.quadrotors):
+            if q.controller is None:
+                problems.append(f"team: quadrotors.{i} has no controller to take setpoints")
+                continue
+            lo, hi = q.controller.flyable_box.low[2], q.controller.flyable_box.high[2]
+            if team.altitude is not None and not lo <= team.altitude <= hi:
+                problems.append(f"team.altitude: {team.altitude:g} m is outside quadrotors.{i}'s flyable box "
+                                f"(z from {lo:g} to {hi:g} m, quadrotors.{i}.controller.flyable_box)")
+        return problems
+
+    def _reference_problems(self) -> list[str]:
         problems: list[str] = []
         owners: dict[str, str] = {}
 
@@ -388,9 +421,7 @@ class SceneConfig(StrictModel):
             problems += contact_problems(self.contact, points, [b.name for b in self.bodies], self.anchor_names(),
                                          ropes=self.ropes, springs=self.springs)
         problems += quadrotor_problems(self)
-        if problems:
-            raise ValueError("; ".join(problems))
-        return self
+        return problems
 
     # --- name tables -------------------------------------------------------------------
     def anchor_names(self) -> set[str]:
@@ -422,6 +453,40 @@ class SceneConfig(StrictModel):
                 return f"(no body named '{body}')"
             return f"(body '{body}' has no marker '{ref.split('.', 1)[1]}')"
         return "(no point, rope mass, body or anchor has that name)"
+
+
+# --- capture scenes: the net and the target as ordinary entries -------------------------
+
+
+def expand_capture(config: SceneConfig) -> tuple[SceneConfig, list[str]]:
+    """``(config with the net's knots, ropes and tether markers and the target's body
+    added, problems)``. The input is not touched (the expanded copy is not re-validated:
+    the caller checks it). Without ``net:`` and ``target:`` the config comes back as is."""
+    if config.net is None and config.target is None:
+        return config, []
+    problems: list[str] = []
+    points, ropes, bodies = list(config.points), list(config.ropes), list(config.bodies)
+    if config.net is not None:
+        by_name = {b.name: b for b in config.bodies}
+        elements = net_elements(config.net, by_name, {q.body for q in config.quadrotors} & set(by_name))
+        problems += elements.problems
+        points += [PointConfig.model_construct(vel=(0.0, 0.0, 0.0), **p) for p in elements.points]
+        ropes += [RopeConfig.model_construct(**r) for r in elements.ropes]
+        bodies = [b.model_copy(update={"markers": list(b.markers) + [MarkerConfig.model_construct(
+                      quat=(1.0, 0.0, 0.0, 0.0), **elements.markers[b.name])]})
+                  if b.name in elements.markers else b for b in bodies]
+    if config.target is not None:
+        t = config.target
+        spawn = t.spawn
+        bodies.append(BodyConfig.model_construct(
+            name=t.name, mass=t.mass, inertia=t.inertia,
+            pos=tuple(0.5 * (lo + hi) for lo, hi in zip(spawn.position.low, spawn.position.high)),
+            quat=(1.0, 0.0, 0.0, 0.0),
+            vel=tuple(0.5 * (lo + hi) for lo, hi in zip(spawn.velocity.low, spawn.velocity.high)),
+            angvel=(0.0, 0.0, 0.0), markers=[]))
+    expanded = config.model_copy(update={"points": points, "ropes": ropes, "bodies": bodies,
+                                         "net": None, "target": None, "team": None})
+    return expanded, problems
 
 
 # --- loading ---------------------------------------------------------------------------

@@ -38,6 +38,7 @@ from mysim_jax.dynamics.markers import distribute_node_forces, node_states
 from mysim_jax.dynamics.quadrotor import aerodynamic_forces, rotor_forces
 from mysim_jax.dynamics.quaternion import quat_normalize
 from mysim_jax.dynamics.rigid_body import body_accelerations, inertia_inverse
+from mysim_jax.effects import scene_effects
 from mysim_jax.types import Accelerations, Params, PhysState, Scene, State
 
 
@@ -55,7 +56,9 @@ def force_stages(scene: Scene) -> tuple[tuple[str, ForceStage], ...]:
 
     Each stage is ``fn(scene, params, phys, nodes, inputs) -> Loads`` with ``nodes`` the
     ``(node_pos, node_vel)`` table and ``inputs`` the actuator commands held over the step
-    (``None`` when the scene has no actuators). New effects add one entry here.
+    (``None`` when the scene has no actuators). Registered effects (:mod:`mysim_jax.effects`)
+    add their stages after these, each called with what its own update holds instead of
+    ``inputs``; new effects register there, not here.
     """
     stages: list[tuple[str, ForceStage]] = []
     if scene.n_springs:
@@ -73,16 +76,25 @@ def force_stages(scene: Scene) -> tuple[tuple[str, ForceStage], ...]:
     return tuple(stages)
 
 
-def accelerations(scene: Scene, params: Params, phys: PhysState, inputs=None) -> Accelerations:
-    """Accelerations of every point and body for one environment."""
-    stages = force_stages(scene)
+def _all_stages(scene: Scene, inputs, held):
+    """``[(name, stage, what it holds), ...]``: the built-in stages, then the effects'."""
+    stages = [(name, stage, inputs) for name, stage in force_stages(scene)]
+    for effect, static in scene_effects(scene):
+        stages += [(name, stage, (held or {}).get(effect.name)) for name, stage in effect.stages(static)]
+    return stages
+
+
+def accelerations(scene: Scene, params: Params, phys: PhysState, inputs=None, held=None) -> Accelerations:
+    """Accelerations of every point and body for one environment. ``held`` maps effect
+    names to what their updates hold over the step (:func:`effect_updates`)."""
+    stages = _all_stages(scene, inputs, held)
     loads = None
     if stages:
         with jax.named_scope("marker_kinematics"):
             nodes = node_states(scene, params, phys)
-        for name, stage in stages:
+        for name, stage, hold in stages:
             with jax.named_scope(name):
-                part = stage(scene, params, phys, nodes, inputs)
+                part = stage(scene, params, phys, nodes, hold)
             loads = part if loads is None else loads + part
     with jax.named_scope("distribute_node_forces"):
         if loads is None:
@@ -115,9 +127,9 @@ def accelerations(scene: Scene, params: Params, phys: PhysState, inputs=None) ->
     return Accelerations(point_acc=point_acc, body_acc=body_acc, body_angacc=body_angacc)
 
 
-def derivative(scene: Scene, params: Params, phys: PhysState, inputs=None) -> PhysState:
+def derivative(scene: Scene, params: Params, phys: PhysState, inputs=None, held=None) -> PhysState:
     """``d(phys)/dt`` as a PhysState-shaped pytree (quaternion rate ½ q ⊗ ω)."""
-    return state_derivative(phys, accelerations(scene, params, phys, inputs))
+    return state_derivative(phys, accelerations(scene, params, phys, inputs, held))
 
 
 def _adaptive_solver(scene: Scene):
@@ -126,10 +138,10 @@ def _adaptive_solver(scene: Scene):
 
 def _vector_field(scene: Scene):
     def field(t, y, args):
-        params, inputs = args
+        params, inputs, held = args
         # quaternions drift off the unit sphere by O(tolerance); forces and the attitude
         # rate use the unit quaternion
-        return derivative(scene, params, y.replace(body_quat=quat_normalize(y.body_quat)), inputs)
+        return derivative(scene, params, y.replace(body_quat=quat_normalize(y.body_quat)), inputs, held)
     return field
 
 
@@ -138,7 +150,8 @@ def _vector_field(scene: Scene):
 _PROGRESS_REFRESH_STEPS = 2000
 
 
-def _diffeqsolve(scene: Scene, params: Params, phys: PhysState, t0, t1, ts=None, progress=False, inputs=None):
+def _diffeqsolve(scene: Scene, params: Params, phys: PhysState, t0, t1, ts=None, progress=False, inputs=None,
+                 held=None):
     """The diffrax solve behind :func:`solve_adaptive`, returning diffrax's ``Solution``
     (states, ``result``, ``stats``). It never raises: a failed solve (``max_steps``
     reached, a non-finite state) is reported in ``result``, and saved times it did not
@@ -151,7 +164,7 @@ def _diffeqsolve(scene: Scene, params: Params, phys: PhysState, t0, t1, ts=None,
         t1=t1,
         dt0=scene.substep,
         y0=phys,
-        args=(params, inputs),
+        args=(params, inputs, held),
         saveat=saveat,
         stepsize_controller=diffrax.PIDController(rtol=scene.rtol, atol=scene.atol),
         max_steps=scene.max_steps,
@@ -161,7 +174,8 @@ def _diffeqsolve(scene: Scene, params: Params, phys: PhysState, t0, t1, ts=None,
     )
 
 
-def solve_adaptive(scene: Scene, params: Params, phys: PhysState, t0, t1, ts=None, progress=False, inputs=None):
+def solve_adaptive(scene: Scene, params: Params, phys: PhysState, t0, t1, ts=None, progress=False, inputs=None,
+                   held=None):
     """Integrate with the scene's diffrax solver from ``t0`` to ``t1``.
 
     Returns the states at ``ts`` (stacked) if given, else the state at ``t1``. A solve
@@ -170,7 +184,7 @@ def solve_adaptive(scene: Scene, params: Params, phys: PhysState, t0, t1, ts=Non
     (at ``ts``) or NaN (at ``t1``: diffrax would return the state where it stopped,
     which is not the state at ``t1``), so a caller checking for finite states sees it.
     """
-    sol = _diffeqsolve(scene, params, phys, t0, t1, ts, progress, inputs)
+    sol = _diffeqsolve(scene, params, phys, t0, t1, ts, progress, inputs, held)
     ys = sol.ys
     ys = ys.replace(body_quat=quat_normalize(ys.body_quat))
     if ts is None:
@@ -192,19 +206,32 @@ def held_inputs(scene: Scene, params: Params, state: State, control=None):
         return actuate(scene, params, state, control)
 
 
+def effect_updates(scene: Scene, params: Params, state: State):
+    """Run the update of every effect the scene has (:mod:`mysim_jax.effects`), once per
+    environment step. Returns ``(held, memory)``: what each effect's stages hold over the
+    step, and the effects' new memory (both dicts by effect name)."""
+    held, memory = {}, dict(state.effects)
+    for effect, _ in scene_effects(scene):
+        with jax.named_scope(f"{effect.name}_update"):
+            held[effect.name], memory[effect.name] = effect.update(scene, params, state)
+    return held, memory
+
+
 def step(scene: Scene, params: Params, state: State, control=None) -> State:
     """Advance one environment by ``scene.dt``. Pure; vmap and jit at the call site.
 
-    The control stage (:func:`held_inputs`) runs once at the start of the step; its
-    output is held over the sub-steps (zero-order hold).
+    The control stage (:func:`held_inputs`) and the effects' updates
+    (:func:`effect_updates`) run once at the start of the step; their outputs are held
+    over the sub-steps (zero-order hold).
     """
     control, memory = held_inputs(scene, params, state, control)
+    held, effect_memory = effect_updates(scene, params, state)
     if scene.integrator in FIXED_STEP:
         integrator = FIXED_STEP[scene.integrator]
         h = jnp.asarray(scene.substep, dtype=state.time.dtype)
 
         def accel(phys):
-            return accelerations(scene, params, phys, control)
+            return accelerations(scene, params, phys, control, held)
 
         phys = state.phys
         if scene.substeps == 1:
@@ -213,19 +240,25 @@ def step(scene: Scene, params: Params, state: State, control=None) -> State:
             phys = jax.lax.fori_loop(0, scene.substeps,
                                      lambda _, p: integrator.step(accel, p, h, params.body_inertia), phys)
     else:
-        phys = solve_adaptive(scene, params, state.phys, state.time, state.time + scene.dt, inputs=control)
+        phys = solve_adaptive(scene, params, state.phys, state.time, state.time + scene.dt, inputs=control,
+                              held=held)
     return state.replace(phys=phys, time=state.time + jnp.asarray(scene.dt, dtype=state.time.dtype),
-                         controller=memory)
+                         controller=memory, effects=effect_memory)
 
 
-def rollout(scene: Scene, params: Params, state: State, n_steps: int, every: int = 1):
+def rollout(scene: Scene, params: Params, state: State, n_steps: int, every: int = 1, policy=None):
     """``lax.scan`` over ``n_steps`` steps; returns ``(final_state, states)`` where
-    ``states`` stacks the state after every ``every``-th step (``n_steps // every`` rows)."""
+    ``states`` stacks the state after every ``every``-th step (``n_steps // every`` rows).
+
+    ``policy(scene, params, state) -> control``, if given, is asked for the control of
+    every step (a :class:`~mysim_jax.control.setpoint.Setpoint` or motor commands, see
+    :func:`step`); without it every step runs with ``control=None``.
+    """
     if n_steps % every:
         raise ValueError(f"n_steps ({n_steps}) must be a multiple of every ({every})")
 
     def inner(s, _):
-        return step(scene, params, s), None
+        return step(scene, params, s, None if policy is None else policy(scene, params, s)), None
 
     def outer(s, _):
         s, _ = jax.lax.scan(inner, s, None, length=every)
@@ -262,9 +295,9 @@ def output_times(scene: Scene) -> np.ndarray:
     return np.arange(n + 1) * scene.output_dt
 
 
-@partial(jax.jit, static_argnums=(0, 3, 4))
-def _advance(scene: Scene, params: Params, state: State, n_steps: int, every: int):
-    return rollout(scene, params, state, n_steps, every)
+@partial(jax.jit, static_argnums=(0, 3, 4, 5))
+def _advance(scene: Scene, params: Params, state: State, n_steps: int, every: int, policy=None):
+    return rollout(scene, params, state, n_steps, every, policy)
 
 
 @partial(jax.jit, static_argnums=(0, 4))
@@ -273,12 +306,16 @@ def _solve_on_grid(scene: Scene, params: Params, phys: PhysState, ts, progress: 
     return sol.ys.replace(body_quat=quat_normalize(sol.ys.body_quat)), sol.result, sol.stats["num_steps"]
 
 
-@partial(jax.jit, static_argnums=0)
-def _accelerations_on_grid(scene: Scene, params: Params, states: State):
-    """Accelerations at stacked states, with the inputs the controller holds there."""
+@partial(jax.jit, static_argnums=(0, 3))
+def _accelerations_on_grid(scene: Scene, params: Params, states: State, policy=None):
+    """Accelerations at stacked states, with the inputs the controller and the effects
+    hold from there."""
     def at(s):
-        inputs = held_inputs(scene, params, s)[0] if scene.quadrotor is not None else None
-        return accelerations(scene, params, s.phys, inputs)
+        inputs = None
+        if scene.quadrotor is not None:
+            inputs = held_inputs(scene, params, s, None if policy is None else policy(scene, params, s))[0]
+        held = effect_updates(scene, params, s)[0] if scene.effects else None
+        return accelerations(scene, params, s.phys, inputs, held)
     return jax.vmap(at)(states)
 
 
@@ -292,7 +329,8 @@ def single_env_scene(scene: Scene) -> Scene:
     return dataclasses.replace(scene, accumulate="segment_sum")
 
 
-def simulate(scene: Scene, params: Params, state: State, progress: bool = True, chunk: int = 200) -> Trajectory:
+def simulate(scene: Scene, params: Params, state: State, progress: bool = True, chunk: int = 200,
+             policy=None) -> Trajectory:
     """Run the scene from ``state`` to ``scene.t_end``, saving every ``scene.output_dt``.
 
     Fixed-step integrators run as jitted ``lax.scan`` chunks of ``chunk`` outputs with a
@@ -307,13 +345,17 @@ def simulate(scene: Scene, params: Params, state: State, progress: bool = True, 
     naming the time interval, the points or bodies concerned and what to try; an
     adaptive solve that gives up (``max_steps``) is reported the same way.
 
+    ``policy(scene, params, state) -> control`` gives the control of every step (see
+    :func:`rollout`); it is a static argument of the compiled run, so it must be
+    hashable (a frozen dataclass, or a module-level function).
+
     The compiled functions are cached per Scene (``params`` and ``state`` are arguments,
     not constants): a second call with new params or a new state does not recompile.
     This runs one environment, so the scene is run as :func:`single_env_scene` makes it.
     """
     scene = single_env_scene(scene)
     times = output_times(scene)
-    if scene.integrator in FIXED_STEP or scene.quadrotor is not None:
+    if scene.integrator in FIXED_STEP or scene.quadrotor is not None or scene.effects:
         every = int(round(scene.output_dt / scene.dt))
         n_out = len(times) - 1
         pieces = [jax.tree.map(lambda a: np.asarray(a)[None], state)]
@@ -321,7 +363,7 @@ def simulate(scene: Scene, params: Params, state: State, progress: bool = True, 
         done = 0
         bar = _progress(n_out, progress, scene)
         while done < n_out and failure is None:
-            state, traj = _advance(scene, params, state, chunk * every, every)
+            state, traj = _advance(scene, params, state, chunk * every, every, policy)
             take = min(chunk, n_out - done)
             piece = jax.tree.map(lambda a: np.asarray(a)[:take], traj)
             failure = _non_finite(scene, piece, times, done + 1)
@@ -350,7 +392,7 @@ def simulate(scene: Scene, params: Params, state: State, progress: bool = True, 
                 "that blow up. The saved states before that time are kept."))
     n_kept = len(times) if failure is None else failure[0]
     states = jax.tree.map(lambda a: a[:n_kept], states)
-    acc = jax.tree.map(np.asarray, _accelerations_on_grid(scene, params, jax.tree.map(jnp.asarray, states)))
+    acc = jax.tree.map(np.asarray, _accelerations_on_grid(scene, params, jax.tree.map(jnp.asarray, states), policy))
     bad = _first_non_finite_row(acc)
     if bad is not None:
         failure = (bad, f"the acceleration turned non-finite at t = {times[bad]:g} s: "

@@ -4,8 +4,9 @@
   exist, integrator settings. Frozen and hashable; changing it recompiles; never traced.
 * :class:`Params` — a pytree of float arrays: masses, inertias, marker offsets, spring
   constants, gravity, Baumgarte constants. Traced, differentiable, vmappable.
-* :class:`State` — a pytree: the multibody state :class:`PhysState`, the time and (with
-  quadrotors) the controller memory.
+* :class:`State` — a pytree: the multibody state :class:`PhysState`, the time, (with
+  quadrotors) the controller memory and the memory of registered effects
+  (:mod:`mysim_jax.effects`; the target's PRNG key lives there).
 
 Attachment points ("nodes") are numbered in one table so that springs and rope segments
 can join anything with plain index arrays::
@@ -93,6 +94,8 @@ class Scene:
     contact: ContactScene | None = None
     # --- quadrotors, their controller and cameras (mysim_jax/dynamics/quadrotor.py) ----
     quadrotor: QuadrotorScene | None = None
+    # --- registered effects (mysim_jax/effects.py): ((name, static part), ...) ---------
+    effects: tuple[tuple[str, object], ...] = ()
 
     @property
     def n_points(self) -> int:
@@ -150,6 +153,7 @@ class Params:
     contact: ContactParams | None = None   # contact constants and sphere radii (None: no contact)
     quadrotor: QuadrotorParams | None = None   # rotors, motors, aerodynamics, gimbal servos
     controller: ControlParams | None = None    # PID gains, controller model, references
+    effects: dict = field(default_factory=dict)  # registered effect name -> its params pytree
 
 
 @struct.dataclass
@@ -180,3 +184,4 @@ class State:
     phys: PhysState
     time: jnp.ndarray         # () s
     controller: ControlState | None = None   # PID integrators, motor speeds (quadrotor scenes)
+    effects: dict = field(default_factory=dict)  # registered effect name -> its memory (e.g. PRNG key)

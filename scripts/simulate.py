@@ -74,8 +74,11 @@ def main(argv=None) -> int:
         print(f"error: {args.config}: {err}", file=sys.stderr)
         return 2
 
+    from mysim_jax.tasks.scripted import team_policy
+
+    policy = team_policy(config, scene)
     t0 = time.perf_counter()
-    traj = simulate(scene, params, state, progress=not args.no_progress)
+    traj = simulate(scene, params, state, progress=not args.no_progress, policy=policy)
     wall = time.perf_counter() - t0
 
     columns = trajectory_columns(scene, traj)
@@ -108,6 +111,10 @@ def main(argv=None) -> int:
                       for name in scene.plot_names if len(traj.time)},
             "plots": plots,
         }
+        if config.net is not None and config.target is not None and len(traj.time) > 1:
+            capture = capture_outputs(columns, scene, params, config, tmp)
+            metrics["capture"] = capture
+            plots += capture["plots"]
         if not traj.ok:
             metrics["failure"] = traj.failure
         if tracking:
@@ -120,10 +127,36 @@ def main(argv=None) -> int:
         return 3
     print(f"{scene.name}: simulated {reached:g} s with {scene.integrator} ({scene.precision}) "
           f"in {wall:.2f} s (compile included); wrote {out}/trajectory.csv and {len(plots)} plots")
+    if "capture" in metrics:
+        c = metrics["capture"]
+        verdict = (f"caught: held in the net from t = {c['held_from_s']:g} s to the end" if c["caught"]
+                   else "not caught: " + ", ".join(k.replace("_", " ") + (" yes" if v else " no")
+                                                  for k, v in c["at_end"].items()) + " at the end")
+        print(f"  target {verdict}; minimum UAV-target distance {c['min_uav_target_distance_m']:.3g} m, "
+              f"peak tether tension {c['peak_tether_tension_n']:.3g} N")
     for name, m in tracking.items():
         print(f"  {name}: RMS position error {m['rms_position_error_m']:.4g} m, "
               f"max {m['max_position_error_m']:.4g} m")
     return 0
+
+
+def capture_outputs(columns, scene, params, config, out_dir) -> dict:
+    """Capture verdict, distances, tensions, plots and animation of a net-and-target scene."""
+    from mysim_jax.io.capture_plots import animate_capture, plot_capture
+    from mysim_jax.tasks.outcome import capture_outcome, tether_tensions, thrust_fraction, uav_target_distances
+
+    outcome = capture_outcome(columns, config)
+    tensions = tether_tensions(columns, scene, params, config)
+    distances = uav_target_distances(columns, config)
+    paths = plot_capture(columns, config, out_dir, tensions=tensions, distances=distances)
+    paths.append(animate_capture(columns, config, out_dir / "capture.gif"))
+    return {
+        **outcome.summary(),
+        "min_uav_target_distance_m": float(min(d.min() for d in distances.values())),
+        "peak_tether_tension_n": float(max(t.max() for t in tensions.values())) if tensions else 0.0,
+        "thrust_fraction_last_1s": thrust_fraction(columns, scene, params, config),
+        "plots": [p.name for p in paths],
+    }
 
 
 if __name__ == "__main__":

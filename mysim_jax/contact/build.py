@@ -37,10 +37,8 @@ def build_contact(contact: ContactConfig, point_names, body_names, dtype, segmen
     capsules: dict = {}
     if capsule_groups:
         if segments is None:
-            segments = contact._scene_segments
-        if segments is None:
-            raise ValueError("contact.groups: segment groups need the scene's ropes and springs: validate the "
-                             "scene (SceneConfig) first, or pass segments=segment_table(ropes, springs)")
+            raise ValueError("contact.groups: segment groups need the scene's ropes and springs: pass "
+                             "segments=segment_table(ropes, springs)")
         capsules, more = resolve_segments(contact, tuple(segments), list(point_names) + list(body_names))
         problems += more
     if problems:       # the config validator has already reported these; defensive only

@@ -57,7 +57,7 @@ from __future__ import annotations
 import fnmatch
 from typing import Annotated, Literal, NamedTuple
 
-from pydantic import Field, PrivateAttr, model_validator
+from pydantic import Field, model_validator
 
 from mysim_jax.config_base import Finite, Name, NonNegFloat, PosFloat, StrictModel
 
@@ -161,9 +161,6 @@ class ContactConfig(StrictModel):
     smoothing: SmoothingConfig = SmoothingConfig()
     groups: Annotated[list[ContactGroupConfig], Field(min_length=1)]
     pairs: Annotated[list[tuple[str, str]], Field(min_length=1)]
-    # the scene's springs as :func:`segment_table` lists them, recorded by
-    # :func:`contact_problems` when the scene is validated (build_contact's default)
-    _scene_segments: tuple[Segment, ...] | None = PrivateAttr(default=None)
 
     @model_validator(mode="after")
     def _group_names(self):
@@ -326,7 +323,6 @@ def contact_problems(contact: ContactConfig, point_names: list[str], body_names:
     :func:`~mysim_jax.contact.build.build_contact`.
     """
     table = segment_table(ropes, springs)
-    contact._scene_segments = table
     members, problems = resolve_members(contact, point_names, body_names, anchor_names)
     capsules, segment_problems = resolve_segments(contact, table, list(point_names) + list(body_names))
     problems += segment_problems

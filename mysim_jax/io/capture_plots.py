@@ -1,0 +1,142 @@
+"""Plots and an animation of a capture run (paper Figs. results_capture_passive (c)-(d),
+results_capture_active (c)), drawn from the trajectory columns of :mod:`mysim_jax.io.trajectory`.
+
+* ``capture_top.png`` — top view (x-y) of the UAV and target paths, with the net at the end;
+* ``capture_side.png`` — side view (x-z) of the same;
+* ``capture_distances.png`` — distance of every UAV to the target over time;
+* ``capture_tensions.png`` — tension in every tether (at its knot) over time;
+* ``capture.gif`` — the capture seen from the top and from the side (at most
+  ``max_frames`` frames).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib.animation import FuncAnimation, PillowWriter  # noqa: E402
+
+COLORS = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+
+
+def _xyz(columns, name):
+    return np.stack([columns[f"{name}_{a}"] for a in "xyz"], axis=-1)
+
+
+def net_lines(columns, config):
+    """Polylines ``[(n_out, n_i, 3), ...]`` of every net edge and tether, through its masses."""
+    net = config.net
+    g = net.knots
+    lines = []
+    for i in range(g):
+        for j in range(g):
+            for kind, end in (("h", (i, j + 1)), ("v", (i + 1, j))):
+                if end[0] >= g or end[1] >= g:
+                    continue
+                rope = f"{net.name}_{kind}{i}_{j}"
+                names = [net.knot_name(i, j)] + [f"{rope}_{m}" for m in range(net.masses_per_edge)]
+                names.append(net.knot_name(*end))
+                lines.append(np.stack([_xyz(columns, n) for n in names], axis=1))
+    if net.tethers is not None:
+        for n, (uav, knot) in enumerate(zip(net.tethers.uavs, net.tether_knots())):
+            names = [net.knot_name(*knot)] + [f"{net.name}_t{n}_{m}" for m in range(net.tethers.n_masses)] + [uav]
+            lines.append(np.stack([_xyz(columns, x) for x in names], axis=1))
+    return lines
+
+
+def _view(ax, columns, config, axes, row, lines):
+    a, b = axes
+    for k, q in enumerate(config.quadrotors):
+        p = _xyz(columns, q.body)
+        ax.plot(p[:, a], p[:, b], color=COLORS[k % len(COLORS)], lw=1.2, label=q.body)
+        ax.plot(p[row, a], p[row, b], "o", color=COLORS[k % len(COLORS)], ms=5)
+    t = _xyz(columns, config.target.name)
+    ax.plot(t[:, a], t[:, b], "k--", lw=1.2, label=config.target.name)
+    ax.plot(t[row, a], t[row, b], "ko", ms=6)
+    for line in lines:
+        ax.plot(line[row, :, a], line[row, :, b], color="0.6", lw=0.6)
+    ax.set_xlabel("xyz"[a] + " [m]")
+    ax.set_ylabel("xyz"[b] + " [m]")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.grid(True, alpha=0.3)
+
+
+def plot_capture(columns, config, out_dir, tensions=None, distances=None) -> list[Path]:
+    """Write the four capture figures into ``out_dir``; returns their paths."""
+    out_dir = Path(out_dir)
+    lines = net_lines(columns, config)
+    time = columns["time"]
+    paths = []
+    for name, axes, title in (("capture_top.png", (0, 1), "top view (net at the end)"),
+                              ("capture_side.png", (0, 2), "side view (net at the end)")):
+        fig, ax = plt.subplots(figsize=(6.5, 5.5))
+        _view(ax, columns, config, axes, -1, lines)
+        ax.set_title(f"{config.name}: {title}")
+        ax.legend(fontsize=8, loc="best")
+        fig.tight_layout()
+        fig.savefig(out_dir / name, dpi=110)
+        plt.close(fig)
+        paths.append(out_dir / name)
+    for name, series, ylabel, title in (("capture_distances.png", distances, "distance to target [m]",
+                                         "UAV-target distances"),
+                                        ("capture_tensions.png", tensions, "tether tension [N]",
+                                         "tether tensions (at the knot)")):
+        if not series:
+            continue
+        fig, ax = plt.subplots(figsize=(7, 4))
+        for k, (label, values) in enumerate(series.items()):
+            ax.plot(time, values, color=COLORS[k % len(COLORS)], lw=1.2, label=label)
+        ax.set_xlabel("time [s]")
+        ax.set_ylabel(ylabel)
+        ax.set_title(f"{config.name}: {title}")
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=8)
+        fig.tight_layout()
+        fig.savefig(out_dir / name, dpi=110)
+        plt.close(fig)
+        paths.append(out_dir / name)
+    return paths
+
+
+def animate_capture(columns, config, path, max_frames: int = 120, fps: int = 20) -> Path:
+    """Write a GIF of the capture (top and side views side by side)."""
+    lines = net_lines(columns, config)
+    time = columns["time"]
+    rows = np.unique(np.linspace(0, len(time) - 1, min(max_frames, len(time))).round().astype(int))
+    everything = np.concatenate([ln.reshape(-1, 3) for ln in lines]
+                                + [_xyz(columns, q.body) for q in config.quadrotors]
+                                + [_xyz(columns, config.target.name)], axis=0)
+    lo, hi = everything.min(axis=0) - 0.3, everything.max(axis=0) + 0.3
+    fig, (top, side) = plt.subplots(1, 2, figsize=(10, 4.6))
+
+    def draw(k):
+        row = rows[k]
+        for ax, axes in ((top, (0, 1)), (side, (0, 2))):
+            ax.clear()
+            a, b = axes
+            for line in lines:
+                ax.plot(line[row, :, a], line[row, :, b], color="0.55", lw=0.6)
+            for n, q in enumerate(config.quadrotors):
+                p = _xyz(columns, q.body)
+                ax.plot(p[: row + 1, a], p[: row + 1, b], color=COLORS[n % len(COLORS)], lw=0.8)
+                ax.plot(p[row, a], p[row, b], "o", color=COLORS[n % len(COLORS)], ms=6)
+            t = _xyz(columns, config.target.name)
+            ax.plot(t[: row + 1, a], t[: row + 1, b], "k--", lw=0.8)
+            ax.add_patch(plt.Circle((t[row, a], t[row, b]), config.target.radius, color="k"))
+            ax.set_xlim(lo[a], hi[a])
+            ax.set_ylim(lo[b], hi[b])
+            ax.set_aspect("equal")
+            ax.set_xlabel("xyz"[a] + " [m]")
+            ax.set_ylabel("xyz"[b] + " [m]")
+        top.set_title(f"top, t = {time[row]:.2f} s")
+        side.set_title("side")
+        return []
+
+    anim = FuncAnimation(fig, draw, frames=len(rows), blit=False)
+    anim.save(path, writer=PillowWriter(fps=fps))
+    plt.close(fig)
+    return Path(path)

@@ -1,0 +1,151 @@
+"""The ``target:`` and ``team:`` blocks of a capture scene file.
+
+``target:`` is a non-cooperative target: a rigid sphere (a body named ``name``) with
+mass, radius and quadratic air drag. ``behaviour: falling`` releases it from a spawn
+drawn from ranges and lets it fall; ``behaviour: maneuvering`` gives it its own bounded
+propulsion under an evasive behaviour the team does not know (:mod:`mysim_jax.tasks.target`).
+Every random draw (spawn position and velocity, jinks) comes from a PRNG key seeded with
+``seed`` and carried in the State, so a run is reproducible from its seed.
+
+``team:`` selects who gives the quadrotors their setpoints in ``scripts/simulate.py``:
+``scripted`` is the intercept team of :mod:`mysim_jax.tasks.scripted` (fly the net under
+the predicted path of the target).
+
+Pydantic and NumPy only: validating a file never imports JAX.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Literal
+
+from pydantic import Field, model_validator
+
+from mysim_jax.config_base import Finite, Name, NonNegFloat, PosFloat, StrictModel, Vec3
+
+
+class BoxRange(StrictModel):
+    """A box of vectors ``low <= v <= high`` (per axis) from which a value is drawn
+    uniformly. ``low == high`` on an axis fixes that component."""
+
+    low: Vec3
+    high: Vec3
+
+    @model_validator(mode="after")
+    def _ordered(self):
+        bad = [axis for axis, lo, hi in zip("xyz", self.low, self.high) if lo > hi]
+        if bad:
+            raise ValueError(f"empty range: low > high on axis {', '.join(bad)} "
+                             f"(low {list(self.low)}, high {list(self.high)})")
+        return self
+
+
+class IntervalRange(StrictModel):
+    """A scalar range ``low <= v <= high`` [s]."""
+
+    low: PosFloat
+    high: PosFloat
+
+    @model_validator(mode="after")
+    def _ordered(self):
+        if self.low > self.high:
+            raise ValueError(f"empty range: low ({self.low:g}) > high ({self.high:g})")
+        return self
+
+
+class SpawnConfig(StrictModel):
+    """Where and how fast the target starts (world frame): uniform draws from the boxes."""
+
+    position: BoxRange
+    velocity: BoxRange = BoxRange(low=(0.0, 0.0, 0.0), high=(0.0, 0.0, 0.0))
+
+
+class PropulsionConfig(StrictModel):
+    """Bounded propulsion of a maneuvering target (an evading drone).
+
+    Its commanded acceleration (on top of what cancels gravity) is limited to
+    ``max_acceleration`` and its speed to ``max_speed``. The evasive behaviour flees the
+    team's centroid with ``flee_acceleration``, adds a random horizontal jink of
+    ``jink_acceleration`` redrawn every ``jink_interval`` seconds, and holds its altitude
+    inside ``altitude`` (a band it prefers).
+    """
+
+    max_acceleration: PosFloat = 4.0       # m/s^2
+    max_speed: PosFloat = 3.0              # m/s
+    flee_acceleration: NonNegFloat = 2.0   # m/s^2
+    jink_acceleration: NonNegFloat = 3.0   # m/s^2
+    jink_interval: IntervalRange = IntervalRange(low=0.4, high=1.2)
+    altitude: tuple[PosFloat, PosFloat] = (2.0, 6.0)    # m
+    altitude_gain: PosFloat = 2.0          # 1/s^2 toward the band, with critical damping
+
+    @model_validator(mode="after")
+    def _band(self):
+        if self.altitude[0] > self.altitude[1]:
+            raise ValueError(f"altitude: empty band {list(self.altitude)} (low > high)")
+        return self
+
+
+class TargetConfig(StrictModel):
+    """A non-cooperative target: a rigid sphere (module docstring).
+
+    Defaults: a 0.3 kg sphere of 15 cm radius (the size and weight of a small quadrotor
+    with its propellers; its 30 cm diameter is wider than the default net's 20 cm mesh
+    and its cells' 28 cm diagonal, so it cannot pass through a cell), drag coefficient
+    0.47 (a sphere at these Reynolds numbers), sea-level air.
+    """
+
+    name: Name = "target"
+    mass: PosFloat = 0.3                    # kg
+    radius: PosFloat = 0.15                 # m
+    drag_coefficient: NonNegFloat = 0.47
+    air_density: NonNegFloat = 1.225       # kg/m^3
+    behaviour: Literal["falling", "maneuvering"] = "falling"
+    spawn: SpawnConfig
+    propulsion: PropulsionConfig | None = None
+    seed: Annotated[int, Field(ge=0, le=2**32 - 1)] = 0
+
+    @model_validator(mode="after")
+    def _check(self):
+        problems = []
+        if self.spawn.position.low[2] < self.radius:
+            problems.append(
+                f"spawn.position.low: z = {self.spawn.position.low[2]:g} m puts the target below the ground "
+                f"(its centre must be at least its radius, {self.radius:g} m, above z = 0)")
+        if self.behaviour == "falling" and self.propulsion is not None:
+            problems.append("propulsion: a falling target has no propulsion (use behaviour: maneuvering)")
+        if problems:
+            raise ValueError("; ".join(problems))
+        return self
+
+    @property
+    def inertia(self) -> tuple[float, float, float]:
+        """Solid sphere ``2/5 m r²`` [kg m²]."""
+        j = 0.4 * self.mass * self.radius ** 2
+        return (j, j, j)
+
+    @property
+    def drag_constant(self) -> float:
+        """``½ ρ C_d π r²`` [kg/m]: the drag force is ``−drag_constant |v| v``."""
+        return 0.5 * self.air_density * self.drag_coefficient * math.pi * self.radius ** 2
+
+    def propulsion_or_default(self) -> PropulsionConfig | None:
+        if self.behaviour == "maneuvering":
+            return self.propulsion or PropulsionConfig()
+        return None
+
+
+class TeamConfig(StrictModel):
+    """Who gives the quadrotors their setpoints when ``scripts/simulate.py`` runs the scene.
+
+    ``scripted``: the intercept team (:mod:`mysim_jax.tasks.scripted`): it predicts where
+    the target crosses the net's height, flies the formation so that the net's centre is
+    there, ``lead`` seconds of the target's horizontal motion ahead, and lets the net
+    give way (``soften``) once the target is in it. ``hold``: the team holds its start
+    formation.
+    """
+
+    policy: Literal["scripted", "hold"] = "scripted"
+    lead: NonNegFloat = 0.0                 # s
+    soften: NonNegFloat = 0.3               # m the formation descends after the catch
+    catch_radius: PosFloat = 0.6            # m: the target counts as "in the net" within this of its centre
+    altitude: Finite | None = None          # m, formation height (default: the start height)

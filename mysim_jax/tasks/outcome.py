@@ -1,0 +1,154 @@
+"""Did the net catch the target? Host-side checks of a saved capture run (NumPy).
+
+The target is **held** at an output time when all of these hold:
+
+* *inside the net's outline*: its horizontal position is inside the polygon of the
+  net's border knots (at that time);
+* *below the tether attachments*: its centre is lower than every tethered UAV's
+  attachment marker;
+* *slow relative to the net*: its speed relative to the mean velocity of the knots is
+  below ``max_relative_speed``;
+* *above the ground*: its lowest point is at least ``ground_clearance`` above z = 0.
+
+A run **catches** the target when it is held over the last ``hold_time`` seconds of the
+run. The same quantities feed the plots (UAV–target distances, tether tensions).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from matplotlib.path import Path as PolygonPath
+
+MAX_RELATIVE_SPEED = 0.5   # m/s
+GROUND_CLEARANCE = 0.05    # m
+HOLD_TIME = 0.5            # s
+
+
+@dataclass
+class CaptureOutcome:
+    """Per-output flags ``(n_out,)`` and the verdict."""
+
+    time: np.ndarray
+    inside: np.ndarray
+    below: np.ndarray
+    slow: np.ndarray
+    above_ground: np.ndarray
+    caught: bool
+    first_held: float | None     # s, first time from which the target stays held to the end
+
+    @property
+    def held(self) -> np.ndarray:
+        return self.inside & self.below & self.slow & self.above_ground
+
+    def summary(self) -> dict:
+        last = -1
+        return {
+            "caught": bool(self.caught),
+            "held_from_s": self.first_held,
+            "at_end": {"inside_net_outline": bool(self.inside[last]), "below_tether_attachments": bool(self.below[last]),
+                       "slow_relative_to_net": bool(self.slow[last]), "above_ground": bool(self.above_ground[last])},
+        }
+
+
+def border_knots(net) -> list[str]:
+    """Names of the net's border knots, in order around the square."""
+    g = net.knots
+    ring = [(0, j) for j in range(g)] + [(i, g - 1) for i in range(1, g)]
+    ring += [(g - 1, j) for j in range(g - 2, -1, -1)] + [(i, 0) for i in range(g - 2, 0, -1)]
+    return [net.knot_name(i, j) for i, j in ring]
+
+
+def _xyz(columns, name, prefix=""):
+    return np.stack([columns[f"{name}_{prefix}{a}"] for a in "xyz"], axis=-1)
+
+
+def _attachments(columns, config):
+    """World positions ``(n_out, n_tethers, 3)`` of the tethers' UAV markers."""
+    net = config.net
+    out = []
+    for uav in net.tethers.uavs:
+        pos = _xyz(columns, uav)
+        q = np.stack([columns[f"{uav}_q{a}"] for a in "wxyz"], axis=-1)
+        r = np.asarray(net.tethers.attach, float)
+        w, u = q[:, :1], q[:, 1:]
+        t = 2.0 * np.cross(u, r)
+        out.append(pos + r + w * t + np.cross(u, t))
+    return np.stack(out, axis=1)
+
+
+def capture_outcome(columns, config, max_relative_speed=MAX_RELATIVE_SPEED,
+                    ground_clearance=GROUND_CLEARANCE, hold_time=HOLD_TIME) -> CaptureOutcome:
+    """Evaluate a capture run from its trajectory columns (:mod:`mysim_jax.io.trajectory`)."""
+    net, target = config.net, config.target
+    time = np.asarray(columns["time"])
+    p = _xyz(columns, target.name)
+    v = _xyz(columns, target.name, "v")
+    ring = border_knots(net)
+    border = np.stack([_xyz(columns, k) for k in ring], axis=1)          # (n_out, n_border, 3)
+    inside = np.array([PolygonPath(border[i, :, :2]).contains_point(p[i, :2]) for i in range(len(time))])
+    if net.tethers is not None:
+        below = p[:, 2] < _attachments(columns, config)[..., 2].min(axis=1)
+    else:
+        below = np.ones(len(time), bool)
+    knots = [net.knot_name(i, j) for i in range(net.knots) for j in range(net.knots)]
+    v_net = np.mean(np.stack([_xyz(columns, k, "v") for k in knots], axis=1), axis=1)
+    slow = np.linalg.norm(v - v_net, axis=-1) < max_relative_speed
+    above = p[:, 2] - target.radius > ground_clearance
+    held = inside & below & slow & above
+    first = None
+    if held[-1]:
+        not_held = np.flatnonzero(~held)
+        start = 0 if not_held.size == 0 else not_held[-1] + 1
+        first = float(time[start])
+    caught = first is not None and time[-1] - first >= hold_time - 1e-9
+    return CaptureOutcome(time=time, inside=inside, below=below, slow=slow, above_ground=above,
+                          caught=bool(caught), first_held=first)
+
+
+def tether_tensions(columns, scene, params, config) -> dict[str, np.ndarray]:
+    """Tension ``(n_out,)`` [N] in the knot end segment of every tether (tension-only law,
+    from the saved positions and velocities), keyed by the tethered UAV's name."""
+    net = config.net
+    out = {}
+    if net.tethers is None:
+        return out
+    k_all = np.asarray(params.spring_stiffness, float)
+    c_all = np.asarray(params.spring_damping, float)
+    rest_all = np.asarray(params.spring_rest_length, float)
+    knots = net.tether_knots()
+    for n, uav in enumerate(net.tethers.uavs):
+        idx = scene.spring_names.index(f"{net.name}_t{n}[0]")
+        a = net.knot_name(*knots[n])
+        b = f"{net.name}_t{n}_0"
+        d = _xyz(columns, b) - _xyz(columns, a)
+        dv = _xyz(columns, b, "v") - _xyz(columns, a, "v")
+        length = np.linalg.norm(d, axis=-1)
+        rate = np.einsum("ij,ij->i", dv, d / np.maximum(length, 1e-12)[:, None])
+        f = k_all[idx] * (length - rest_all[idx]) + c_all[idx] * rate
+        out[uav] = np.where(length > rest_all[idx], np.maximum(f, 0.0), 0.0)
+    return out
+
+
+def uav_target_distances(columns, config) -> dict[str, np.ndarray]:
+    """Distance ``(n_out,)`` [m] from every quadrotor's centre to the target's centre."""
+    p = _xyz(columns, config.target.name)
+    return {q.body: np.linalg.norm(_xyz(columns, q.body) - p, axis=-1) for q in config.quadrotors}
+
+
+def thrust_fraction(columns, scene, params, config, window: float = 1.0) -> dict[str, float]:
+    """Mean rotor thrust over the last ``window`` seconds as a fraction of the maximum
+    thrust ``Σ c_i ω_max²``, per quadrotor (from the saved motor commands): the share of
+    the lift each UAV spends, e.g. hovering with the net hanging from it."""
+    qp = params.quadrotor
+    lift = np.asarray(qp.lift_coefficient, float)
+    omega_max = np.asarray(qp.omega_max, float)
+    time = np.asarray(columns["time"])
+    last = time >= time[-1] - window - 1e-9
+    out = {}
+    for qi, q in enumerate(config.quadrotors):
+        speeds = np.stack([columns[f"{q.body}_rotor{k + 1}"] for k in range(4)], axis=-1)[last]
+        thrust = (speeds ** 2 * lift[qi]).sum(axis=-1)
+        out[q.body] = float(thrust.mean() / (lift[qi].sum() * omega_max[qi] ** 2))
+    return out

@@ -1,0 +1,209 @@
+"""The non-cooperative target: a rigid sphere with air drag, falling or evading (an effect,
+see :mod:`mysim_jax.effects`).
+
+Forces on the target body (world frame, at its centre of mass):
+
+* **air drag** ``F = −½ ρ C_d π r² |v| v`` (quadratic drag of a sphere, still air);
+* **propulsion** (``behaviour: maneuvering``): ``F = m (a_cmd − g)``: the propulsion
+  cancels gravity and adds the commanded acceleration ``a_cmd``, held over each
+  environment step.
+
+Evasive behaviour (computed once per environment step; the team does not know it):
+
+    a_cmd = flee · ĥ(p − c) + jink + altitude term + speed limit term, |a_cmd| <= max_acceleration
+
+with ``c`` the centroid of the quadrotors, ``ĥ`` the horizontal unit vector away from
+it, ``jink`` a horizontal acceleration of fixed size in a random direction redrawn at
+random intervals (``jink_interval``), the altitude term a critically damped pull
+(``altitude_gain``) back into the preferred altitude band, and the speed limit term
+removing any push along the velocity once the speed reaches ``max_speed`` and braking
+(time constant 0.25 s) above it.
+
+Randomness. The target's memory carries a PRNG key (``jax.random.PRNGKey`` raw form,
+``(2,) uint32``); the spawn (:func:`spawn_target`) and every jink draw split it, so a run
+is reproducible from its seed and batched environments draw independently when their
+keys differ.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from mysim_jax import vecmath
+from mysim_jax.dynamics.forces import Loads
+
+SPEED_LIMIT_TIME_CONSTANT = 0.25   # s, braking back to max_speed
+
+
+@dataclass(frozen=True)
+class TargetScene:
+    """Static part: which body is the target, how it behaves."""
+
+    body: int
+    behaviour: str                    # "falling" | "maneuvering"
+    has_drag: bool
+    team_bodies: tuple[int, ...]      # quadrotor bodies (the centroid it flees)
+
+
+@struct.dataclass
+class TargetParams:
+    """Traced target constants (vmap them to randomise per environment)."""
+
+    drag_constant: jnp.ndarray        # () kg/m, ½ ρ C_d π r²
+    spawn_pos_low: jnp.ndarray        # (3,) m
+    spawn_pos_high: jnp.ndarray       # (3,) m
+    spawn_vel_low: jnp.ndarray        # (3,) m/s
+    spawn_vel_high: jnp.ndarray       # (3,) m/s
+    max_acceleration: jnp.ndarray     # () m/s^2
+    max_speed: jnp.ndarray            # () m/s
+    flee_acceleration: jnp.ndarray    # () m/s^2
+    jink_acceleration: jnp.ndarray    # () m/s^2
+    jink_interval_low: jnp.ndarray    # () s
+    jink_interval_high: jnp.ndarray   # () s
+    altitude_low: jnp.ndarray         # () m
+    altitude_high: jnp.ndarray        # () m
+    altitude_gain: jnp.ndarray        # () 1/s^2
+
+
+@struct.dataclass
+class TargetMemory:
+    """Target memory in the State."""
+
+    key: jnp.ndarray                  # (2,) uint32 PRNG key
+    jink: jnp.ndarray                 # (3,) m/s^2, current jink (horizontal)
+    next_jink: jnp.ndarray            # () s, when the jink is redrawn
+
+
+def _static(scene) -> TargetScene:
+    return dict(scene.effects)["target"]
+
+
+def evasive_command(static: TargetScene, tp: TargetParams, memory: TargetMemory, phys, t):
+    """``(a_cmd (3,), memory)``: the evasive behaviour's commanded acceleration (module docstring)."""
+    key, k_angle, k_interval = jax.random.split(memory.key, 3)
+    redraw = t >= memory.next_jink
+    angle = jax.random.uniform(k_angle, (), dtype=t.dtype, maxval=2.0 * jnp.pi)
+    new_jink = tp.jink_acceleration * jnp.stack([jnp.cos(angle), jnp.sin(angle), jnp.zeros_like(angle)])
+    interval = jax.random.uniform(k_interval, (), dtype=t.dtype, minval=tp.jink_interval_low,
+                                  maxval=tp.jink_interval_high)
+    jink = jnp.where(redraw, new_jink, memory.jink)
+    next_jink = jnp.where(redraw, t + interval, memory.next_jink)
+
+    p = phys.body_pos[static.body]
+    v = phys.body_vel[static.body]
+    centroid = jnp.mean(phys.body_pos[np.asarray(static.team_bodies, dtype=np.int32)], axis=0)
+    away = (p - centroid).at[2].set(0.0)
+    _, away = vecmath.safe_unit(away)
+    z_ref = jnp.clip(p[2], tp.altitude_low, tp.altitude_high)
+    a_alt = tp.altitude_gain * (z_ref - p[2]) - 2.0 * jnp.sqrt(tp.altitude_gain) * v[2]
+    cmd = tp.flee_acceleration * away + jink + jnp.stack([0.0 * a_alt, 0.0 * a_alt, a_alt])
+    speed, v_hat = vecmath.safe_unit(v)
+    along = vecmath.dot(cmd, v_hat)
+    at_limit = speed >= tp.max_speed
+    cmd = cmd - jnp.where(at_limit & (along > 0.0), along, 0.0) * v_hat
+    cmd = cmd - jnp.maximum(speed - tp.max_speed, 0.0) / SPEED_LIMIT_TIME_CONSTANT * v_hat
+    size = vecmath.safe_norm(cmd)
+    cmd = cmd * jnp.minimum(1.0, tp.max_acceleration / jnp.maximum(size, 1e-12))
+    return cmd, memory.replace(key=key, jink=jink, next_jink=next_jink)
+
+
+def _drag_stage(scene, params, phys, nodes, held) -> Loads:
+    static = _static(scene)
+    v = phys.body_vel[static.body]
+    force = -params.effects["target"].drag_constant * vecmath.safe_norm(v) * v
+    return _on_target(scene, phys, static.body, force)
+
+
+def _propulsion_stage(scene, params, phys, nodes, held) -> Loads:
+    static = _static(scene)
+    force = params.body_mass[static.body] * (held - params.gravity)
+    return _on_target(scene, phys, static.body, force)
+
+
+def _on_target(scene, phys, body, force) -> Loads:
+    dtype = phys.body_pos.dtype
+    body_force = jnp.zeros((scene.n_bodies, 3), dtype=dtype).at[body].set(force)
+    return Loads(node_force=jnp.zeros((scene.n_nodes, 3), dtype=dtype), body_force=body_force,
+                 body_torque=jnp.zeros((scene.n_bodies, 3), dtype=dtype))
+
+
+class _Target:
+    """The target effect (see :mod:`mysim_jax.effects` for the protocol)."""
+
+    name = "target"
+
+    def build(self, config, ctx):
+        t = config.target
+        if t is None:
+            return None
+        static = TargetScene(body=ctx.body_names.index(t.name), behaviour=t.behaviour,
+                             has_drag=t.drag_constant > 0.0, team_bodies=tuple(ctx.quadrotor_bodies))
+        if static.behaviour == "maneuvering" and not static.team_bodies:
+            raise ValueError("target.behaviour: a maneuvering target flees quadrotors, and the scene has none")
+        prop = t.propulsion_or_default()
+
+        def s(x):
+            return jnp.asarray(x, dtype=ctx.dtype)
+
+        params = TargetParams(
+            drag_constant=s(t.drag_constant),
+            spawn_pos_low=s(t.spawn.position.low), spawn_pos_high=s(t.spawn.position.high),
+            spawn_vel_low=s(t.spawn.velocity.low), spawn_vel_high=s(t.spawn.velocity.high),
+            max_acceleration=s(prop.max_acceleration if prop else 0.0),
+            max_speed=s(prop.max_speed if prop else 0.0),
+            flee_acceleration=s(prop.flee_acceleration if prop else 0.0),
+            jink_acceleration=s(prop.jink_acceleration if prop else 0.0),
+            jink_interval_low=s(prop.jink_interval.low if prop else 1.0),
+            jink_interval_high=s(prop.jink_interval.high if prop else 1.0),
+            altitude_low=s(prop.altitude[0] if prop else 0.0),
+            altitude_high=s(prop.altitude[1] if prop else 0.0),
+            altitude_gain=s(prop.altitude_gain if prop else 1.0),
+        )
+        memory = TargetMemory(key=jax.random.PRNGKey(t.seed), jink=jnp.zeros(3, dtype=ctx.dtype),
+                              next_jink=jnp.zeros((), dtype=ctx.dtype))
+        return static, params, memory
+
+    def update(self, scene, params, state):
+        static = _static(scene)
+        memory = state.effects["target"]
+        if static.behaviour != "maneuvering":
+            return None, memory
+        return evasive_command(static, params.effects["target"], memory, state.phys, state.time)
+
+    def stages(self, static):
+        stages = []
+        if static.has_drag:
+            stages.append(("target_drag", _drag_stage))
+        if static.behaviour == "maneuvering":
+            stages.append(("target_propulsion", _propulsion_stage))
+        return tuple(stages)
+
+
+TARGET = _Target()
+
+
+def spawn_target(scene, params, state, key):
+    """The state with the target placed by a fresh draw from its spawn ranges (uniform
+    position and velocity, at rest in rotation) and its memory re-keyed. Pure: vmap it
+    over keys to spawn a batch. The other bodies and points are not touched."""
+    static = _static(scene)
+    tp = params.effects["target"]
+    k_pos, k_vel, k_next = jax.random.split(key, 3)
+    dtype = state.phys.body_pos.dtype
+    pos = jax.random.uniform(k_pos, (3,), dtype=dtype, minval=tp.spawn_pos_low, maxval=tp.spawn_pos_high)
+    vel = jax.random.uniform(k_vel, (3,), dtype=dtype, minval=tp.spawn_vel_low, maxval=tp.spawn_vel_high)
+    b = static.body
+    phys = state.phys.replace(
+        body_pos=state.phys.body_pos.at[b].set(pos),
+        body_vel=state.phys.body_vel.at[b].set(vel),
+        body_quat=state.phys.body_quat.at[b].set(jnp.asarray([1.0, 0.0, 0.0, 0.0], dtype=dtype)),
+        body_angvel=state.phys.body_angvel.at[b].set(0.0),
+    )
+    memory = state.effects["target"].replace(key=k_next, jink=jnp.zeros(3, dtype=dtype),
+                                              next_jink=state.time)
+    return state.replace(phys=phys, effects={**state.effects, "target": memory})
