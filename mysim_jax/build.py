@@ -63,7 +63,8 @@ def _inertia_matrix(inertia) -> np.ndarray:
 
 
 def build(config: SceneConfig):
-    """Assemble the scene. Returns ``(scene, params, state)``."""
+    """Assemble the scene. Returns ``(scene, params, state)``; what a run saves comes from
+    ``config.run_settings()`` (:class:`~mysim_jax.config.RunSettings`)."""
     if config.sim.precision == "float64" and not jax.config.jax_enable_x64:
         raise ConfigError(
             f"sim.precision: float64 requested by scene '{config.name}' but JAX runs in 32-bit "
@@ -208,7 +209,6 @@ def build(config: SceneConfig):
         jnp.float64 if config.sim.precision == "float64" else jnp.float32)
 
     scene = Scene(
-        name=config.name,
         point_names=tuple(t.point_names),
         body_names=tuple(b.name for b in config.bodies),
         marker_names=tuple(t.marker_names),
@@ -226,14 +226,11 @@ def build(config: SceneConfig):
         integrator=config.sim.integrator,
         dt=config.sim.dt,
         substeps=1 if config.sim.substeps == "auto" else config.sim.substeps,
-        output_dt=config.sim.output_every * config.sim.dt,        # exactly on the step grid
-        t_end=config.sim.n_outputs * config.sim.output_every * config.sim.dt,
         precision=config.sim.precision,
         rtol=config.sim.rtol,
         atol=config.sim.atol,
         max_steps=config.sim.max_steps,
         accumulate="matmul" if n_nodes <= MATMUL_ACCUMULATE_MAX_NODES else "segment_sum",
-        plot_names=tuple(config.output.plot),
         contact=contact_scene,
         quadrotor=quad_scene,
     )

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import copy
 import math
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, Literal, Union
 
@@ -39,7 +40,8 @@ from mysim_jax.control.config import QuadrotorConfig, quadrotor_problems
 from mysim_jax.net.config import NetConfig, net_elements
 from mysim_jax.tasks.config import TargetConfig, TeamConfig
 
-__all__ = ["ConfigError", "SceneConfig", "load_config", "config_from_dict", "apply_override", "dump_config"]
+__all__ = ["ConfigError", "SceneConfig", "RunSettings", "load_config", "config_from_dict", "apply_override",
+           "dump_config"]
 
 INTEGRATORS = ("semi_implicit_euler", "rk4", "tsit5", "kvaerno5")
 FIXED_STEP_INTEGRATORS = ("semi_implicit_euler", "rk4")
@@ -54,6 +56,21 @@ MAX_OBJECTS = 100_000              # point masses (rope masses included) and bod
 GRID_TOLERANCE = 1e-6
 
 Quat = tuple[Finite, Finite, Finite, Finite]
+
+
+@dataclass(frozen=True)
+class RunSettings:
+    """What one run of a scene saves: not part of the compiled Scene, so changing any of it
+    (a longer run, another output interval, other plots) never recompiles the step.
+
+    ``output_dt`` is a whole multiple of the step ``dt`` and ``t_end`` of ``output_dt``
+    (:class:`SimConfig` checks and snaps them).
+    """
+
+    name: str
+    t_end: float          # s
+    output_dt: float      # s
+    plot: tuple[str, ...] = ()
 
 class BaumgarteConfig(StrictModel):
     """Baumgarte stabilisation of joint constraints: C̈ + 2·alpha·Ċ + beta²·C = 0.
@@ -433,6 +450,12 @@ class SceneConfig(StrictModel):
     def frame_names(self) -> set[str]:
         """Names a joint may use: ``body.marker`` and anchors."""
         return self.marker_names() | self.anchor_names()
+
+    def run_settings(self) -> RunSettings:
+        """The run settings of this scene file (exact multiples of ``sim.dt``)."""
+        sim = self.sim
+        return RunSettings(name=self.name, t_end=sim.n_outputs * sim.output_every * sim.dt,
+                           output_dt=sim.output_every * sim.dt, plot=tuple(self.output.plot))
 
     def trajectory_names(self) -> set[str]:
         """Points (including rope masses) and bodies: the things that move."""

@@ -288,11 +288,21 @@ class Trajectory:
         return self.failure is None
 
 
-def output_times(scene: Scene) -> np.ndarray:
-    """The output grid ``0, output_dt, ..., t_end`` (:func:`~mysim_jax.build.build` puts
-    ``t_end`` on it)."""
-    n = int(round(scene.t_end / scene.output_dt))
-    return np.arange(n + 1) * scene.output_dt
+def output_times(run) -> np.ndarray:
+    """The output grid ``0, output_dt, ..., t_end`` of a :class:`~mysim_jax.config.RunSettings`
+    (whose ``t_end`` lies on it)."""
+    n = int(round(run.t_end / run.output_dt))
+    return np.arange(n + 1) * run.output_dt
+
+
+def steps_per_output(scene: Scene, run) -> int:
+    """Environment steps between saved states; the run's ``output_dt`` must be a whole
+    multiple of the scene's step ``dt`` (a ValueError says so otherwise)."""
+    every = int(round(run.output_dt / scene.dt))
+    if every < 1 or abs(every * scene.dt - run.output_dt) > 1e-9 * run.output_dt:
+        raise ValueError(f"run '{run.name}': output_dt = {run.output_dt:g} s is not a whole multiple of the "
+                         f"scene's step dt = {scene.dt:g} s")
+    return every
 
 
 @partial(jax.jit, static_argnums=(0, 3, 4, 5))
@@ -329,9 +339,11 @@ def single_env_scene(scene: Scene) -> Scene:
     return dataclasses.replace(scene, accumulate="segment_sum")
 
 
-def simulate(scene: Scene, params: Params, state: State, progress: bool = True, chunk: int = 200,
+def simulate(scene: Scene, params: Params, state: State, run, progress: bool = True, chunk: int = 200,
              policy=None) -> Trajectory:
-    """Run the scene from ``state`` to ``scene.t_end``, saving every ``scene.output_dt``.
+    """Run the scene from ``state`` to ``run.t_end``, saving every ``run.output_dt``
+    (``run``: :class:`~mysim_jax.config.RunSettings`, e.g. ``config.run_settings()``; it is
+    not part of the compiled step, so another ``t_end`` or ``output_dt`` reuses it).
 
     Fixed-step integrators run as jitted ``lax.scan`` chunks of ``chunk`` outputs with a
     progress bar between chunks; adaptive solvers run as one diffrax solve (with diffrax's
@@ -354,14 +366,14 @@ def simulate(scene: Scene, params: Params, state: State, progress: bool = True, 
     This runs one environment, so the scene is run as :func:`single_env_scene` makes it.
     """
     scene = single_env_scene(scene)
-    times = output_times(scene)
+    times = output_times(run)
     if scene.integrator in FIXED_STEP or scene.quadrotor is not None or scene.effects:
-        every = int(round(scene.output_dt / scene.dt))
+        every = steps_per_output(scene, run)
         n_out = len(times) - 1
         pieces = [jax.tree.map(lambda a: np.asarray(a)[None], state)]
         failure = _non_finite(scene, pieces[0], times, 0)
         done = 0
-        bar = _progress(n_out, progress, scene)
+        bar = _progress(n_out, progress, scene, run.name)
         while done < n_out and failure is None:
             state, traj = _advance(scene, params, state, chunk * every, every, policy)
             take = min(chunk, n_out - done)
@@ -458,9 +470,9 @@ def _non_finite(scene: Scene, states: State, times, first_row: int):
         "integrator stepping a controlled scene, a step on which the solver gave up (sim.max_steps)")
 
 
-def _progress(total: int, enabled: bool, scene: Scene):
+def _progress(total: int, enabled: bool, scene: Scene, name: str):
     if not enabled:
         return None
     from tqdm.auto import tqdm
 
-    return tqdm(total=total, desc=f"{scene.name} ({scene.integrator})", unit="out", leave=False)
+    return tqdm(total=total, desc=f"{name} ({scene.integrator})", unit="out", leave=False)

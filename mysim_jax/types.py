@@ -2,6 +2,8 @@
 
 * :class:`Scene` — static structure: counts, names, index arrays (as tuples), which effects
   exist, integrator settings. Frozen and hashable; changing it recompiles; never traced.
+  What a run saves (its length, output interval, plots) is not here but in
+  :class:`mysim_jax.config.RunSettings`, so changing it never recompiles.
 * :class:`Params` — a pytree of float arrays: masses, inertias, marker offsets, spring
   constants, gravity, Baumgarte constants. Traced, differentiable, vmappable.
 * :class:`State` — a pytree: the multibody state :class:`PhysState`, the time, (with
@@ -58,7 +60,6 @@ class JointBucket:
 class Scene:
     """Static description of one environment. Hashable: usable as a ``jit`` static arg."""
 
-    name: str
     # --- entities ---------------------------------------------------------------------
     point_names: tuple[str, ...]
     body_names: tuple[str, ...]
@@ -80,8 +81,6 @@ class Scene:
     integrator: str = "semi_implicit_euler"
     dt: float = 1e-3
     substeps: int = 1
-    output_dt: float = 1e-3
-    t_end: float = 1.0
     precision: str = "float32"
     rtol: float = 1e-8
     atol: float = 1e-10
@@ -89,7 +88,6 @@ class Scene:
     # how node forces are summed: "matmul" (dense one-hot incidence, fast for small nets)
     # or "segment_sum" (scales to large nets); chosen in build() and measured in bench.py
     accumulate: str = "matmul"
-    plot_names: tuple[str, ...] = field(default=())
     # --- contact (mysim_jax/contact): None when the scene has no contact ---------------
     contact: ContactScene | None = None
     # --- quadrotors, their controller and cameras (mysim_jax/dynamics/quadrotor.py) ----

@@ -78,7 +78,8 @@ def main(argv=None) -> int:
 
     policy = team_policy(config, scene)
     t0 = time.perf_counter()
-    traj = simulate(scene, params, state, progress=not args.no_progress, policy=policy)
+    run = config.run_settings()
+    traj = simulate(scene, params, state, run, progress=not args.no_progress, policy=policy)
     wall = time.perf_counter() - t0
 
     columns = trajectory_columns(scene, traj)
@@ -90,7 +91,7 @@ def main(argv=None) -> int:
         write_trajectory_csv(tmp / "trajectory.csv", columns)
         plots = []
         if len(traj.time) > 1:
-            for name in scene.plot_names:
+            for name in run.plot:
                 reference = None
                 if f"{name}_ref_x" in columns:
                     reference = {"time": columns["time"], **{f"{name}_{a}": columns[f"{name}_ref_{a}"] for a in "xyz"}}
@@ -98,7 +99,7 @@ def main(argv=None) -> int:
                 plots += [p.name for p in plot_kinematics(columns, name, tmp, reference=reference)]
         tracking = tracking_metrics(scene, columns) if len(traj.time) else {}
         metrics = {
-            "scene": scene.name,
+            "scene": run.name,
             "status": "ok" if traj.ok else "failed",
             "integrator": scene.integrator,
             "precision": scene.precision,
@@ -108,7 +109,7 @@ def main(argv=None) -> int:
             "n_outputs": int(len(traj.time)),
             "wall_time_s": wall,
             "final": {name: [float(columns[f"{name}_{a}"][-1]) for a in "xyz"]
-                      for name in scene.plot_names if len(traj.time)},
+                      for name in run.plot if len(traj.time)},
             "plots": plots,
         }
         if config.net is not None and config.target is not None and len(traj.time) > 1:
@@ -122,10 +123,10 @@ def main(argv=None) -> int:
         (tmp / "metrics.json").write_text(json.dumps(metrics, indent=2))
     if not traj.ok:
         print(f"error: {args.config}: {traj.failure}", file=sys.stderr)
-        print(f"{scene.name}: stopped at t = {reached:g} s of {scene.t_end:g} s; wrote the finite part to "
+        print(f"{run.name}: stopped at t = {reached:g} s of {run.t_end:g} s; wrote the finite part to "
               f"{out}/ (metrics.json status: failed)", file=sys.stderr)
         return 3
-    print(f"{scene.name}: simulated {reached:g} s with {scene.integrator} ({scene.precision}) "
+    print(f"{run.name}: simulated {reached:g} s with {scene.integrator} ({scene.precision}) "
           f"in {wall:.2f} s (compile included); wrote {out}/trajectory.csv and {len(plots)} plots")
     if "capture" in metrics:
         c = metrics["capture"]

@@ -133,9 +133,9 @@ def main(argv=None) -> int:
             "evaluation": {},
         }
 
-        def evaluate(name, sc, pa, st):
-            before = evaluate_tracking(sc, pa, st)
-            after = evaluate_tracking(sc, with_gains(pa, tuned), st)
+        def evaluate(name, sc, pa, st, run):
+            before = evaluate_tracking(sc, pa, st, run)
+            after = evaluate_tracking(sc, with_gains(pa, tuned), st, run)
             rows = {}
             for body in before:
                 b, a = before[body]["rms_position_error_m"], after[body]["rms_position_error_m"]
@@ -144,9 +144,9 @@ def main(argv=None) -> int:
                       f"max {before[body]['max_position_error_m']:.4g} m -> {after[body]['max_position_error_m']:.4g} m")
             metrics["evaluation"][name] = rows
 
-        evaluate(config.name, scene, params, state)
+        evaluate(config.name, scene, params, state, config.run_settings())
         for cfg, (hs, hp, hst) in zip(heldout, held):
-            evaluate(cfg.name, hs, hp, hst)
+            evaluate(cfg.name, hs, hp, hst, cfg.run_settings())
 
         _plot_losses(result, out / "loss_curve.png", config.name)
         if args.horizon_study:

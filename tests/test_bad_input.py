@@ -357,8 +357,10 @@ def test_simulate_reports_an_infinite_state_and_keeps_no_non_finite_row():
     from mysim_jax.config import load_config
     from mysim_jax.sim import simulate
 
-    scene, params, state = build(load_config(ROPE, ["sim.precision=float32", "sim.t_end=0.01"]))
+    config = load_config(ROPE, ["sim.precision=float32", "sim.t_end=0.01"])
+    scene, params, state = build(config)
     vel = state.phys.point_vel.at[3, 2].set(jnp.inf)
-    traj = simulate(scene, params, state.replace(phys=state.phys.replace(point_vel=vel)), progress=False)
+    traj = simulate(scene, params, state.replace(phys=state.phys.replace(point_vel=vel)), config.run_settings(),
+                    progress=False)
     assert not traj.ok and "at t = 0 s" in traj.failure and "point 'r0_2' (vel)" in traj.failure
     assert len(traj.time) == 0 and traj.phys.point_pos.shape == (0, 21, 3) and traj.acc.point_acc.shape[0] == 0

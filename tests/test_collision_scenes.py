@@ -78,7 +78,7 @@ def test_default_settings_stay_within_2e_3_of_the_reference(name, request):
     scene, params, state = build(config)
     assert scene.precision == "float64" and scene.integrator == "tsit5"    # the defaults
     t0 = time.perf_counter()
-    traj = simulate(scene, params, state, progress=False)
+    traj = simulate(scene, params, state, config.run_settings(), progress=False)
     wall = time.perf_counter() - t0
     np.testing.assert_allclose(traj.time, TIMES, atol=1e-12)
     assert list(scene.point_names) == ref.names

@@ -129,7 +129,7 @@ def test_network_stability_limit_brackets_the_measured_blow_up(ea):
     for name, dt in (("accepted", limit), ("1.1x initial", 1.1 * initial)):
         # Scene.dt is static and the check is build-time only: build at the accepted step, step at dt
         scene, params, state = build(cfg(limit))
-        scene = dataclasses.replace(scene, dt=dt, output_dt=dt)
+        scene = dataclasses.replace(scene, dt=dt)
         pos = state.phys.point_pos + 1e-6 * rng.standard_normal(state.phys.point_pos.shape)
         state = state.replace(phys=state.phys.replace(point_pos=pos))
         final, _ = jax.jit(lambda s: rollout(scene, params, s, int(1.0 / dt), int(1.0 / dt)))(state)

@@ -72,11 +72,11 @@ def _monitors(scene, params, phys):
 
 
 @functools.lru_cache(maxsize=None)
-def _runner(scene, coarse, batched=False, every_step=True):
+def _runner(scene, t_end, coarse, batched=False, every_step=True):
     """jit(run)(params, state) -> monitors (energy, pair depths and relative speeds, point
     z) at every step (``every_step``, else every ``coarse`` s) and the states every
     ``coarse`` s (``batched``: vmapped over a stack of initial states)."""
-    n_steps = int(round(scene.t_end / scene.dt))
+    n_steps = int(round(t_end / scene.dt))
     every = max(1, int(round(coarse / scene.dt)))
 
     def run(params, state):
@@ -109,9 +109,9 @@ def _runner(scene, coarse, batched=False, every_step=True):
     return jax.jit(jax.vmap(run, in_axes=(None, 0)) if batched else run)
 
 
-def _run(scene, params, state, coarse=1e-5, batched=False, every_step=True):
+def _run(scene, params, state, t_end, coarse=1e-5, batched=False, every_step=True):
     with jax.enable_x64(scene.precision == "float64"):
-        out = _runner(scene, coarse, batched, every_step)(params, state)
+        out = _runner(scene, t_end, coarse, batched, every_step)(params, state)
         return jax.tree.map(np.asarray, out)
 
 
@@ -145,7 +145,7 @@ def test_heavy_scene(precision, path):
     """The 20 kg ball on the 10 kg payload (chattering contact), 1.5 s. (The default path
     on this scene is checked against the reference in test_collision_scenes.py.)"""
     scene, params, state = _build(_raw("collision_heavy"), precision, path, t_end=1.5)
-    out = _run(scene, params, state, coarse=1e-4)
+    out = _run(scene, params, state, 1.5, coarse=1e-4)
     assert out["finite"]
     _check_energy(out, f"heavy {precision} {path} (h = {scene.substep:.3g} s)", scene, params)
     assert out["depth"].max() < RADIUS
@@ -165,7 +165,7 @@ def _light_case(precision, path, ball_pos, ball_vel):
 @pytest.mark.parametrize("precision, path", PATHS)
 def test_ball_hitting_the_payload_at_10_m_per_s(precision, path):
     scene, params, state = _light_case(precision, path, (0.0, 0.0, 0.1), (0.0, 0.0, -10.0))
-    out = _run(scene, params, state)
+    out = _run(scene, params, state, 0.1)
     assert out["finite"]
     _check_energy(out, f"10 m/s {precision} {path}", scene, params)
     ball, payload = _ball_payload(scene)
@@ -181,7 +181,7 @@ def test_grazing_contact(precision, path):
     payload's vertical line: the spheres overlap by ~1e-5 m while sliding past each other
     at 5 m/s (friction on)."""
     scene, params, state = _light_case(precision, path, (0.0599, 0.0, -0.3), (0.0, 0.0, 5.0))
-    out = _run(scene, params, state)
+    out = _run(scene, params, state, 0.1)
     assert out["finite"]
     _check_energy(out, f"grazing {precision} {path}", scene, params)
     depth = out["depth"][:, 0]
@@ -200,7 +200,7 @@ def test_two_spheres_starting_at_the_same_centre(precision, path):
     pair is pushed apart along world +z (documented fallback), then never re-penetrates
     by a radius; energy stays below the initial (huge) contact energy."""
     scene, params, state = _light_case(precision, path, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
-    out = _run(scene, params, state)
+    out = _run(scene, params, state, 0.1)
     assert out["finite"]
     _check_energy(out, f"same centre {precision} {path}", scene, params)
     depth = out["depth"][:, 0]
@@ -276,7 +276,7 @@ def test_ball_resting_on_the_net_for_5_s(precision, path, cradle_equilibrium):
         starts = jnp.asarray(np.stack([rest, dropped]), scene.dtype)
         states = jax.tree.map(lambda a: jnp.broadcast_to(a, (2,) + a.shape), state)
         states = states.replace(phys=states.phys.replace(point_pos=starts))
-    both = _run(scene, params, states, coarse=1e-3, batched=True, every_step=False)   # monitored every 1 ms
+    both = _run(scene, params, states, 5.0, coarse=1e-3, batched=True, every_step=False)   # monitored every 1 ms
     for k, label in enumerate(("at rest", "dropped 1 mm")):
         out = jax.tree.map(lambda a: a[k], both)
         assert out["finite"]

@@ -140,8 +140,9 @@ def test_reference_derivatives_and_flat_rates_agree_with_autodiff():
 
 def test_small_maneuver_with_the_paper_gains_tracks_under_5_cm():
     """configs/uav_track_small.yaml: 0.5 m figure-eight at walking pace with yaw, paper gains."""
-    scene, params, state = build(load_config(CONFIGS / "uav_track_small.yaml"))
-    metrics = evaluate_tracking(scene, params, state)["uav0"]
+    config = load_config(CONFIGS / "uav_track_small.yaml")
+    scene, params, state = build(config)
+    metrics = evaluate_tracking(scene, params, state, config.run_settings())["uav0"]
     assert metrics["rms_position_error_m"] < 0.05, metrics
     # measured 0.37 mm RMS / 0.60 mm max: the flatness feed-forward carries the tracking
     assert metrics["max_position_error_m"] < 0.005, metrics

@@ -29,9 +29,10 @@ def reference():
 
 
 def _run(overrides=()):
-    scene, params, state = build(load_config(CONFIGS / "rope_net.yaml", list(overrides)))
+    config = load_config(CONFIGS / "rope_net.yaml", list(overrides))
+    scene, params, state = build(config)
     t0 = time.perf_counter()
-    traj = simulate(scene, params, state, progress=False)
+    traj = simulate(scene, params, state, config.run_settings(), progress=False)
     return scene, traj, time.perf_counter() - t0
 
 

@@ -296,7 +296,7 @@ def test_runs_without_setpoints_or_reference_fail_clearly():
     scene, params, state = build(config_from_dict(_uav(), "t"))
     assert params.controller.reference is None
     with pytest.raises(ValueError, match=r"without a reference trajectory: pass setpoints as step\(\.\.\., control=Setpoint"):
-        simulate(scene, params, state, progress=False)
+        simulate(scene, params, state, config_from_dict(_uav(), "t").run_settings(), progress=False)
     with pytest.raises(ValueError, match=r"Setpoint.position: shape \(2, 3\), the scene has 1 quadrotor"):
         step(scene, params, state, Setpoint.hold(jnp.zeros((2, 3))))
     raw = _uav()

@@ -197,11 +197,12 @@ def test_simulator_matches_reference_through_switches(reference):
     from mysim_jax.sim import simulate
 
     ref, out = reference
-    scene, params, state = build(config_from_dict(_raw(), "SCENE_YAML"))
+    config = config_from_dict(_raw(), "SCENE_YAML")
+    scene, params, state = build(config)
     assert scene.precision == "float64" and scene.integrator == "tsit5"
     assert scene.point_names == tuple(f"rope_{j}" for j in range(ref.n))
     t0 = time.perf_counter()
-    traj = simulate(scene, params, state, progress=False)
+    traj = simulate(scene, params, state, config.run_settings(), progress=False)
     wall = time.perf_counter() - t0
     assert traj.ok, traj.failure
     np.testing.assert_allclose(traj.time, out["t"], atol=1e-12)

@@ -302,7 +302,7 @@ def blown_up(final) -> np.ndarray:
 
 def count_blow_ups(scene, params, states, h: float, t_end: float) -> int:
     n_steps = int(math.ceil(t_end / h - 1e-9))
-    sc = dataclasses.replace(scene, dt=h, output_dt=h, substeps=1)
+    sc = dataclasses.replace(scene, dt=h, substeps=1)
     run = jax.jit(jax.vmap(lambda s: rollout(sc, params, s, n_steps, n_steps)[0]))
     return int(blown_up(run(states)).sum())
 

@@ -155,8 +155,8 @@ def capsule_nodes(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
     for name, ends in zip(cs.capsule_names, cs.capsule_end_names):
         k = spring.get(name)
         if k is None or (_node_name(scene, scene.spring_node_a[k]), _node_name(scene, scene.spring_node_b[k])) != ends:
-            raise ValueError(f"contact capsule '{name}' ({ends[0]} - {ends[1]}) is not a spring of scene "
-                             f"'{scene.name}': the contact scene was built for other springs")
+            raise ValueError(f"contact capsule '{name}' ({ends[0]} - {ends[1]}) is not a spring of the "
+                             f"scene: the contact scene was built for other springs")
         node_a.append(scene.spring_node_a[k])
         node_b.append(scene.spring_node_b[k])
     return np.asarray(node_a, np.int32), np.asarray(node_b, np.int32)

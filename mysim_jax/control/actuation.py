@@ -34,7 +34,7 @@ def _setpoint(scene, params, state, control):
     if control is None:
         if cp.reference is None:
             raise ValueError(
-                f"scene '{scene.name}' has controlled quadrotors without a reference trajectory: pass "
+                "the scene has controlled quadrotors without a reference trajectory: pass "
                 "setpoints as step(..., control=Setpoint(...)) (mysim_jax.control.setpoint), or give "
                 "every quadrotor a reference (quadrotors.i.reference)"
             )
@@ -53,7 +53,7 @@ def actuate(scene, params, state, control=None):
         if qs.controller == "none":
             given = "" if control is None else " (a Setpoint needs one)"
             raise ValueError(
-                f"scene '{scene.name}' has quadrotors without a controller{given}: pass the motor commands "
+                f"the scene has quadrotors without a controller{given}: pass the motor commands "
                 "(n_quads, 4) rad/s as step(..., control=...)"
             )
         setpoint = _setpoint(scene, params, state, control)

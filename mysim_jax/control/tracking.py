@@ -85,14 +85,14 @@ def _grid_rollout(scene, params, state, n_out: int, every: int):
 _grid_rollout_jit = jax.jit(_grid_rollout, static_argnums=(0, 3, 4))
 
 
-def evaluate_tracking(scene, params, state) -> dict[str, dict]:
-    """Run the scene to ``t_end`` and return :func:`tracking_metrics` on the output grid
-    (the numbers ``scripts/simulate.py`` writes). Compiled once per scene: calls with
-    other Params (gains) reuse it."""
-    from mysim_jax.sim import output_times
+def evaluate_tracking(scene, params, state, run) -> dict[str, dict]:
+    """Run the scene to ``run.t_end`` and return :func:`tracking_metrics` on the output grid
+    of ``run`` (:class:`~mysim_jax.config.RunSettings`; the numbers ``scripts/simulate.py``
+    writes). Compiled once per scene: calls with other Params (gains) reuse it."""
+    from mysim_jax.sim import output_times, steps_per_output
 
-    times = output_times(scene)
-    every = int(round(scene.output_dt / scene.dt))
+    times = output_times(run)
+    every = steps_per_output(scene, run)
     states = _grid_rollout_jit(scene, params, state, len(times) - 1, every)
     body = np.asarray(scene.quadrotor.body)
     pos = np.asarray(states.phys.body_pos)[:, body]

@@ -138,7 +138,7 @@ def tune(scene, params, state, n_steps: int, iterations: int = 40, learning_rate
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=iterations + 1, desc=f"tune {scene.name}", unit="it")
+        bar = tqdm(total=iterations + 1, desc="tune gains", unit="it")
     for it in range(iterations + 1):
         loss, grad = value_and_grad(theta)
         loss = float(loss)

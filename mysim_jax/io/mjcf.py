@@ -73,7 +73,7 @@ def _check_exportable(scene: Scene, params: Params, state: State) -> None:
                         "set data.xfrc_applied yourself)")
     if problems:
         raise ValueError(
-            f"scene '{scene.name}' cannot be exported to MJCF: it has " + "; ".join(problems)
+            "the scene cannot be exported to MJCF: it has " + "; ".join(problems)
             + ". The exporter handles point masses, anchors and linear springs only."
         )
     if np.ndim(state.phys.point_pos) != 2 or np.ndim(params.point_mass) != 1:
@@ -84,7 +84,7 @@ def _check_exportable(scene: Scene, params: Params, state: State) -> None:
         )
 
 
-def scene_to_mjcf(scene: Scene, params: Params, state: State, timestep: float) -> str:
+def scene_to_mjcf(scene: Scene, params: Params, state: State, timestep: float, name: str = "mysim_jax") -> str:
     """MJCF text of a scene of point masses, anchors and linear springs (see module doc).
 
     ``timestep`` [s] is MuJoCo's step (use the scene's ``substep`` to compare step for step).
@@ -107,7 +107,7 @@ def scene_to_mjcf(scene: Scene, params: Params, state: State, timestep: float) -
 
     q = quoteattr
     lines = [
-        f"<mujoco model={q(scene.name)}>",
+        f"<mujoco model={q(name)}>",
         '  <compiler angle="radian" autolimits="true"/>',
         f'  <option timestep="{_num(timestep)}" gravity="{_vec(gravity)}" integrator="Euler">',
         '    <flag contact="disable" eulerdamp="disable"/>',

@@ -50,7 +50,7 @@ from dataclasses import dataclass, field
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator
 
 from mysim_jax.config_base import Name, NonNegFloat, PosFloat, StrictModel, Vec3
 
@@ -93,7 +93,7 @@ class NetConfig(StrictModel):
     """A square net (module docstring). ``center`` is the net's centre at the start."""
 
     name: Name = "net"
-    knots: Annotated[int, Field(ge=2, le=MAX_KNOTS)] = 11
+    knots: Annotated[int, Field(le=MAX_KNOTS)] = 11
     size: PosFloat = 2.0                    # m, side of the square
     center: Vec3
     spread: Annotated[float, Field(gt=0.2, le=1.0)] = 0.8   # start knot spacing / mesh spacing
@@ -103,14 +103,12 @@ class NetConfig(StrictModel):
     tethers: TetherConfig | None = None
     air_density: NonNegFloat = 1.225        # kg/m^3 (line drag; 0 turns it off)
 
-    @model_validator(mode="before")
+    @field_validator("knots")
     @classmethod
-    def _knots_first(cls, data):
-        # a clearer message than pydantic's for the commonest mistake
-        if isinstance(data, dict) and isinstance(data.get("knots"), int) and not isinstance(data["knots"], bool) \
-                and data["knots"] < 2:
-            raise ValueError(f"knots: a net needs at least 2 x 2 knots, got {data['knots']}")
-        return data
+    def _at_least_two(cls, value):
+        if value < 2:
+            raise ValueError(f"a net needs at least 2 x 2 knots, got {value}")
+        return value
 
     def knot_name(self, i: int, j: int) -> str:
         return f"{self.name}_k{i}_{j}"
