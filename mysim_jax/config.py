@@ -326,9 +326,19 @@ class SceneConfig(StrictModel):
         full, problems = expand_capture(self)
         problems += full._reference_problems()
         problems += self._team_problems()
+        problems += self._target_contact_problems()
         if problems:
             raise ValueError("; ".join(problems))
         return self
+
+    def _target_contact_problems(self) -> list[str]:
+        """The target's contact sphere must have the target's radius (both are given)."""
+        if self.target is None or self.contact is None:
+            return []
+        return [f"contact.groups.{i}.radius: {g.radius:g} m, but target '{self.target.name}' has radius "
+                f"{self.target.radius:g} m (target.radius); give its contact group the same radius"
+                for i, g in enumerate(self.contact.groups)
+                if self.target.name in (g.members or []) and g.radius != self.target.radius]
 
     def _team_problems(self) -> list[str]:
         team = self.team

@@ -121,6 +121,13 @@ def test_bad_target_is_named(edit, message):
         config_from_dict(r)
 
 
+def test_target_contact_radius_must_match_the_target():
+    r = raw()
+    r["target"]["radius"] = 0.1
+    with pytest.raises(ConfigError, match=r"contact\.groups\.0\.radius: 0\.15 m, but target 'target' has radius 0\.1 m"):
+        config_from_dict(r)
+
+
 def test_team_outside_the_flyable_box_is_named():
     r = raw()
     r["team"]["altitude"] = 50.0
@@ -268,3 +275,36 @@ def test_scripted_team_catches_the_falling_target_on_the_default_seed():
     hold = load_config(FALLING, ["team.policy=hold", "sim.t_end=3"])
     traj_hold = simulate(scene, params, state, hold.run_settings(), progress=False, policy=team_policy(hold, scene))
     assert not capture_outcome(trajectory_columns(scene, traj_hold), hold).caught
+
+
+# --- the script ---------------------------------------------------------------------------
+
+
+def test_simulate_script_writes_the_capture_outputs_and_refuses_a_bad_tether(tmp_path):
+    import json
+    import subprocess
+    import sys
+
+    from conftest import ROOT
+
+    script = ROOT / "scripts" / "simulate.py"
+    out = tmp_path / "capture"
+    res = subprocess.run([sys.executable, str(script), str(FALLING), "--out", str(out), "--no-progress",
+                          "--set", "sim.t_end=0.4"], capture_output=True, text=True, cwd=ROOT)
+    assert res.returncode == 0, res.stderr
+    assert "target not caught" in res.stdout          # 0.4 s: it is still falling
+    for name in ("capture_top.png", "capture_side.png", "capture_distances.png", "capture_tensions.png"):
+        assert (out / name).stat().st_size > 10_000
+    assert (out / "capture.gif").read_bytes()[:6] in (b"GIF89a", b"GIF87a")
+    metrics = json.loads((out / "metrics.json").read_text())
+    capture = metrics["capture"]
+    assert capture["caught"] is False and capture["at_end"]["above_ground"] is True
+    assert set(capture["thrust_fraction_last_1s"]) == {"uav0", "uav1", "uav2", "uav3"}
+    assert 0.3 < capture["thrust_fraction_last_1s"]["uav0"] < 0.6
+    # a tether to a UAV that does not exist: exit 2, a message naming the field, nothing written
+    bad = tmp_path / "bad"
+    res = subprocess.run([sys.executable, str(script), str(FALLING), "--out", str(bad), "--no-progress",
+                          "--set", "net.tethers.uavs.3=uav7"], capture_output=True, text=True, cwd=ROOT)
+    assert res.returncode == 2
+    assert "net.tethers.uavs.3: 'uav7' is not a quadrotor body" in res.stderr
+    assert not bad.exists()
