@@ -101,7 +101,7 @@ def evasive_command(static: TargetScene, tp: TargetParams, memory: TargetMemory,
     _, away = vecmath.safe_unit(away)
     z_ref = jnp.clip(p[2], tp.altitude_low, tp.altitude_high)
     a_alt = tp.altitude_gain * (z_ref - p[2]) - 2.0 * jnp.sqrt(tp.altitude_gain) * v[2]
-    cmd = tp.flee_acceleration * away + jink + jnp.stack([0.0 * a_alt, 0.0 * a_alt, a_alt])
+    cmd = tp.flee_acceleration * away + jink + jnp.zeros_like(p).at[2].set(a_alt)
     speed, v_hat = vecmath.safe_unit(v)
     along = vecmath.dot(cmd, v_hat)
     at_limit = speed >= tp.max_speed
