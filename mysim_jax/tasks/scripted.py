@@ -10,9 +10,10 @@ formation around a moving formation centre ``c``):
    arrival). The predicted crossing point is ``p_xy + v_xy (t* + lead)``.
 2. **Intercept.** The formation centre's horizontal setpoint is that point, so the net's
    centre is flown under it; the formation height is ``altitude``.
-3. **Soften.** When the target is within ``catch_radius`` of the net's centre
+3. **Soften and stop.** When the target is within ``catch_radius`` of the net's centre
    horizontally and below the tether attachments, the formation descends by ``soften``
-   metres so that the net gives way instead of bouncing the target out.
+   metres so that the net gives way instead of bouncing the target out, and its
+   horizontal setpoint is where it is (it stops chasing the target it carries).
 
 A maneuvering target does not fall: then ``t*`` is the time a free fall *would* take,
 and the team aims ahead of the target by that much of its horizontal motion. The team
@@ -70,6 +71,9 @@ class ScriptedTeam:
         aim = p[:2] + v[:2] * (t_fall + self.lead)
         near = jnp.linalg.norm(p[:2] - centre[:2]) < self.catch_radius
         caught = near & (p[2] < centre[2]) & (p[2] > z_net - 2.0 * self.net_drop)
+        # once caught, stop chasing: the target rides in the net, so aiming at it would
+        # drag the team after the bowl's own offset
+        aim = jnp.where(caught, centre[:2], aim)
         z = jnp.asarray(self.altitude, dtype=dtype) - jnp.where(caught, self.soften, 0.0)
         formation = jnp.concatenate([aim, z[None]]).astype(dtype)
         return Setpoint.hold(formation[None, :] + jnp.asarray(self.offsets, dtype=dtype))
