@@ -1,14 +1,15 @@
 #!/usr/bin/env python
 """Benchmarks of mysim_jax: write BENCHMARKS.md and plots into docs/bench/.
 
-    python scripts/bench.py                  # full run: ~13 min on 2 cores
+    python scripts/bench.py                  # full run: ~15 min on 2 cores
     python scripts/bench.py --quick          # smoke test: fewer repeats and points
     python scripts/bench.py --only a,c       # some sections only
 
 Sections (``--only`` takes their letters):
 
   a  rope-net throughput: jit(vmap(scan of K steps)) at batch 1, 64, 1024, 4096 (float32,
-     semi-implicit Euler, dt 1e-4): env-steps/s, compile time, memory per env.
+     semi-implicit Euler, dt 1e-4): env-steps/s, compile time, memory per env; and the
+     capture scene's env-steps/s at batch 1024 (float32, scripted team policy).
   b  node-force accumulation: Scene.accumulate "matmul" vs "segment_sum", side by side.
   c  MuJoCo (C engine, one thread) on the same net exported by mysim_jax.io.mjcf.
   d  accuracy against cost: each integrator / step / tolerance / precision against a
@@ -17,6 +18,9 @@ Sections (``--only`` takes their letters):
      The contact scenes (issue #3) compare ball and payload z over 1.5 s and also report
      when each method first drifts more than 2e-3 m from the reference.
      ``--cases collision_light,collision_heavy`` runs only those scenes of (d).
+     rope_net_slack (tension-only ropes that start slack) and capture_falling (the closed-loop
+     capture scene, sub-steps of its fixed control period) also report the observed order
+     of the fixed-step methods across slack-taut switches.
   f  profile: where the time of one batched step goes, by timing stage variants.
 
 Timing method: every timed quantity is the median of repeats; variants that are compared
@@ -53,6 +57,8 @@ ROOT = Path(__file__).resolve().parents[1]
 ROPE_NET = ROOT / "configs" / "rope_net.yaml"
 COLLISION_LIGHT = ROOT / "configs" / "collision_light.yaml"
 COLLISION_HEAVY = ROOT / "configs" / "collision_heavy.yaml"
+ROPE_NET_SLACK = ROOT / "configs" / "rope_net_slack.yaml"
+CAPTURE_FALLING = ROOT / "configs" / "capture_falling.yaml"
 SECTIONS = ("a", "b", "c", "d", "f")
 
 # The throughput setting of the performance targets.
@@ -61,6 +67,7 @@ THROUGHPUT_OVERRIDES = ("sim.precision=float32", "sim.integrator=semi_implicit_e
 TARGET_ENV_STEPS = 1_000_000      # env-steps/s at batch 4096
 TARGET_MUJOCO_RATIO = 10.0        # ours@4096 / MuJoCo single-thread
 HEADLINE_BATCH = 4096
+CAPTURE_BATCH = 1024              # capture-scene throughput (section a)
 
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
@@ -71,7 +78,9 @@ from mysim_jax import vecmath  # noqa: E402
 from mysim_jax.build import build  # noqa: E402
 from mysim_jax.config import ConfigError, load_config  # noqa: E402
 from mysim_jax.dynamics.forces import spring_tension  # noqa: E402
-from mysim_jax.sim import output_times, rollout, single_env_scene, solve_adaptive, step  # noqa: E402
+from mysim_jax.dynamics.integrators import FIXED_STEP  # noqa: E402
+from mysim_jax.sim import output_times, rollout, single_env_scene, solve_adaptive, step, steps_per_output  # noqa: E402
+from mysim_jax.tasks.scripted import team_policy  # noqa: E402
 
 
 # =========================================================================================
@@ -390,11 +399,24 @@ def _throughput_scene():
     return build(load_config(ROPE_NET, list(THROUGHPUT_OVERRIDES)))
 
 
+def _capture_throughput_run(n_steps: int):
+    """The capture scene in float32 as configured (its ``sim.dt`` and sub-steps) and a
+    ``run_env(params, state) -> state`` of ``n_steps`` env steps closed by its scripted
+    team policy: ``(scene, params, state, run_env)``."""
+    config = load_config(CAPTURE_FALLING, ["sim.precision=float32"])
+    scene, params, state = build(config)
+    policy = team_policy(config, scene)
+
+    def run_env(p, s):
+        return rollout(scene, p, s, n_steps, n_steps, policy)[0]
+    return scene, params, state, run_env
+
+
 def section_a(cfg, results) -> list[str]:
     scene, params, state = _throughput_scene()
     batches = (1, 64, 1024, 4096)
     runners: dict[str, Compiled] = {}
-    bar = tqdm(total=len(batches) + 1 + (len(batches) + 1) * (cfg.repeats + 1), desc="(a) throughput", leave=False)
+    bar = tqdm(total=len(batches) + 2 + (len(batches) + 2) * (cfg.repeats + 1), desc="(a) throughput", leave=False)
     for b in batches:
         k = steps_for_batch(b, cfg.env_steps_per_call)
         runners[f"B={b}"] = compile_batched(f"{b}", library_run_env(scene, k), params, state, b, k)
@@ -404,11 +426,18 @@ def section_a(cfg, results) -> list[str]:
     runners["B=4096 params batched"] = compile_batched("4096, params batched too", library_run_env(scene, k),
                                                        params, state, b, k, batch_params=True)
     bar.update(1)
+    cap_scene, cap_params, cap_state, cap_run = _capture_throughput_run(cfg.capture_steps)
+    capture = compile_batched("capture", cap_run, cap_params, cap_state, CAPTURE_BATCH, cfg.capture_steps)
+    bar.update(1)
     wait_for_quiet(cfg.max_wait_s, "a")
-    times = time_round_robin({key: r.call for key, r in runners.items()}, cfg.repeats, bar, section="a")
+    times = time_round_robin({**{key: r.call for key, r in runners.items()}, "capture": capture.call}, cfg.repeats,
+                             bar, section="a")
     bar.close()
     rows = [ThroughputRow(r.label, r.batch, r.n_steps, times[key], r.compile_s, r.bytes_per_env())
             for key, r in runners.items()]
+    cap_row = ThroughputRow("capture", CAPTURE_BATCH, cfg.capture_steps, times["capture"], capture.compile_s,
+                            capture.bytes_per_env())
+    results["capture_throughput"] = (cap_row, cap_scene.substeps)
     results["a"] = rows
     headline = rows[batches.index(HEADLINE_BATCH)]
     results["ours_4096"] = headline.env_steps_per_s
@@ -453,6 +482,37 @@ def section_a(cfg, results) -> list[str]:
            if mem is not None else ""),
         "",
         "![throughput](docs/bench/throughput.png)",
+        "",
+    ]
+    n_sub = cap_scene.substeps
+    lines += [
+        "### Capture scene throughput",
+        "",
+        f"`configs/capture_falling.yaml` with `--set sim.precision=float32`, as configured otherwise: "
+        f"{sum(1 for n in cap_scene.body_names if n.startswith('uav'))} quadrotors and the target (rigid bodies), "
+        f"{cap_scene.n_points} point masses (a {int(round(sum(n.startswith('net_k') for n in cap_scene.point_names) ** 0.5))}"
+        f"² -knot net, its lines' and tethers' interior masses), {cap_scene.n_springs} springs, contact, line drag. "
+        f"One env step = one control period `sim.dt` = {cap_scene.dt:g} s: the scripted team policy "
+        "(`mysim_jax.tasks.scripted.team_policy`) and the cascaded PID run once, then "
+        f"{n_sub} physics sub-steps of {cap_scene.substep:.3g} s ({cap_scene.integrator}, `substeps: auto`). "
+        f"One call = `jax.jit(jax.vmap(run_env, in_axes=(None, 0)))(params, states)` with `run_env` one "
+        f"`mysim_jax.sim.rollout(scene, params, state, K, K, policy)` of K = {cfg.capture_steps} env steps "
+        f"(a short rollout from the start: the target is still falling and the net is not yet hit; "
+        f"B·K = {CAPTURE_BATCH * cfg.capture_steps:,} env steps per call), the B states the single-env start "
+        "state broadcast. Timed round-robin with the rope-net rows above, median of the same rounds.",
+        "",
+        "| scene | batch B | K env steps/call | env-steps/s | physics sub-steps/s | median call [s] | spread | "
+        "compile [s] | memory/env [KiB] |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+        f"| capture_falling | {CAPTURE_BATCH} | {cap_row.n_steps} | {cap_row.env_steps_per_s:,.0f} | "
+        f"{cap_row.env_steps_per_s * n_sub:,.0f} | {median(cap_row.times):.3f} | {spread(cap_row.times)} | "
+        f"{cap_row.compile_s:.2f} | {cap_row.bytes_per_env / 1024:.1f} |",
+        f"| rope_net (row B = 1024 above) | 1024 | {rows[2].n_steps} | {rows[2].env_steps_per_s:,.0f} | "
+        f"{rows[2].env_steps_per_s:,.0f} | {median(rows[2].times):.3f} | {spread(rows[2].times)} | "
+        f"{rows[2].compile_s:.2f} | {rows[2].bytes_per_env / 1024:.2f} |",
+        "",
+        f"In simulated time: {cap_row.env_steps_per_s * cap_scene.dt:,.1f} simulated seconds per wall second over the "
+        f"batch, i.e. {cap_row.env_steps_per_s * cap_scene.dt / CAPTURE_BATCH:.2e} per env.",
         "",
     ]
     return lines
@@ -525,11 +585,12 @@ class Method:
     precision: str                     # float64 / float32
     max_steps: int | None = None       # cap for adaptive solvers (diffrax max_steps)
     note: str = ""
+    step: float | None = None          # fixed-step integrators: the (sub-)step h [s]
 
 
 def point_coordinate(point: str, axis: int) -> Callable:
     """Quantity: one coordinate of one point mass over time, ``(n_out,)``."""
-    def quantity(scene, point_pos: np.ndarray) -> np.ndarray:
+    def quantity(scene, point_pos: np.ndarray, body_pos: np.ndarray) -> np.ndarray:
         return point_pos[:, scene.point_names.index(point), axis]
     return quantity
 
@@ -540,7 +601,15 @@ class AccuracyCase:
 
     ``overrides`` apply to every run of the scene; ``reference`` is added on top for the
     reference solution; every entry of ``methods`` is added on top for the compared runs.
-    ``quantity(scene, point_pos (n_out, n_points, 3)) -> (n_out,)`` is what is compared.
+    ``quantity(scene, point_pos (n_out, n_points, 3), body_pos (n_out, n_bodies, 3))`` is
+    what is compared: ``(n_out, ...)`` coordinates whose largest absolute difference is the
+    error, or, with ``vector``, ``(n_out, k, 3)`` positions whose largest distance is.
+    ``extra`` adds more such ``(label, quantity)`` errors as table columns.
+
+    ``policy(config, scene)`` gives the control policy of every step (the same for every
+    method; e.g. :func:`mysim_jax.tasks.scripted.team_policy`). ``reference_check`` is a
+    second tight setting run like the reference; its distance to the reference is reported
+    so that the reference's own error is known.
     """
 
     name: str
@@ -554,6 +623,14 @@ class AccuracyCase:
                                   "sim.precision=float64")
     methods: tuple[Method, ...] = ()
     drift_tolerance: float | None = None           # report when the error first exceeds it
+    tolerances: tuple[float, ...] = ()             # for tolerance_highlights
+    policy: Callable | None = None                 # (config, scene) -> policy for rollout
+    vector: bool = False
+    extra: tuple[tuple[str, Callable], ...] = ()
+    reference_check: tuple[str, ...] = ()
+    notes: tuple[str, ...] = ()                    # paragraphs printed above the table
+    order_note: bool = False                       # report the observed order of the fixed-step methods
+    highlights: Callable | None = None             # (case, rows) -> markdown lines under the table
 
 
 def fixed_step_methods(integrator: str, dts, precisions) -> list[Method]:
@@ -561,7 +638,19 @@ def fixed_step_methods(integrator: str, dts, precisions) -> list[Method]:
     for dt in dts:
         for prec in precisions:
             out.append(Method(integrator, f"dt = {dt:.0e}", (f"sim.integrator={integrator}", f"sim.dt={dt:g}",
-                                                           "sim.substeps=1"), prec))
+                                                           "sim.substeps=1"), prec, step=dt))
+    return out
+
+
+def substep_methods(integrator: str, env_dt: float, substeps, precisions) -> list[Method]:
+    """Fixed-step runs that keep the env step ``sim.dt`` (the control period) and vary the
+    physics sub-step ``h = env_dt / substeps``."""
+    out = []
+    for n in substeps:
+        for prec in precisions:
+            h = env_dt / n
+            out.append(Method(integrator, f"h = {h:.2e} ({n} sub-steps)",
+                              (f"sim.integrator={integrator}", f"sim.substeps={n}"), prec, step=h))
     return out
 
 
@@ -600,9 +689,22 @@ def default_methods(quick: bool) -> tuple[Method, ...]:
     )
 
 
-def ball_and_payload_z(scene, point_pos: np.ndarray) -> np.ndarray:
+def ball_and_payload_z(scene, point_pos: np.ndarray, body_pos: np.ndarray) -> np.ndarray:
     """Quantity of the contact scenes: z of the ball and of the payload, ``(n_out, 2)``."""
     return point_pos[:, [scene.point_names.index("ball"), scene.point_names.index("payload")], 2]
+
+
+def target_position(scene, point_pos: np.ndarray, body_pos: np.ndarray) -> np.ndarray:
+    """Quantity of the capture scene: the target's position, ``(n_out, 1, 3)``."""
+    return body_pos[:, [scene.body_names.index("target")]]
+
+
+def target_and_knots(scene, point_pos: np.ndarray, body_pos: np.ndarray) -> np.ndarray:
+    """Quantity of the capture scene: the target's and every net knot's position,
+    ``(n_out, 1 + n_knots, 3)`` (knots are the points named ``net_k*``; the lines' interior
+    masses and the tethers' are left out)."""
+    knots = [i for i, n in enumerate(scene.point_names) if n.startswith("net_k")]
+    return np.concatenate([target_position(scene, point_pos, body_pos), point_pos[:, knots]], axis=1)
 
 
 def contact_methods(quick: bool, light: bool) -> tuple[Method, ...]:
@@ -633,6 +735,71 @@ def contact_methods(quick: bool, light: bool) -> tuple[Method, ...]:
     )
 
 
+def slack_methods(quick: bool) -> tuple[Method, ...]:
+    """The slack-rope net: fixed steps from the stability limit down (for the observed
+    order across slack-taut switches), adaptive tsit5 and one capped kvaerno5."""
+    if quick:
+        return tuple(fixed_step_methods("semi_implicit_euler", (1e-4,), ("float64",))
+                     + fixed_step_methods("rk4", (5e-5, 1e-4), ("float64",))
+                     + adaptive_methods("tsit5", (1e-8,), "float64"))
+    return tuple(
+        fixed_step_methods("semi_implicit_euler", (5e-6, 2e-5, 5e-5, 1e-4, 2e-4), ("float64",))
+        + fixed_step_methods("semi_implicit_euler", (2e-5, 1e-4), ("float32",))
+        + fixed_step_methods("rk4", (5e-6, 2e-5, 5e-5, 1e-4, 2e-4), ("float64",))
+        + fixed_step_methods("rk4", (2e-5, 1e-4), ("float32",))
+        + adaptive_methods("tsit5", (1e-6, 1e-8, 1e-10), "float64")
+        + adaptive_methods("tsit5", (1e-5,), "float32", max_steps=200_000, atol=1e-5)
+        + adaptive_methods("kvaerno5", (1e-4,), "float64", max_steps=60_000, note="max_steps capped at 60,000")
+    )
+
+
+# The capture scene's target spawn is drawn from a PRNG key, and the draw differs between
+# float32 and float64: the accuracy runs fix it (to the float32 draw of the scene's seed,
+# rounded) so that every method starts from the same state.
+CAPTURE_SPAWN = ("target.spawn.position.low=[1.03,-0.95,6.23]", "target.spawn.position.high=[1.03,-0.95,6.23]",
+                 "target.spawn.velocity.low=[-0.3,-0.29,0.29]", "target.spawn.velocity.high=[-0.3,-0.29,0.29]")
+CAPTURE_DT = 2e-3        # the capture scene's env step (control period), kept for every method
+TSIT5_CAPTURE: list[Method] = []   # tsit5 rtol 1e-6 per control period: > 5 min for 1.6 s, not run
+
+
+def capture_methods(quick: bool) -> tuple[Method, ...]:
+    """The capture scene: sub-steps of the fixed 2 ms control period from the stability
+    limit (semi-implicit Euler 51, RK4 26; below that the builder rejects) down, and
+    adaptive tsit5 on each control period."""
+    if quick:
+        return tuple(substep_methods("semi_implicit_euler", CAPTURE_DT, (51,), ("float32",)))
+    return tuple(
+        substep_methods("semi_implicit_euler", CAPTURE_DT, (40,), ("float64",))
+        + substep_methods("semi_implicit_euler", CAPTURE_DT, (51,), ("float64", "float32"))
+        + substep_methods("semi_implicit_euler", CAPTURE_DT, (102, 204), ("float64",))
+        + substep_methods("rk4", CAPTURE_DT, (20,), ("float64",))
+        + substep_methods("rk4", CAPTURE_DT, (26,), ("float64", "float32"))
+        + substep_methods("rk4", CAPTURE_DT, (52, 104), ("float64",))
+        + TSIT5_CAPTURE
+    )
+
+
+def tolerance_highlights(case: AccuracyCase, rows: list[AccuracyRow]) -> list[str]:
+    """The cheapest run within each of ``case.tolerances``, for the main error and each
+    ``case.extra`` error."""
+    ok = [r for r in rows if r.status == "ok"]
+    out = []
+    measures = [(case.quantity_label.split(" [")[0], lambda r: r.error)] + [
+        (label, (lambda i: lambda r: r.extra_errors[i])(i)) for i, (label, _) in enumerate(case.extra)]
+    for label, error in measures:
+        for tol in case.tolerances:
+            cands = sorted((r for r in ok if error(r) <= tol), key=lambda r: r.wall_per_sim_s)
+            if cands:
+                r = cands[0]
+                out.append(f"- cheapest run with {label} within {tol:g} m: **{r.method.integrator} {r.method.setting} "
+                           f"{r.method.precision}** ({error(r):.1e} m, {r.wall_per_sim_s:.3f} s per simulated s)")
+            else:
+                out.append(f"- no run has {label} within {tol:g} m")
+    out += [f"- {r.method.integrator} {r.method.setting} {r.method.precision}: {r.status}" for r in rows
+            if r.status != "ok"]
+    return out + [""]
+
+
 def accuracy_cases(quick: bool) -> list[AccuracyCase]:
     """The scenes of part (d). Issue #3 adds contact scenes here."""
     return [
@@ -643,6 +810,25 @@ def accuracy_cases(quick: bool) -> list[AccuracyCase]:
             quantity=point_coordinate("payload", 2),
             t_end=2.0,
             methods=default_methods(quick),
+            order_note=True,
+        ),
+        AccuracyCase(
+            name="rope_net_slack",
+            config=ROPE_NET_SLACK,
+            quantity_label="payload position [m]",
+            quantity=lambda scene, point_pos, body_pos: point_pos[:, [scene.point_names.index("payload")]],
+            vector=True,
+            t_end=2.0,
+            reference_check=("sim.integrator=tsit5", "sim.rtol=1e-12", "sim.atol=1e-14", "sim.precision=float64"),
+            methods=slack_methods(quick),
+            order_note=True,
+            tolerances=(1e-2, 1e-3, 1e-4, 1e-6),
+            highlights=tolerance_highlights,
+            notes=("`model: tension_only` ropes whose anchors are 0.71 m from the payload (rope length 1 m): "
+                   "they start slack, the payload falls about 0.6 m, the ropes snap taut and it bounces; over 2 s "
+                   "the 24 rope segments switch between slack and taut about 360 times (tsit5 reference). At "
+                   "every switch the force has a kink (spring) and a jump (the damper, 50 N s/m, switches on "
+                   "at once).",),
         ),
     ] + [
         AccuracyCase(
@@ -656,8 +842,38 @@ def accuracy_cases(quick: bool) -> list[AccuracyCase]:
                        "sim.max_steps=3000000"),
             methods=contact_methods(quick, light=config is COLLISION_LIGHT),
             drift_tolerance=2e-3,
+            notes=("Friction is off in every run (`contact.friction=null`; on the scene's symmetry axis the slip is "
+                   "zero anyway).",),
         )
         for config in ((COLLISION_LIGHT,) if quick else (COLLISION_LIGHT, COLLISION_HEAVY))   # quick: a smoke test
+    ] + [
+        AccuracyCase(
+            name="capture_falling",
+            config=CAPTURE_FALLING,
+            quantity_label="target and net-knot positions [m]",
+            quantity=target_and_knots,
+            vector=True,
+            extra=(("target", target_position),),
+            t_end=1.6,
+            reference_dt=1e-2,
+            overrides=CAPTURE_SPAWN,
+            reference=("sim.integrator=rk4", f"sim.substeps={52 if quick else 400}", "sim.precision=float64"),
+            reference_check=() if quick else ("sim.integrator=rk4", "sim.substeps=200", "sim.precision=float64"),
+            methods=capture_methods(quick),
+            policy=team_policy,
+            drift_tolerance=1e-2,
+            order_note=True,
+            tolerances=(1e-2, 1e-3),
+            highlights=tolerance_highlights,
+            notes=("Closed loop: every method runs the scene's scripted team policy "
+                   "(`mysim_jax.tasks.scripted.team_policy`) and cascaded PID once per 2 ms control period "
+                   "(`sim.dt` is kept; the methods differ in `sim.substeps` or, for tsit5, in one adaptive diffrax "
+                   "solve per control period). The target falls from 6.2 m, hits the net at about 1.2 s and "
+                   "sinks into it; tethers and net lines are tension-only, so they switch between slack and taut "
+                   "all along. The error is over the target and the 121 net knots (3-D distance); the target alone "
+                   "is the second error column. The target's spawn is fixed (`target.spawn` low = high) so that "
+                   "float32 and float64 runs start alike.",),
+        ),
     ]
 
 
@@ -675,52 +891,79 @@ def precision_mode(precision: str):
             yield
 
 
-def reference_solution(case: AccuracyCase):
-    """``(times, point_pos (n_out, n_points, 3), scene, wall_s)`` of the case's reference run."""
-    if case.name in _REFERENCE_CACHE:
-        return _REFERENCE_CACHE[case.name]
-    overrides = list(case.overrides) + list(case.reference) + [f"sim.t_end={case.t_end:g}",
-                                                               f"sim.output_dt={case.reference_dt:g}"]
+def _case_run(case: AccuracyCase, overrides: list[str]):
+    """Build the case's scene with ``overrides`` on top of its own and compile its run:
+    ``(scene, run)``. Raises ConfigError for a setting the config or builder rejects."""
+    config = load_config(case.config, list(case.overrides) + overrides)
+    scene, params, state = build(config)
+    policy = None if case.policy is None else case.policy(config, scene)
+    return scene, _compile_run(scene, params, state, config.run_settings(), policy)
+
+
+def reference_solution(case: AccuracyCase, settings: tuple[str, ...] | None = None):
+    """``(times, (point_pos (n_out, n_points, 3), body_pos (n_out, n_bodies, 3)), scene,
+    wall_s)`` of the case's reference run (or of another float64 ``settings`` on the
+    reference grid)."""
+    key = (case.name, settings)
+    if key in _REFERENCE_CACHE:
+        return _REFERENCE_CACHE[key]
+    overrides = list(case.reference if settings is None else settings) + [
+        f"sim.t_end={case.t_end:g}", f"sim.output_dt={case.reference_dt:g}"]
     with precision_mode("float64"):
-        scene, params, state = build(load_config(case.config, overrides))
-        run = _compile_run(scene, params, state)
+        scene, run = _case_run(case, overrides)
         t0 = time.perf_counter()
-        pos = np.asarray(run.call())
+        pos = tuple(np.asarray(x) for x in jax.block_until_ready(run.call()))
         wall = time.perf_counter() - t0
-    out = (output_times(scene), pos, scene, wall)
-    _REFERENCE_CACHE[case.name] = out
+    out = (run.times, pos, scene, wall)
+    _REFERENCE_CACHE[key] = out
     return out
+
+
+def case_error(case: AccuracyCase, quantity: Callable, scene, pos, ref_q, idx=None) -> np.ndarray:
+    """Error of ``quantity`` against its reference values ``ref_q`` at every output time
+    ``(n_out,)``: the largest absolute coordinate difference, or with ``case.vector`` the
+    largest distance. ``idx`` picks the reference rows of the output times."""
+    q = quantity(scene, *(np.asarray(x, dtype=np.float64) for x in pos))
+    diff = q - (ref_q if idx is None else ref_q[idx])
+    err = np.linalg.norm(diff, axis=-1) if case.vector else np.abs(diff)
+    return err.reshape(len(err), -1).max(axis=1)
 
 
 @dataclass
 class _Run:
-    call: Callable[[], Any]        # returns point_pos on the output grid (n_out, n_points, 3)
+    call: Callable[[], Any]        # returns (point_pos (n_out, n_points, 3), body_pos (n_out, n_bodies, 3))
     times: np.ndarray
     compile_s: float
 
 
-def _compile_run(scene, params, state) -> _Run:
+def _compile_run(scene, params, state, run_settings, policy=None) -> _Run:
     """AOT-compile the whole run of a scene to ``t_end`` on its output grid (one env).
 
-    Fixed-step: one ``rollout`` scan saving every ``output_dt``; adaptive: the library's
-    ``solve_adaptive`` saving at the grid — the same computations ``mysim_jax.sim.simulate``
-    does (with its ``single_env_scene``), minus its host-side chunking and the acceleration pass.
+    Stepped (fixed-step integrators, and every scene with quadrotors or effects, whose
+    controller and effect updates act once per env step ``dt``): one ``rollout`` scan saving
+    every ``output_dt``, asking ``policy`` (if given) for the control of every step; an
+    adaptive integrator then solves each env step with diffrax. Otherwise adaptive: the
+    library's ``solve_adaptive`` over the whole run, saving at the grid. These are the
+    computations ``mysim_jax.sim.simulate`` does (with its ``single_env_scene``), minus its
+    host-side chunking and the acceleration pass.
     """
     scene = single_env_scene(scene)
-    times = output_times(scene)
-    if scene.integrator in ("semi_implicit_euler", "rk4"):
-        every = int(round(scene.output_dt / scene.dt))
+    times = output_times(run_settings)
+    if scene.integrator in FIXED_STEP or scene.quadrotor is not None or scene.effects:
+        every = steps_per_output(scene, run_settings)
         n_steps = (len(times) - 1) * every
 
         def run(p, s):
-            _, traj = rollout(scene, p, s, n_steps, every)
-            return jnp.concatenate([s.phys.point_pos[None], traj.phys.point_pos], axis=0)
+            _, traj = rollout(scene, p, s, n_steps, every, policy)
+            return (jnp.concatenate([s.phys.point_pos[None], traj.phys.point_pos], axis=0),
+                    jnp.concatenate([s.phys.body_pos[None], traj.phys.body_pos], axis=0))
         args = (params, state)
     else:
         ts = jnp.asarray(times, dtype=scene.dtype)
 
         def run(p, y):
-            return solve_adaptive(scene, p, y, ts[0], ts[-1], ts).point_pos
+            ys = solve_adaptive(scene, p, y, ts[0], ts[-1], ts)
+            return ys.point_pos, ys.body_pos
         args = (params, state.phys)
     t0 = time.perf_counter()
     compiled = jax.jit(run).lower(*args).compile()
@@ -742,15 +985,16 @@ def section_c(cfg, results) -> list[str]:
 
     case = accuracy_cases(cfg.quick)[0]
     bar = tqdm(total=5 + 2 * cfg.repeats, desc="(c) MuJoCo", leave=False)
-    ref_times, ref_pos, ref_scene, _ = reference_solution(case)
+    ref_times, (ref_pos, _), ref_scene, _ = reference_solution(case)
     bar.update(1)
     payload = ref_scene.point_names.index("payload")
     h = 1e-4
     overrides = ["sim.integrator=semi_implicit_euler", "sim.precision=float64", f"sim.dt={h:g}", "sim.substeps=1",
                  f"sim.t_end={case.t_end:g}", f"sim.output_dt={case.reference_dt:g}"]
     with precision_mode("float64"):
-        scene, params, state = build(load_config(ROPE_NET, overrides))
-        ours_pos = np.asarray(_compile_run(scene, params, state).call())
+        config = load_config(ROPE_NET, overrides)
+        scene, params, state = build(config)
+        ours_pos = np.asarray(_compile_run(scene, params, state, config.run_settings()).call()[0])
         xml = scene_to_mjcf(scene, params, state, h)
     bar.update(1)
     model = mujoco.MjModel.from_xml_string(xml)
@@ -848,11 +1092,13 @@ class AccuracyRow:
     compile_s: float = float("nan")
     n_repeats: int = 0
     drift_time: float | None = None  # first output time with error > case.drift_tolerance (None: never)
+    extra_errors: tuple[float, ...] = ()   # errors of case.extra, in order
 
 
-def run_method(case: AccuracyCase, method: Method, ref_times, ref_q, cfg) -> AccuracyRow:
-    """Run one integrator setting; error of the case's quantity against the reference."""
-    overrides = list(case.overrides) + list(method.overrides) + [f"sim.precision={method.precision}"]
+def run_method(case: AccuracyCase, method: Method, ref_qs, cfg) -> AccuracyRow:
+    """Run one integrator setting; error of the case's quantity (and of ``case.extra``)
+    against the reference values ``ref_qs`` (the same order) on the reference grid."""
+    overrides = list(method.overrides) + [f"sim.precision={method.precision}"]
     # the output grid must hold whole steps and land on the reference grid; the run ends on
     # the last output at or before case.t_end (t_end must be a whole multiple of output_dt)
     dt = float(next((o.split("=", 1)[1] for o in method.overrides if o.startswith("sim.dt=")), case.reference_dt))
@@ -865,13 +1111,12 @@ def run_method(case: AccuracyCase, method: Method, ref_times, ref_q, cfg) -> Acc
         overrides.append(f"sim.max_steps={method.max_steps}")
     with precision_mode(method.precision):
         try:
-            scene, params, state = build(load_config(case.config, overrides))
+            scene, run = _case_run(case, overrides)
         except ConfigError as err:
             if "stability limit" in str(err):
                 return AccuracyRow(case.name, method, "unstable (rejected)")
             return AccuracyRow(case.name, method, f"config error: {str(err).splitlines()[0]}")
         try:
-            run = _compile_run(scene, params, state)
             # timed calls until `accuracy_repeats` quiet ones (others < QUIET_SHARE of the
             # machine) or the time budget is spent; expensive runs are timed once
             walls, quiet, shares, pos = [], [], [], None
@@ -884,7 +1129,7 @@ def run_method(case: AccuracyCase, method: Method, ref_times, ref_q, cfg) -> Acc
                 if not shares[-1] >= QUIET_SHARE:
                     quiet.append(walls[-1])
                 if pos is None:
-                    pos = np.asarray(out)
+                    pos = tuple(np.asarray(x) for x in out)
                 if (len(quiet) >= cfg.accuracy_repeats or sum(walls) > cfg.accuracy_time_budget
                         or len(walls) >= 3 * cfg.accuracy_repeats):
                     break
@@ -897,18 +1142,18 @@ def run_method(case: AccuracyCase, method: Method, ref_times, ref_q, cfg) -> Acc
                 msg = f"did not finish: hit max_steps = {method.max_steps}"
             return AccuracyRow(case.name, method, msg[:120])
     idx = np.rint(run.times / case.reference_dt).astype(int)
-    q = case.quantity(scene, pos.astype(np.float64))
-    if not np.all(np.isfinite(q)):
+    quantities = [case.quantity] + [q for _, q in case.extra]
+    errs = [case_error(case, q, scene, pos, ref_q, idx) for q, ref_q in zip(quantities, ref_qs)]
+    if not all(np.all(np.isfinite(e)) for e in errs):
         return AccuracyRow(case.name, method, "diverged (non-finite)", compile_s=run.compile_s)
-    err_t = np.abs(q - ref_q[idx])
-    err_t = err_t.reshape(len(err_t), -1).max(axis=1)
+    err_t = errs[0]
     err = float(err_t.max())
     drift = None
     if case.drift_tolerance is not None and err > case.drift_tolerance:
         drift = float(run.times[np.argmax(err_t > case.drift_tolerance)])
     status = "ok" if err < 1.0 else "diverged"
     return AccuracyRow(case.name, method, status, err, median(walls) / float(run.times[-1]), run.compile_s, len(walls),
-                       drift)
+                       drift, tuple(float(e.max()) for e in errs[1:]))
 
 
 def adaptive_stats(case: AccuracyCase, method: Method, t_stats: float):
@@ -956,26 +1201,30 @@ def section_d(cfg, results) -> list[str]:
             continue
         bar = tqdm(total=1 + len(case.methods), desc=f"(d) accuracy {case.name}", leave=False)
         ref_times, ref_pos, ref_scene, ref_wall = reference_solution(case)
-        ref_q = case.quantity(ref_scene, ref_pos)
+        ref_qs = [q(ref_scene, *ref_pos) for q in [case.quantity] + [q for _, q in case.extra]]
         bar.update(1)
         rows = []
         for method in case.methods:
             bar.set_postfix_str(f"{method.integrator} {method.setting} {method.precision}")
-            rows.append(run_method(case, method, ref_times, ref_q, cfg))
+            rows.append(run_method(case, method, ref_qs, cfg))
             bar.update(1)
         bar.close()
         all_rows += rows
         plot = plot_accuracy(case, rows, cfg.plots_dir)
+        what = case.quantity_label.split(" [")[0]
+        measure = (f"the 3-D distance |{what} − reference| (the largest over the points)" if case.vector
+                   else f"|{what} − reference|")
         lines += [
             f"### {case.name}: {case.quantity_label}",
             "",
-            f"Reference: `{case.config.relative_to(ROOT)}` with `{' '.join(case.reference)}` "
-            f"(its wall time {ref_wall:.1f} s). Error = max over the output grid of |{case.quantity_label.split(' [')[0]} − "
-            f"reference| over the output grid up to {case.t_end:g} s (grid {case.reference_dt:g} s; for steps that do not "
+            f"Reference: `{case.config.relative_to(ROOT)}` with `{' '.join(case.overrides + case.reference)}` "
+            f"(its wall time {ref_wall:.1f} s). Error = max over the output grid of {measure} "
+            f"up to {case.t_end:g} s (grid {case.reference_dt:g} s; for steps that do not "
             f"divide {case.reference_dt:g} s, the nearest common multiple, e.g. 3 ms for dt = 3e-4, and the run ends at "
             f"the last output at or before {case.t_end:g} s). "
             "Cost = wall time per simulated second of one env: the whole run AOT-compiled with `jax.jit` "
-            "(fixed-step: one `mysim_jax.sim.rollout` scan saving every output step; adaptive: "
+            "(stepped — fixed-step integrators, and scenes with quadrotors or effects, whose controller acts once per "
+            "env step: one `mysim_jax.sim.rollout` scan saving every output step; otherwise adaptive: "
             "`mysim_jax.sim.solve_adaptive` saving at the grid), timed after compilation, median of up to "
             f"{cfg.accuracy_repeats} runs while other processes used < {100 * QUIET_SHARE:.0f}% of the machine "
             f"(at most {3 * cfg.accuracy_repeats} runs and {cfg.accuracy_time_budget:g} s per row, so long runs are "
@@ -984,25 +1233,42 @@ def section_d(cfg, results) -> list[str]:
             "host-side chunking and acceleration pass, and with compilation timed apart. Adaptive tolerances use atol = rtol / 100 unless the setting names atol.",
             "",
         ]
+        lines += [x for note in case.notes for x in (note, "")]
+        if case.reference_check:
+            chk_times, chk_pos, chk_scene, chk_wall = reference_solution(case, case.reference_check)
+            agree = [case_error(case, q, chk_scene, chk_pos, rq).max()
+                     for q, rq in zip([case.quantity] + [q for _, q in case.extra], ref_qs)]
+            results.setdefault("reference_check", {})[case.name] = agree
+            lines += [
+                f"The reference's own error: a second tight setting, `{' '.join(case.reference_check)}` (wall time "
+                f"{chk_wall:.1f} s), is {agree[0]:.1e} m from it ("
+                + ", ".join([f"{what}"] + [label for label, _ in case.extra])
+                + (": " + ", ".join(f"{a:.1e} m" for a in agree) if case.extra else "")
+                + "); errors well above this are errors of the compared method.",
+                "",
+            ]
         tol = case.drift_tolerance
+        extra_head = "".join(f" max error, {label} [m] |" for label, _ in case.extra)
+        extra_align = "---:|" * len(case.extra)
         if tol is not None:
             lines += [
-                f"Friction is off in every run (`{' '.join(case.overrides)}`; on the scene's symmetry axis the slip is "
-                f"zero anyway). *Drifts past {tol:g} m at* = first output time at which ball or payload z is more "
-                f"than {tol:g} m from the reference (— : never within {case.t_end:g} s).",
+                f"*Drifts past {tol:g} m at* = first output time at which the error is more than {tol:g} m "
+                f"(— : never within {case.t_end:g} s).",
                 "",
-                f"| integrator | setting | precision | max error [m] | drifts past {tol:g} m at [s] | "
+                f"| integrator | setting | precision | max error [m] |{extra_head} drifts past {tol:g} m at [s] | "
                 "wall s / simulated s | compile [s] | status |",
-                "|---|---|---|---:|---:|---:|---:|---|",
+                f"|---|---|---|---:|{extra_align}---:|---:|---:|---|",
             ]
         else:
             lines += [
-                "| integrator | setting | precision | max error [m] | wall s / simulated s | compile [s] | status |",
-                "|---|---|---|---:|---:|---:|---|",
+                f"| integrator | setting | precision | max error [m] |{extra_head} wall s / simulated s | compile [s] | "
+                "status |",
+                f"|---|---|---|---:|{extra_align}---:|---:|---|",
             ]
         for r in rows:
             m = r.method
             err = f"{r.error:.3e}" if np.isfinite(r.error) else "—"
+            err += "".join(f" | {e:.3e}" for e in r.extra_errors) if r.extra_errors else " | —" * len(case.extra)
             wall = f"{r.wall_per_sim_s:.3f}" if np.isfinite(r.wall_per_sim_s) else "—"
             comp = f"{r.compile_s:.1f}" if np.isfinite(r.compile_s) else "—"
             status = r.status + (f" ({m.note})" if m.note and r.status == "ok" else "")
@@ -1015,7 +1281,14 @@ def section_d(cfg, results) -> list[str]:
             else:
                 lines.append(f"| {m.integrator} | {m.setting} | {m.precision} | {err} | {wall} | {comp} | {status} |")
         lines += ["", f"![accuracy {case.name}](docs/bench/{plot.name})", ""]
-        lines += accuracy_highlights(rows) if tol is None else contact_highlights(case, rows)
+        if case.highlights is not None:
+            lines += case.highlights(case, rows)
+        else:
+            lines += accuracy_highlights(rows) if tol is None else contact_highlights(case, rows)
+        if case.order_note:
+            orders = observed_orders(rows)
+            results.setdefault("orders", {})[case.name] = orders
+            lines += order_lines(case, orders)
         adaptive = [m for m in case.methods if m.integrator in ("tsit5", "kvaerno5")]
         if adaptive:
             t_stats = 0.25
@@ -1087,6 +1360,36 @@ def contact_highlights(case: AccuracyCase, rows: list[AccuracyRow]) -> list[str]
     for r in rows:
         if r.status != "ok":
             out.append(f"- {name(r)}: {r.status}")
+    return out + [""]
+
+
+def observed_orders(rows: list[AccuracyRow]) -> dict[tuple[str, str], dict]:
+    """Observed order p of each fixed-step integrator and precision (error ∝ h^p): the
+    least-squares slope of log(error) against log(h) over its stable runs, and the slope
+    between each pair of neighbouring steps."""
+    out = {}
+    for integ in FIXED_STEP:
+        for prec in ("float64", "float32"):
+            pts = sorted((r.method.step, r.error) for r in rows if r.method.integrator == integ
+                         and r.method.precision == prec and r.status == "ok" and r.method.step and r.error > 0)
+            if len(pts) < 2:
+                continue
+            h, e = np.log(np.array(pts)).T
+            pair = [float((e[i + 1] - e[i]) / (h[i + 1] - h[i])) for i in range(len(pts) - 1)]
+            out[(integ, prec)] = {"slope": float(np.polyfit(h, e, 1)[0]), "pairs": pair,
+                                  "steps": [x for x, _ in pts], "errors": [y for _, y in pts]}
+    return out
+
+
+def order_lines(case: AccuracyCase, orders: dict) -> list[str]:
+    if not orders:
+        return []
+    out = [f"Observed order on {case.name} (error ∝ h^p; least-squares slope of log error against log h over the "
+           "stable runs, and the slope between neighbouring steps):", ""]
+    for (integ, prec), o in orders.items():
+        steps = ", ".join(f"{h:.2g}" for h in o["steps"])
+        pairs = ", ".join(f"{x:.2f}" for x in o["pairs"])
+        out.append(f"- {integ} {prec}: **p = {o['slope']:.2f}** (h = {steps} s; neighbouring slopes {pairs})")
     return out + [""]
 
 
@@ -1509,6 +1812,27 @@ def summary_lines(results) -> list[str]:
                          + ("" if closest.drift_time is None else f" (past 2e-3 m at {closest.drift_time:.2f} s)")
                          + f", {closest.wall_per_sim_s:.2f} s/sim-s")
             out.append(line + ".")
+    if "capture_throughput" in results:
+        row, n_sub = results["capture_throughput"]
+        out.append(f"- Capture scene (a), float32, B = {row.batch}, scripted team policy: "
+                   f"**{row.env_steps_per_s:,.0f} env-steps/s** (2 ms control periods) = "
+                   f"{row.env_steps_per_s * n_sub:,.0f} physics sub-steps/s ({n_sub} sub-steps each).")
+    for case, orders in results.get("orders", {}).items():
+        parts = [f"{integ} {prec} p = {o['slope']:.2f}" for (integ, prec), o in orders.items() if prec == "float64"]
+        if parts:
+            out.append(f"- Observed order (d), {case}: " + ", ".join(parts) + ".")
+    for case in ("rope_net_slack", "capture_falling"):
+        crows = [r for r in results.get("d", []) if r.case == case and r.status == "ok"]
+        if not crows:
+            continue
+        tol = 1e-2 if case == "capture_falling" else 1e-3
+        err = (lambda r: r.extra_errors[0]) if case == "capture_falling" else (lambda r: r.error)
+        what = "target position" if case == "capture_falling" else "payload position"
+        best = sorted((r for r in crows if err(r) <= tol), key=lambda r: r.wall_per_sim_s)
+        if best:
+            r = best[0]
+            out.append(f"- Accuracy (d), {case}: cheapest run with the {what} within {tol:g} m: {r.method.integrator} "
+                       f"{r.method.setting} {r.method.precision} ({err(r):.1e} m, {r.wall_per_sim_s:.2f} s/sim-s).")
     if "f" in results and "slices_matmul" in results["f"]:
         f = results["f"]
         if "library_index" in f:
@@ -1536,6 +1860,7 @@ class BenchConfig:
     accuracy_time_budget: float
     max_wait_s: float = 60.0
     cases: tuple[str, ...] = ()       # (d): only these accuracy cases (empty: all)
+    capture_steps: int = 2            # (a): env steps per call of the capture-scene rollout
 
 
 def main(argv=None) -> int:
@@ -1546,7 +1871,7 @@ def main(argv=None) -> int:
     parser.add_argument("--out", default=None, help="markdown file to write (default BENCHMARKS.md for a full run, "
                         "docs/bench/partial/BENCHMARKS.md with --quick/--only)")
     parser.add_argument("--cases", default="", help="section (d) only: comma-separated accuracy cases to run "
-                        "(rope_net, collision_light, collision_heavy; default: all)")
+                        "(rope_net, rope_net_slack, collision_light, collision_heavy, capture_falling; default: all)")
     args = parser.parse_args(argv)
     sections = tuple(s.strip().lower() for s in args.only.split(",") if s.strip())
     unknown = [s for s in sections if s not in SECTIONS]
@@ -1575,6 +1900,7 @@ def main(argv=None) -> int:
         accuracy_time_budget=5.0 if args.quick else 10.0,
         max_wait_s=15.0 if args.quick else 60.0,
         cases=cases,
+        capture_steps=1 if args.quick else 2,
     )
 
     started = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
