@@ -19,6 +19,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.animation import FuncAnimation, PillowWriter  # noqa: E402
+from matplotlib.collections import LineCollection  # noqa: E402
 
 COLORS = plt.rcParams["axes.prop_cycle"].by_key()["color"]
 
@@ -102,8 +103,9 @@ def plot_capture(columns, config, out_dir, tensions=None, distances=None) -> lis
     return paths
 
 
-def animate_capture(columns, config, path, max_frames: int = 120, fps: int = 20) -> Path:
-    """Write a GIF of the capture (top and side views side by side)."""
+def animate_capture(columns, config, path, max_frames: int = 90, fps: int = 15) -> Path:
+    """Write a GIF of the capture (top and side views side by side). The artists are made
+    once and updated per frame (the net's lines as one LineCollection per view)."""
     lines = net_lines(columns, config)
     time = columns["time"]
     rows = np.unique(np.linspace(0, len(time) - 1, min(max_frames, len(time))).round().astype(int))
@@ -111,29 +113,37 @@ def animate_capture(columns, config, path, max_frames: int = 120, fps: int = 20)
                                 + [_xyz(columns, q.body) for q in config.quadrotors]
                                 + [_xyz(columns, config.target.name)], axis=0)
     lo, hi = everything.min(axis=0) - 0.3, everything.max(axis=0) + 0.3
+    uavs = [_xyz(columns, q.body) for q in config.quadrotors]
+    target = _xyz(columns, config.target.name)
     fig, (top, side) = plt.subplots(1, 2, figsize=(10, 4.6))
+    views = []
+    for ax, (a, b) in ((top, (0, 1)), (side, (0, 2))):
+        net = LineCollection([], colors="0.55", linewidths=0.6)
+        ax.add_collection(net)
+        paths = [ax.plot([], [], color=COLORS[n % len(COLORS)], lw=0.8)[0] for n in range(len(uavs))]
+        dots = [ax.plot([], [], "o", color=COLORS[n % len(COLORS)], ms=6)[0] for n in range(len(uavs))]
+        t_path = ax.plot([], [], "k--", lw=0.8)[0]
+        ball = plt.Circle((0.0, 0.0), config.target.radius, color="k")
+        ax.add_patch(ball)
+        ax.set_xlim(lo[a], hi[a])
+        ax.set_ylim(lo[b], hi[b])
+        ax.set_aspect("equal")
+        ax.set_xlabel("xyz"[a] + " [m]")
+        ax.set_ylabel("xyz"[b] + " [m]")
+        views.append((a, b, net, paths, dots, t_path, ball))
+    side.set_title("side")
+    fig.tight_layout()
 
     def draw(k):
         row = rows[k]
-        for ax, axes in ((top, (0, 1)), (side, (0, 2))):
-            ax.clear()
-            a, b = axes
-            for line in lines:
-                ax.plot(line[row, :, a], line[row, :, b], color="0.55", lw=0.6)
-            for n, q in enumerate(config.quadrotors):
-                p = _xyz(columns, q.body)
-                ax.plot(p[: row + 1, a], p[: row + 1, b], color=COLORS[n % len(COLORS)], lw=0.8)
-                ax.plot(p[row, a], p[row, b], "o", color=COLORS[n % len(COLORS)], ms=6)
-            t = _xyz(columns, config.target.name)
-            ax.plot(t[: row + 1, a], t[: row + 1, b], "k--", lw=0.8)
-            ax.add_patch(plt.Circle((t[row, a], t[row, b]), config.target.radius, color="k"))
-            ax.set_xlim(lo[a], hi[a])
-            ax.set_ylim(lo[b], hi[b])
-            ax.set_aspect("equal")
-            ax.set_xlabel("xyz"[a] + " [m]")
-            ax.set_ylabel("xyz"[b] + " [m]")
+        for a, b, net, paths, dots, t_path, ball in views:
+            net.set_segments([line[row][:, [a, b]] for line in lines])
+            for p, path, dot in zip(uavs, paths, dots):
+                path.set_data(p[: row + 1, a], p[: row + 1, b])
+                dot.set_data([p[row, a]], [p[row, b]])
+            t_path.set_data(target[: row + 1, a], target[: row + 1, b])
+            ball.center = (target[row, a], target[row, b])
         top.set_title(f"top, t = {time[row]:.2f} s")
-        side.set_title("side")
         return []
 
     anim = FuncAnimation(fig, draw, frames=len(rows), blit=False)

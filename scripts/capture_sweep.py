@@ -1,0 +1,60 @@
+#!/usr/bin/env python
+"""How often does the scene's team catch the target? One batched run over many seeds.
+
+    python scripts/capture_sweep.py configs/capture_falling.yaml --seeds 24 [--set key=value ...]
+
+Prints one line per seed (caught or missed, why, the target's spawn, the lowest UAV height)
+and the catch rate with its 95 % Wilson interval. Seeds 0..N-1 draw the target's spawn as
+``target.seed = k`` would (mysim_jax/tasks/sweep.py). All seeds run as one jitted vmap
+(no progress bar inside it: on 2 CPU cores 24 seeds of the 6 s scene take about 6 min).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+
+
+def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    p = k / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return centre - half, centre + half
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("config")
+    parser.add_argument("--seeds", type=int, default=24, help="number of seeds, 0..N-1 (default 24)")
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    args = parser.parse_args(argv)
+
+    from mysim_jax.config import ConfigError, load_config
+
+    try:
+        config = load_config(args.config, args.overrides)
+        if config.net is None or config.target is None or config.team is None:
+            raise ConfigError(f"{args.config}: a capture sweep needs net:, target: and team: blocks")
+        if args.seeds < 1:
+            raise ConfigError("--seeds: at least 1")
+    except ConfigError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+
+    from mysim_jax.tasks.sweep import capture_sweep
+
+    result = capture_sweep(config, range(args.seeds))
+    for seed, o, spawn, low in zip(result.seeds, result.outcomes, result.spawn, result.min_uav_height):
+        why = "" if o.caught else " (" + ", ".join(k.replace("_", " ") for k, v in o.summary()["at_end"].items()
+                                                   if not v) + " at the end)"
+        print(f"seed {seed:3d}: {'caught' if o.caught else 'missed'}{why}; spawn "
+              f"[{spawn[0]:.2f}, {spawn[1]:.2f}, {spawn[2]:.2f}] m; lowest UAV {low:.2f} m")
+    lo, hi = wilson(result.caught, args.seeds)
+    print(f"{config.name}: caught {result.caught}/{args.seeds} ({100 * result.caught / args.seeds:.0f} %, 95 % "
+          f"interval {100 * lo:.0f}-{100 * hi:.0f} %); batched run {result.wall_s:.0f} s (compile included)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
