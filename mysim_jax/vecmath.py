@@ -1,9 +1,9 @@
 """Small 3-vector helpers, written component-wise and safe under autodiff.
 
 Arrays hold 3-vectors on their last axis (``(..., 3)``). The helpers spell out the
-three components instead of reducing over a size-3 minor axis: under ``jax.vmap`` on the
-CPU this keeps XLA's loops vectorised over the batch; on the rope-net benchmark it was
-measured 1.4x-1.7x faster across runs (BENCHMARKS.md, section f).
+three components instead of reducing over a size-3 minor axis, which keeps XLA's loops
+vectorised over the batch under ``jax.vmap``. Whether that is faster than a reduction
+depends on the host (BENCHMARKS.md, section f, times both side by side).
 """
 
 from __future__ import annotations

@@ -84,8 +84,8 @@ def take_rows(x, index):
     """``x[index]`` for a static integer ``index`` ``(k,)``, as slices when it has few runs.
 
     Under ``vmap`` XLA:CPU lowers a gather with a constant index array to a per-element
-    loop; contiguous slices and broadcasts are much cheaper (BENCHMARKS.md, section f).
-    Results are identical to ``x[index]``.
+    loop; contiguous slices and broadcasts avoid it. Which is faster depends on the host
+    (BENCHMARKS.md, section f, times both side by side). Results are identical to ``x[index]``.
     """
     index = np.asarray(index, dtype=np.int32).reshape(-1)
     runs = index_runs(index)
