@@ -308,3 +308,16 @@ def test_simulate_script_writes_the_capture_outputs_and_refuses_a_bad_tether(tmp
     assert res.returncode == 2
     assert "net.tethers.uavs.3: 'uav7' is not a quadrotor body" in res.stderr
     assert not bad.exists()
+
+
+def test_capture_sweep_draws_the_spawn_of_each_seed_as_build_does():
+    from mysim_jax.tasks.sweep import capture_sweep
+
+    cfg = load_config(FALLING, ["sim.t_end=0.2"])
+    result = capture_sweep(cfg, [0, 5])
+    assert len(result.outcomes) == 2 and result.caught == 0          # 0.2 s: still falling
+    for k, seed in enumerate((0, 5)):
+        scene, _, state = build(load_config(FALLING, [f"target.seed={seed}"]))
+        b = scene.body_names.index("target")
+        np.testing.assert_array_equal(result.spawn[k], np.asarray(state.phys.body_pos[b]))
+    assert np.all(result.min_uav_height > 3.0)
