@@ -15,7 +15,7 @@ Sections (``--only`` takes their letters):
   d  accuracy against cost: each integrator / step / tolerance / precision against a
      float64 tsit5 reference at rtol 1e-11 (table + log-log plot). Scenes are the entries
      returned by ``accuracy_cases()``, so a new scene (e.g. contact) is one more entry.
-     The contact scenes (issue #3) compare ball and payload z over 1.5 s and also report
+     The contact scenes compare ball and payload z over 1.5 s and also report
      when each method first drifts more than 2e-3 m from the reference.
      ``--cases collision_light,collision_heavy`` runs only those scenes of (d).
      rope_net_slack (tension-only ropes that start slack) and capture_falling (the closed-loop
@@ -837,7 +837,7 @@ def accuracy_cases(quick: bool) -> list[AccuracyCase]:
             quantity_label="ball and payload z [m]",
             quantity=ball_and_payload_z,
             t_end=1.5,
-            overrides=("contact.friction=null",),      # issue #3: friction off for the comparison
+            overrides=("contact.friction=null",),      # friction off for the comparison
             reference=("sim.integrator=tsit5", "sim.rtol=1e-13", "sim.atol=1e-15", "sim.precision=float64",
                        "sim.max_steps=3000000"),
             methods=contact_methods(quick, light=config is COLLISION_LIGHT),
