@@ -21,8 +21,9 @@ from mysim_jax.contact.config import segment_table
 from mysim_jax.control.build import build_quadrotors, expand_cameras
 from mysim_jax.dynamics.joint_check import joint_groups, joint_problems
 from mysim_jax.dynamics.stability import NETWORK_STEP_SAFETY, scene_network_stable_step, stable_step
-from mysim_jax.effects import EFFECTS, BuildContext
+from mysim_jax.effects import EFFECTS, BuildContext, scene_effects
 from mysim_jax.net.rope import build_rope
+from mysim_jax.npgeom import rotate
 from mysim_jax.types import JointBucket, Params, PhysState, Scene, State
 
 # Dense one-hot accumulation beats segment_sum on CPU for small graphs (BENCHMARKS.md);
@@ -36,12 +37,6 @@ MATMUL_ACCUMULATE_MAX_NODES = 128
 # bound over all configurations with its own measured margin (NETWORK_STEP_SAFETY), so
 # ``auto`` uses it as the check does, and an auto step always passes the check.
 AUTO_SUBSTEP_SAFETY = 0.5
-
-
-def _np_rotate(q, v):
-    w, u = q[0], np.asarray(q[1:])
-    t = 2.0 * np.cross(u, v)
-    return np.asarray(v) + w * t + np.cross(u, t)
 
 
 @dataclass
@@ -118,7 +113,7 @@ def build(config: SceneConfig):
             offset = np.zeros(3)
             if marker_name:
                 offset = np.asarray(next(m.pos for m in b.markers if m.name == marker_name), float)
-            return np.asarray(b.pos, float) + _np_rotate(np.asarray(b.quat), offset)
+            return np.asarray(b.pos, float) + rotate(b.quat, offset)
         return None
 
     # --- ropes: place masses (a rope may hang off another rope's mass) ----------------
@@ -290,11 +285,8 @@ def build(config: SceneConfig):
         body_angvel=arr([b.angvel for b in config.bodies], (-1, 3)),
     )
     state = State(phys=phys, time=jnp.zeros((), dtype=dtype), controller=control_state, effects=effect_memory)
-    if effect_config.target is not None:
-        # the spawn is a draw from the target's key: reproducible from target.seed
-        from mysim_jax.tasks.target import spawn_target
-
-        state = spawn_target(scene, params, state, state.effects["target"].key)
+    for effect, _ in scene_effects(scene):
+        state = effect.init(scene, params, state)
     return scene, params, state
 
 

@@ -14,6 +14,8 @@ Adding one (target propulsion, an IMU...) is one new module with an object that 
   force stages hold over the step, and its new memory;
 * ``stages(static) -> ((stage_name, fn), ...)`` with
   ``fn(scene, params, phys, nodes, held) -> Loads`` (:mod:`mysim_jax.dynamics.forces`);
+* ``init(scene, params, state) -> state`` — the start state the effect asks for (e.g. the
+  target's seeded spawn), applied by the builder in registry order;
 
 and one entry in :data:`EFFECTS` below. :func:`mysim_jax.build.build` asks every
 registered effect to build itself, :mod:`mysim_jax.sim` runs the updates and stages of

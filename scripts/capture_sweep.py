@@ -12,15 +12,7 @@ and the catch rate with its 95 % Wilson interval. Seeds 0..N-1 draw the target's
 from __future__ import annotations
 
 import argparse
-import math
 import sys
-
-
-def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
-    p = k / n
-    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
-    return centre - half, centre + half
 
 
 def main(argv=None) -> int:
@@ -42,7 +34,7 @@ def main(argv=None) -> int:
         print(f"error: {err}", file=sys.stderr)
         return 2
 
-    from mysim_jax.tasks.sweep import capture_sweep
+    from mysim_jax.tasks.sweep import capture_sweep, wilson_interval
 
     result = capture_sweep(config, range(args.seeds))
     for seed, o, spawn, low in zip(result.seeds, result.outcomes, result.spawn, result.min_uav_height):
@@ -50,7 +42,7 @@ def main(argv=None) -> int:
                                                    if not v) + " at the end)"
         print(f"seed {seed:3d}: {'caught' if o.caught else 'missed'}{why}; spawn "
               f"[{spawn[0]:.2f}, {spawn[1]:.2f}, {spawn[2]:.2f}] m; lowest UAV {low:.2f} m")
-    lo, hi = wilson(result.caught, args.seeds)
+    lo, hi = wilson_interval(result.caught, args.seeds)
     print(f"{config.name}: caught {result.caught}/{args.seeds} ({100 * result.caught / args.seeds:.0f} %, 95 % "
           f"interval {100 * lo:.0f}-{100 * hi:.0f} %); batched run {result.wall_s:.0f} s (compile included)")
     return 0

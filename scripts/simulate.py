@@ -74,6 +74,7 @@ def main(argv=None) -> int:
         print(f"error: {args.config}: {err}", file=sys.stderr)
         return 2
 
+    from mysim_jax.io.capture_plots import capture_report
     from mysim_jax.tasks.scripted import team_policy
 
     policy = team_policy(config, scene)
@@ -113,7 +114,7 @@ def main(argv=None) -> int:
             "plots": plots,
         }
         if config.net is not None and config.target is not None and len(traj.time) > 1:
-            capture = capture_outputs(columns, scene, params, config, tmp)
+            capture = capture_report(columns, scene, params, config, tmp)
             metrics["capture"] = capture
             plots += capture["plots"]
         if not traj.ok:
@@ -139,25 +140,6 @@ def main(argv=None) -> int:
         print(f"  {name}: RMS position error {m['rms_position_error_m']:.4g} m, "
               f"max {m['max_position_error_m']:.4g} m")
     return 0
-
-
-def capture_outputs(columns, scene, params, config, out_dir) -> dict:
-    """Capture verdict, distances, tensions, plots and animation of a net-and-target scene."""
-    from mysim_jax.io.capture_plots import animate_capture, plot_capture
-    from mysim_jax.tasks.outcome import capture_outcome, tether_tensions, thrust_fraction, uav_target_distances
-
-    outcome = capture_outcome(columns, config)
-    tensions = tether_tensions(columns, scene, params, config)
-    distances = uav_target_distances(columns, config)
-    paths = plot_capture(columns, config, out_dir, tensions=tensions, distances=distances)
-    paths.append(animate_capture(columns, config, out_dir / "capture.gif"))
-    return {
-        **outcome.summary(),
-        "min_uav_target_distance_m": float(min(d.min() for d in distances.values())),
-        "peak_tether_tension_n": float(max(t.max() for t in tensions.values())) if tensions else 0.0,
-        "thrust_fraction_last_1s": thrust_fraction(columns, scene, params, config),
-        "plots": [p.name for p in paths],
-    }
 
 
 if __name__ == "__main__":

@@ -167,7 +167,8 @@ class EnergyModel:
         self.spring_rest = np.asarray(params.spring_rest_length, float)
         self.tension_only = np.asarray(scene.spring_tension_only, bool)
         if scene.anchor_names:
-            raise NotImplementedError("anchors")
+            raise ValueError("this reference covers scenes without anchors (the capture scene has none); "
+                             f"got anchors {list(scene.anchor_names)}")
 
         # rotors (body frame, from the config's rotor values)
         self.quad_body = np.array([bn.index(q.body) for q in config.quadrotors])

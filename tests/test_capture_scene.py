@@ -321,3 +321,18 @@ def test_capture_sweep_draws_the_spawn_of_each_seed_as_build_does():
         b = scene.body_names.index("target")
         np.testing.assert_array_equal(result.spawn[k], np.asarray(state.phys.body_pos[b]))
     assert np.all(result.min_uav_height > 3.0)
+
+
+@pytest.mark.parametrize("k, n", [(20, 24), (0, 5), (5, 5), (1, 2)])
+def test_wilson_interval_solves_its_defining_equation(k, n):
+    """The Wilson bounds b are the roots of (p − b)² = z² b (1 − b) / n (closed interval
+    at k = 0 and k = n, where one root is 0 or 1)."""
+    from mysim_jax.tasks.sweep import wilson_interval
+
+    z, p = 1.96, k / n
+    lo, hi = wilson_interval(k, n, z)
+    assert 0.0 <= lo <= p <= hi <= 1.0
+    for b in (lo, hi):
+        assert (p - b) ** 2 == pytest.approx(z * z * b * (1 - b) / n, abs=1e-12)
+    with pytest.raises(ValueError):
+        wilson_interval(0, 0)

@@ -28,13 +28,7 @@ from pydantic import Field, model_validator
 
 from mysim_jax.config_base import (ConfigError, Finite, Name, NonNegFloat, NonNegVec3, Pair, PosFloat, PosPair,
                                    PosVec4, StrictModel, UnitQuat, Vec3, Vec4)
-
-
-def _rotate(q, v):
-    """Rotate ``v`` by the unit quaternion ``q`` (w, x, y, z), NumPy."""
-    w, u = q[0], np.asarray(q[1:], dtype=float)
-    t = 2.0 * np.cross(u, v)
-    return np.asarray(v, dtype=float) + w * t + np.cross(u, t)
+from mysim_jax.npgeom import rotate
 
 
 # --- paper defaults ------------------------------------------------------------------
@@ -257,7 +251,7 @@ class CameraConfig(StrictModel):
             outer, inner = np.asarray(self.outer_axis), np.asarray(self.inner_axis)
             if np.linalg.norm(outer) < 1e-9 or np.linalg.norm(inner) < 1e-9:
                 raise ValueError("outer_axis and inner_axis must be non-zero")
-            inner_in_body = _rotate(self.quat, inner)
+            inner_in_body = rotate(self.quat, inner)
             cosine = abs(outer @ inner_in_body) / (np.linalg.norm(outer) * np.linalg.norm(inner))
             if cosine > 1e-6:
                 raise ValueError(

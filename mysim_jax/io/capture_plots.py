@@ -7,6 +7,9 @@ results_capture_active (c)), drawn from the trajectory columns of :mod:`mysim_ja
 * ``capture_tensions.png`` — tension in every tether (at its knot) over time;
 * ``capture.gif`` — the capture seen from the top and from the side (at most
   ``max_frames`` frames).
+
+:func:`capture_report` writes all of them and returns the verdict and summary numbers
+that ``scripts/simulate.py`` puts in ``metrics.json`` under ``capture``.
 """
 
 from __future__ import annotations
@@ -150,3 +153,24 @@ def animate_capture(columns, config, path, max_frames: int = 90, fps: int = 15) 
     anim.save(path, writer=PillowWriter(fps=fps))
     plt.close(fig)
     return Path(path)
+
+
+def capture_report(columns, scene, params, config, out_dir) -> dict:
+    """Verdict (:func:`~mysim_jax.tasks.outcome.capture_outcome`), UAV–target distances,
+    tether tensions and lift use of a capture run, with its figures and GIF written into
+    ``out_dir``; returns the summary dict (``plots`` lists the files written)."""
+    from mysim_jax.tasks.outcome import capture_outcome, tether_tensions, thrust_fraction, uav_target_distances
+
+    out_dir = Path(out_dir)
+    outcome = capture_outcome(columns, config)
+    tensions = tether_tensions(columns, scene, params, config)
+    distances = uav_target_distances(columns, config)
+    paths = plot_capture(columns, config, out_dir, tensions=tensions, distances=distances)
+    paths.append(animate_capture(columns, config, out_dir / "capture.gif"))
+    return {
+        **outcome.summary(),
+        "min_uav_target_distance_m": float(min(d.min() for d in distances.values())),
+        "peak_tether_tension_n": float(max(t.max() for t in tensions.values())) if tensions else 0.0,
+        "thrust_fraction_last_1s": thrust_fraction(columns, scene, params, config),
+        "plots": [p.name for p in paths],
+    }

@@ -53,6 +53,7 @@ import numpy as np
 from pydantic import Field, field_validator
 
 from mysim_jax.config_base import Name, NonNegFloat, PosFloat, StrictModel, Vec3
+from mysim_jax.npgeom import rotate
 
 MAX_KNOTS = 64          # per side: 4096 knots, ~8000 edges, far beyond a carried net
 
@@ -154,12 +155,6 @@ def knot_positions(net: NetConfig) -> np.ndarray:
     return pos + np.asarray(net.center, float)
 
 
-def _rotate(q, v):
-    w, u = q[0], np.asarray(q[1:], float)
-    t = 2.0 * np.cross(u, v)
-    return np.asarray(v, float) + w * t + np.cross(u, t)
-
-
 def net_elements(net: NetConfig, bodies: dict, quadrotor_bodies: set[str]) -> NetElements:
     """Expand ``net`` into points, ropes and UAV markers; ``problems`` lists what is wrong
     (field-named strings). ``bodies`` maps body names to their configs (for the start
@@ -220,7 +215,7 @@ def net_elements(net: NetConfig, bodies: dict, quadrotor_bodies: set[str]) -> Ne
             marker = f"{net.name}_tether"
             out.markers[uav] = dict(name=marker, pos=tuple(t.attach))
             body = bodies[uav]
-            end = np.asarray(body.pos, float) + _rotate(np.asarray(body.quat, float), np.asarray(t.attach, float))
+            end = np.asarray(body.pos, float) + rotate(body.quat, t.attach)
             span = float(np.linalg.norm(end - pos[i, j]))
             if span > t.length * (1.0 + 1e-3):
                 out.problems.append(

@@ -59,6 +59,9 @@ class _LineDrag:
     def update(self, scene, params, state):
         return None, None
 
+    def init(self, scene, params, state):
+        return state
+
     def stages(self, static):
         return (("line_drag", _stage),)
 

@@ -21,6 +21,9 @@ from dataclasses import dataclass
 import numpy as np
 from matplotlib.path import Path as PolygonPath
 
+from mysim_jax.dynamics.forces import spring_tension
+from mysim_jax.npgeom import rotate
+
 MAX_RELATIVE_SPEED = 0.5   # m/s
 GROUND_CLEARANCE = 0.05    # m
 HOLD_TIME = 0.5            # s
@@ -69,12 +72,8 @@ def _attachments(columns, config):
     net = config.net
     out = []
     for uav in net.tethers.uavs:
-        pos = _xyz(columns, uav)
         q = np.stack([columns[f"{uav}_q{a}"] for a in "wxyz"], axis=-1)
-        r = np.asarray(net.tethers.attach, float)
-        w, u = q[:, :1], q[:, 1:]
-        t = 2.0 * np.cross(u, r)
-        out.append(pos + r + w * t + np.cross(u, t))
+        out.append(_xyz(columns, uav) + rotate(q, net.tethers.attach))
     return np.stack(out, axis=1)
 
 
@@ -108,8 +107,9 @@ def capture_outcome(columns, config, max_relative_speed=MAX_RELATIVE_SPEED,
 
 
 def tether_tensions(columns, scene, params, config) -> dict[str, np.ndarray]:
-    """Tension ``(n_out,)`` [N] in the knot end segment of every tether (tension-only law,
-    from the saved positions and velocities), keyed by the tethered UAV's name."""
+    """Tension ``(n_out,)`` [N] in the knot end segment of every tether (the scene's spring
+    law, :func:`~mysim_jax.dynamics.forces.spring_tension`, at the saved positions and
+    velocities), keyed by the tethered UAV's name."""
     net = config.net
     out = {}
     if net.tethers is None:
@@ -126,8 +126,8 @@ def tether_tensions(columns, scene, params, config) -> dict[str, np.ndarray]:
         dv = _xyz(columns, b, "v") - _xyz(columns, a, "v")
         length = np.linalg.norm(d, axis=-1)
         rate = np.einsum("ij,ij->i", dv, d / np.maximum(length, 1e-12)[:, None])
-        f = k_all[idx] * (length - rest_all[idx]) + c_all[idx] * rate
-        out[uav] = np.where(length > rest_all[idx], np.maximum(f, 0.0), 0.0)
+        out[uav] = np.asarray(spring_tension(k_all[idx], c_all[idx], rest_all[idx], length, rate,
+                                             (scene.spring_tension_only[idx],)))
     return out
 
 

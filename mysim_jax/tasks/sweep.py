@@ -9,6 +9,7 @@ with the scene's team policy, and judges each run with
 
 from __future__ import annotations
 
+import math
 import types
 from dataclasses import dataclass
 
@@ -35,6 +36,17 @@ class SweepResult:
     @property
     def caught(self) -> int:
         return sum(o.caught for o in self.outcomes)
+
+
+def wilson_interval(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """Wilson score interval ``(low, high)`` of a success rate ``k / n`` (95 % for z = 1.96):
+    unlike ``p ± z √(p(1−p)/n)`` it stays inside [0, 1] and is not empty at k = 0 or n."""
+    if n < 1:
+        raise ValueError("wilson_interval: n must be at least 1")
+    p = k / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return max(0.0, centre - half), min(1.0, centre + half)
 
 
 def capture_sweep(config, seeds) -> SweepResult:

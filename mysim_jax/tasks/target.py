@@ -175,6 +175,10 @@ class _Target:
             return None, memory
         return evasive_command(static, params.effects["target"], memory, state.phys, state.time)
 
+    def init(self, scene, params, state):
+        """The seeded spawn: a draw from the key the memory holds (``target.seed``)."""
+        return spawn_target(scene, params, state, state.effects["target"].key)
+
     def stages(self, static):
         stages = []
         if static.has_drag:
