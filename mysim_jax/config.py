@@ -39,6 +39,7 @@ from mysim_jax.contact.config import ContactConfig, contact_problems
 from mysim_jax.control.config import QuadrotorConfig, quadrotor_problems
 from mysim_jax.net.config import NetConfig, net_elements
 from mysim_jax.tasks.config import TargetConfig, TeamConfig
+from mysim_jax.tasks.env_config import EnvConfig
 
 __all__ = ["ConfigError", "SceneConfig", "RunSettings", "load_config", "config_from_dict", "apply_override",
            "dump_config"]
@@ -319,6 +320,7 @@ class SceneConfig(StrictModel):
     net: NetConfig | None = None             # see mysim_jax/net/config.py
     target: TargetConfig | None = None       # see mysim_jax/tasks/config.py
     team: TeamConfig | None = None           # see mysim_jax/tasks/config.py
+    env: EnvConfig | None = None             # see mysim_jax/tasks/env_config.py
 
     @model_validator(mode="after")
     def _references(self):
@@ -326,6 +328,7 @@ class SceneConfig(StrictModel):
         full, problems = expand_capture(self)
         problems += full._reference_problems()
         problems += self._team_problems()
+        problems += self._env_problems()
         problems += self._target_contact_problems()
         if problems:
             raise ValueError("; ".join(problems))
@@ -357,6 +360,26 @@ class SceneConfig(StrictModel):
             if team.altitude is not None and not lo <= team.altitude <= hi:
                 problems.append(f"team.altitude: {team.altitude:g} m is outside quadrotors.{i}'s flyable box "
                                 f"(z from {lo:g} to {hi:g} m, quadrotors.{i}.controller.flyable_box)")
+        return problems
+
+    def _env_problems(self) -> list[str]:
+        env = self.env
+        if env is None:
+            return []
+        problems = []
+        missing = [block for block, value in (("net", self.net), ("target", self.target), ("quadrotors", self.quadrotors))
+                   if not value]
+        if missing:
+            problems.append(f"env: a capture environment needs {' and '.join(missing)}: block(s)")
+        problems += [f"env: quadrotors.{i} has no controller to take the actions (setpoints)"
+                     for i, q in enumerate(self.quadrotors) if q.controller is None]
+        period = 1.0 / env.policy_rate
+        ratio = period / self.sim.dt
+        if round(ratio) < 1 or abs(ratio - round(ratio)) > 1e-6 * ratio:
+            problems.append(f"env.policy_rate: {env.policy_rate:g} Hz is a period of {period:g} s, not a whole "
+                            f"multiple of sim.dt = {self.sim.dt:g} s (e.g. {1.0 / (max(round(ratio), 1) * self.sim.dt):g} Hz)")
+        elif round(self.sim.t_end / (round(ratio) * self.sim.dt)) < 1:
+            problems.append(f"env.policy_rate: sim.t_end = {self.sim.t_end:g} s is shorter than one policy period")
         return problems
 
     def _reference_problems(self) -> list[str]:
@@ -518,7 +541,8 @@ def expand_capture(config: SceneConfig) -> tuple[SceneConfig, list[str]]:
             vel=tuple(0.5 * (lo + hi) for lo, hi in zip(spawn.velocity.low, spawn.velocity.high)),
             angvel=(0.0, 0.0, 0.0), markers=[]))
     expanded = config.model_copy(update={"points": points, "ropes": ropes, "bodies": bodies,
-                                         "net": None, "target": None, "team": None})
+                                         "net": None, "target": None, "team": None,
+                                         "env": None})
     return expanded, problems
 
 

@@ -1,0 +1,432 @@
+"""The capture scene as a multi-agent environment, in the gymnax / JaxMARL style.
+
+    env, params = make_env(config)                 # a SceneConfig with net:, target:, env:
+    obs, state = env.reset(key, params)
+    obs, state, reward, terminated, truncated, info = env.step(key, state, actions, params)
+
+Both are pure and written for **one** environment: batch with ``jax.vmap`` (over keys,
+states and actions; ``params`` shared or batched too), and jit once around a whole
+rollout. ``env`` is a frozen, hashable dataclass (static); ``params`` an
+:class:`EnvParams` pytree (traced: reward weights and randomisation ranges can be
+vmapped or changed without recompiling).
+
+**Time.** One ``step`` is one policy period ``1 / env.policy_rate``: the action is turned
+into a setpoint held for ``control_steps`` control periods (``sim.dt``), in each of
+which the cascaded PID runs once and the physics takes its sub-steps. An episode lasts
+at most ``sim.t_end``.
+
+**Actions** ``(n_agents, 3)`` in ``[-1, 1]``: one normalised setpoint per UAV
+(:func:`~mysim_jax.control.setpoint.setpoint_from_action`: in ``position`` mode a point
+of the flyable box, in ``velocity`` mode a fraction of ``max_speed``). Values outside
+``[-1, 1]`` are clipped. A NaN action component is replaced by 0 (the box's centre in
+position mode, hover in velocity mode) and flagged in ``info["action_nan"]``: inside jit
+nothing can raise; the PettingZoo wrapper rejects NaN actions before they get here. A
+wrong shape is a ValueError when the step is traced.
+
+**Observations** ``(n_agents, obs_size)``, per agent (world frame, float): its own
+position, velocity, attitude quaternion and body rate; the target's position and velocity
+relative to it; the net centre's (mean knot) position and velocity relative to it; every
+teammate's position and velocity relative to it; its one-hot id; the fraction of the
+episode left. Own and target measurements carry Gaussian noise (``env.noise``, standard
+deviations drawn per episode), independent per agent. ``info["global_state"]``
+``(state_size,)`` is the noise-free state for a centralised critic: every UAV's absolute
+state, the target's, the net centre's, the fraction left.
+
+**Rewards** ``(n_agents,)``: the weighted sum of the terms of
+:mod:`mysim_jax.tasks.rewards`; ``info["terms"]`` holds every weighted term ``(n_agents,)``.
+
+**Episode end.** ``terminated`` on success (the target held for ``success.hold_time``)
+or any failure (:data:`~mysim_jax.tasks.env_config.FAILURES`); ``truncated`` when the
+time limit is reached without either. ``info`` flags which (``success``,
+``failures[name]``, ``timeout``) and carries the episode's return and length. On either,
+the environment resets inside ``step`` (auto-reset): the returned ``obs``, ``state`` and
+``info["global_state"]`` are the new episode's first; ``info`` describes the episode that
+ended, with its last observation and global state in ``info["final_obs"]`` and
+``info["final_global_state"]`` (equal to ``obs`` and ``info["global_state"]`` on other
+steps). A step that succeeds reports no failure (``info["failed"]`` is their union).
+
+**Randomisation** per episode, from the reset key: the target's spawn (``target.spawn``)
+and everything in ``env.randomize`` and ``env.noise`` (:class:`Episode`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from mysim_jax.build import build
+from mysim_jax.control.setpoint import setpoint_from_action
+from mysim_jax.dynamics.quaternion import quat_rotate
+from mysim_jax.sim import step as sim_step
+from mysim_jax.tasks.env_config import FAILURES, REWARD_TERMS
+from mysim_jax.tasks.outcome import border_knots
+from mysim_jax.tasks.rewards import Snapshot, checks, reward_terms
+from mysim_jax.tasks.scripted import team_policy
+from mysim_jax.tasks.target import spawn_target
+from mysim_jax.types import Params, State
+
+
+@struct.dataclass
+class Episode:
+    """What is drawn per episode (besides the target's spawn, which lives in the sim state)."""
+
+    target_mass: jnp.ndarray      # () kg
+    uav_mass_scale: jnp.ndarray   # () -
+    wind: jnp.ndarray             # (3,) N on every UAV, world
+    flee_acceleration: jnp.ndarray  # () m/s^2
+    jink_acceleration: jnp.ndarray  # () m/s^2
+    max_speed: jnp.ndarray        # () m/s
+    noise: jnp.ndarray            # (4,) sigma of UAV position [m], UAV velocity [m/s], target position, velocity
+
+
+@struct.dataclass
+class Ranges:
+    """Per-episode randomisation ranges ``low``/``high`` of every :class:`Episode` field."""
+
+    low: Episode
+    high: Episode
+
+
+@struct.dataclass
+class EnvParams:
+    """Traced environment parameters (vmap or change them without recompiling)."""
+
+    sim: Params                   # the scene's nominal physics parameters
+    start: State                  # the nominal first state (the target is placed by the reset)
+    weights: jnp.ndarray          # (n_terms,) reward weights, REWARD_TERMS order, >= 0
+    ranges: Ranges
+
+
+@struct.dataclass
+class EnvState:
+    """State of one environment."""
+
+    sim: State
+    episode: Episode
+    steps: jnp.ndarray            # () int32, policy steps taken this episode
+    held_time: jnp.ndarray        # () s the target has been held without a break
+    touched: jnp.ndarray          # () bool, the target has touched the net this episode
+    returns: jnp.ndarray          # (n_agents,) sum of rewards this episode
+
+
+@dataclass(frozen=True)
+class CaptureEnv:
+    """Static structure of the environment (hashable; see the module docstring)."""
+
+    scene: object
+    n_agents: int
+    agents: tuple[str, ...]              # UAV body names
+    quad_bodies: tuple[int, ...]
+    target_body: int
+    target_radius: float
+    line_radius: float
+    knot_points: tuple[int, ...]         # every knot's point index
+    border_points: tuple[int, ...]       # border knots in order around the net
+    tether_markers: tuple[int, ...]      # marker index of every tether attachment
+    line_nodes_a: tuple[int, ...]        # node indices of the net's line segments
+    line_nodes_b: tuple[int, ...]
+    slots: tuple[tuple[float, float, float], ...]   # (n_agents, 3) horizontal start offsets
+    control_steps: int                   # control periods per policy step
+    max_steps: int                       # policy steps per episode
+    policy_dt: float                     # s
+    success: object                      # SuccessConfig
+    failure: object                      # FailureConfig
+    scales: object                       # RewardScales
+    randomized_wind: bool
+    scripted: object                     # the scripted team (ScriptedTeam)
+
+    # --- sizes ------------------------------------------------------------------------
+    @property
+    def obs_size(self) -> int:
+        return 13 + 6 + 6 + 6 * (self.n_agents - 1) + self.n_agents + 1
+
+    @property
+    def state_size(self) -> int:
+        return 13 * self.n_agents + 6 + 6 + 1
+
+    @property
+    def action_shape(self) -> tuple[int, int]:
+        return (self.n_agents, 3)
+
+    # --- the functional API -----------------------------------------------------------
+    def reset(self, key, params: EnvParams):
+        """``(obs, state)``: a fresh episode drawn from ``key``."""
+        state = self._reset_state(key, params)
+        obs = self._observe(jax.random.fold_in(key, 1), state, params)
+        return obs, state
+
+    def step(self, key, state: EnvState, actions, params: EnvParams):
+        """``(obs, state, reward, terminated, truncated, info)`` (module docstring)."""
+        actions = self.check_actions(actions)
+        dtype = state.sim.phys.body_pos.dtype
+        nan = ~jnp.isfinite(actions)
+        actions = jnp.clip(jnp.where(nan, 0.0, actions.astype(dtype)), -1.0, 1.0)
+        sim_params = self.episode_params(params, state.episode)
+        setpoint = setpoint_from_action(self.scene, sim_params, actions)
+
+        def control_period(_, s):
+            return sim_step(self.scene, sim_params, s, setpoint)
+
+        with jax.named_scope("physics"):
+            sim = jax.lax.fori_loop(0, self.control_steps, control_period, state.sim)
+
+        with jax.named_scope("rewards"):
+            snap = self.snapshot(sim, sim_params)
+            flags = self.flags(snap)
+            held_time = jnp.where(flags.held, state.held_time + self.policy_dt, 0.0).astype(dtype)
+            succeeded = flags.held & (held_time >= self.success.hold_time - 1e-6)
+            # a step that succeeds is not a failure (the flags are exclusive in info)
+            failures = {k: v & ~succeeded for k, v in flags.failures.items()}
+            failed = jnp.any(jnp.stack([failures[k] for k in FAILURES]))
+            steps = state.steps + 1
+            terminated = succeeded | failed
+            timeout = (steps >= self.max_steps) & ~terminated
+            touched = state.touched | flags.touching
+            terms = reward_terms(snap, flags, slots=jnp.asarray(self.slots, dtype), scales=self.scales,
+                                 touched_before=touched, succeeded=succeeded, failed=failed)
+            weighted = {k: params.weights[i].astype(dtype) * terms[k] for i, k in enumerate(REWARD_TERMS)}
+            reward = sum(weighted.values())
+            returns = state.returns + reward
+
+        done = terminated | timeout
+        info = {
+            "terms": weighted,
+            "success": succeeded,
+            "failed": failed,
+            "failures": failures,
+            "timeout": timeout,
+            "held": flags.held,
+            "touching": flags.touching,
+            "action_nan": jnp.any(nan),
+            "episode_return": returns,
+            "episode_length": steps,
+            "done": done,
+        }
+        after = EnvState(sim=sim, episode=state.episode, steps=steps, held_time=held_time, touched=touched,
+                         returns=returns)
+        key_reset, key_obs = jax.random.split(key)
+        fresh = self._reset_state(key_reset, params)
+        # the episode's last observation (before the reset), e.g. to bootstrap a value
+        # on truncation
+        info["final_obs"] = self._observe(key_obs, after, params)
+        info["final_global_state"] = self.global_state(after)
+        state = jax.tree.map(lambda a, b: jnp.where(done, a, b), fresh, after)
+        obs = jnp.where(done, self._observe(key_obs, state, params), info["final_obs"])
+        info["global_state"] = jnp.where(done, self.global_state(state), info["final_global_state"])
+        return obs, state, reward, terminated, timeout, info
+
+    # --- pieces ---------------------------------------------------------------------
+    def check_actions(self, actions):
+        """Trace-time check of the action's shape (one environment)."""
+        actions = jnp.asarray(actions)
+        if actions.shape != self.action_shape:
+            raise ValueError(f"actions: shape {tuple(actions.shape)}, expected {self.action_shape} "
+                             f"(one normalised setpoint in [-1, 1] per UAV {list(self.agents)}; one environment, "
+                             "vmap for a batch)")
+        if not (jnp.issubdtype(actions.dtype, jnp.floating) or jnp.issubdtype(actions.dtype, jnp.integer)):
+            raise ValueError(f"actions: dtype {actions.dtype}, expected a real (float) array")
+        return actions
+
+    def draw_episode(self, key, ranges: Ranges) -> Episode:
+        leaves_low, treedef = jax.tree.flatten(ranges.low)
+        leaves_high = jax.tree.leaves(ranges.high)
+        keys = jax.random.split(key, len(leaves_low))
+        drawn = [jax.random.uniform(k, lo.shape, dtype=lo.dtype, minval=lo, maxval=hi)
+                 for k, lo, hi in zip(keys, leaves_low, leaves_high)]
+        return jax.tree.unflatten(treedef, drawn)
+
+    def episode_params(self, params: EnvParams, ep: Episode) -> Params:
+        """The physics parameters of one episode: the nominal ones with its draws."""
+        sim = params.sim
+        quads = np.asarray(self.quad_bodies, dtype=np.int32)
+        body_mass = sim.body_mass.at[quads].multiply(ep.uav_mass_scale)
+        inertia = sim.body_inertia.at[quads].multiply(ep.uav_mass_scale)
+        t = self.target_body
+        ratio = ep.target_mass / sim.body_mass[t]
+        body_mass = body_mass.at[t].set(ep.target_mass)
+        inertia = inertia.at[t].multiply(ratio)
+        tp = sim.effects["target"].replace(flee_acceleration=ep.flee_acceleration,
+                                           jink_acceleration=ep.jink_acceleration, max_speed=ep.max_speed)
+        sim = sim.replace(body_mass=body_mass, body_inertia=inertia, effects={**sim.effects, "target": tp})
+        if self.randomized_wind:
+            qp = sim.quadrotor
+            sim = sim.replace(quadrotor=qp.replace(wind_force=qp.wind_force + ep.wind[None, :]))
+        return sim
+
+    def _reset_state(self, key, params: EnvParams) -> EnvState:
+        k_episode, k_spawn = jax.random.split(key)
+        episode = self.draw_episode(k_episode, params.ranges)
+        sim = spawn_target(self.scene, self.episode_params(params, episode), params.start, k_spawn)
+        dtype = sim.phys.body_pos.dtype
+        return EnvState(sim=sim, episode=episode, steps=jnp.zeros((), jnp.int32), held_time=jnp.zeros((), dtype),
+                        touched=jnp.zeros((), bool), returns=jnp.zeros((self.n_agents,), dtype))
+
+    def snapshot(self, sim: State, sim_params: Params) -> Snapshot:
+        phys = sim.phys
+        quads = np.asarray(self.quad_bodies, dtype=np.int32)
+        knots = np.asarray(self.knot_points, dtype=np.int32)
+        markers = np.asarray(self.tether_markers, dtype=np.int32)
+        body_of = np.asarray(self.scene.marker_body, dtype=np.int32)[markers]
+        attach = phys.body_pos[body_of] + quat_rotate(phys.body_quat[body_of], sim_params.marker_pos[markers])
+        # every line node is a point mass (knots and line masses)
+        a = np.asarray(self.line_nodes_a, dtype=np.int32)
+        b = np.asarray(self.line_nodes_b, dtype=np.int32)
+        qp = sim_params.quadrotor
+        return Snapshot(
+            uav_pos=phys.body_pos[quads], uav_vel=phys.body_vel[quads], uav_quat=phys.body_quat[quads],
+            uav_angvel=phys.body_angvel[quads],
+            rotor_fraction=sim.controller.motor_speed / qp.omega_max[:, None],
+            target_pos=phys.body_pos[self.target_body], target_vel=phys.body_vel[self.target_body],
+            knot_pos=phys.point_pos[knots], knot_vel=phys.point_vel[knots],
+            border=phys.point_pos[np.asarray(self.border_points, dtype=np.int32)], attach=attach,
+            line_a=phys.point_pos[a], line_b=phys.point_pos[b])
+
+    def flags(self, snap: Snapshot):
+        return checks(snap, target_radius=self.target_radius, line_radius=self.line_radius,
+                      contact_margin=self.scales.contact_margin, success=self.success, failure=self.failure)
+
+    def _observe(self, key, state: EnvState, params: EnvParams):
+        phys = state.sim.phys
+        dtype = phys.body_pos.dtype
+        n = self.n_agents
+        quads = np.asarray(self.quad_bodies, dtype=np.int32)
+        knots = np.asarray(self.knot_points, dtype=np.int32)
+        sigma = state.episode.noise.astype(dtype)
+        k = jax.random.split(key, 4)
+        pos = phys.body_pos[quads] + sigma[0] * jax.random.normal(k[0], (n, 3), dtype)
+        vel = phys.body_vel[quads] + sigma[1] * jax.random.normal(k[1], (n, 3), dtype)
+        tpos = phys.body_pos[self.target_body] + sigma[2] * jax.random.normal(k[2], (n, 3), dtype)
+        tvel = phys.body_vel[self.target_body] + sigma[3] * jax.random.normal(k[3], (n, 3), dtype)
+        c_net = jnp.mean(phys.point_pos[knots], axis=0)
+        v_net = jnp.mean(phys.point_vel[knots], axis=0)
+        # teammates j != i, relative to i, in a fixed order per agent
+        others = np.asarray([[j for j in range(n) if j != i] for i in range(n)], dtype=np.int32).reshape(n, n - 1)
+        true_pos, true_vel = phys.body_pos[quads], phys.body_vel[quads]
+        mates = jnp.concatenate([true_pos[others] - pos[:, None, :], true_vel[others] - vel[:, None, :]], axis=-1)
+        left = 1.0 - state.steps.astype(dtype) / self.max_steps
+        obs = jnp.concatenate([
+            pos, vel, phys.body_quat[quads], phys.body_angvel[quads],
+            tpos - pos, tvel - vel,
+            c_net[None, :] - pos, v_net[None, :] - vel,
+            mates.reshape(n, 6 * (n - 1)),
+            jnp.eye(n, dtype=dtype),
+            jnp.broadcast_to(left, (n, 1)),
+        ], axis=-1)
+        return jnp.where(jnp.isfinite(obs), obs, 0.0)
+
+    def global_state(self, state: EnvState):
+        """The noise-free global state ``(state_size,)`` for a centralised critic."""
+        phys = state.sim.phys
+        dtype = phys.body_pos.dtype
+        quads = np.asarray(self.quad_bodies, dtype=np.int32)
+        knots = np.asarray(self.knot_points, dtype=np.int32)
+        uav = jnp.concatenate([phys.body_pos[quads], phys.body_vel[quads], phys.body_quat[quads],
+                               phys.body_angvel[quads]], axis=-1).reshape(-1)
+        left = 1.0 - state.steps.astype(dtype) / self.max_steps
+        out = jnp.concatenate([uav, phys.body_pos[self.target_body], phys.body_vel[self.target_body],
+                               jnp.mean(phys.point_pos[knots], axis=0), jnp.mean(phys.point_vel[knots], axis=0),
+                               left[None]])
+        return jnp.where(jnp.isfinite(out), out, 0.0)
+
+    # --- baselines --------------------------------------------------------------------
+    def scripted_actions(self, state: EnvState, params: EnvParams):
+        """The scripted intercept team's actions ``(n_agents, 3)`` (noise-free state;
+        :mod:`mysim_jax.tasks.scripted`), mapped into the action space."""
+        sim_params = self.episode_params(params, state.episode)
+        sp = self.scripted(self.scene, sim_params, state.sim)
+        cp = sim_params.controller
+        if self.scene.quadrotor.setpoint_mode == "velocity":
+            p = state.sim.phys.body_pos[np.asarray(self.quad_bodies, dtype=np.int32)]
+            v = SCRIPTED_VELOCITY_GAIN * (sp.position - p)
+            return jnp.clip(v / cp.max_speed[:, None], -1.0, 1.0)
+        return jnp.clip(2.0 * (sp.position - cp.box_low) / (cp.box_high - cp.box_low) - 1.0, -1.0, 1.0)
+
+    def random_actions(self, key):
+        """Uniform actions in ``[-1, 1]`` ``(n_agents, 3)``."""
+        return jax.random.uniform(key, self.action_shape, minval=-1.0, maxval=1.0)
+
+
+# velocity-mode scripted team: setpoint velocity per metre of position error [1/s]
+SCRIPTED_VELOCITY_GAIN = 1.5
+
+
+def _ranges(config, dtype) -> Ranges:
+    env, target = config.env, config.target
+    r = env.randomize
+    prop = target.propulsion_or_default()
+
+    def rng(value, nominal):
+        lo, hi = (nominal, nominal) if value is None else (value.low, value.high)
+        return jnp.asarray(lo, dtype), jnp.asarray(hi, dtype)
+
+    pairs = {
+        "target_mass": rng(r.target_mass, target.mass),
+        "uav_mass_scale": rng(r.uav_mass_scale, 1.0),
+        "wind": (jnp.asarray((0.0, 0.0, 0.0) if r.wind is None else r.wind.low, dtype),
+                 jnp.asarray((0.0, 0.0, 0.0) if r.wind is None else r.wind.high, dtype)),
+        "flee_acceleration": rng(r.flee_acceleration, prop.flee_acceleration if prop else 0.0),
+        "jink_acceleration": rng(r.jink_acceleration, prop.jink_acceleration if prop else 0.0),
+        "max_speed": rng(r.max_speed, prop.max_speed if prop else 0.0),
+        "noise": tuple(jnp.asarray([getattr(getattr(env.noise, f), side) for f in
+                                    ("uav_position", "uav_velocity", "target_position", "target_velocity")], dtype)
+                       for side in ("low", "high")),
+    }
+    return Ranges(low=Episode(**{k: v[0] for k, v in pairs.items()}),
+                  high=Episode(**{k: v[1] for k, v in pairs.items()}))
+
+
+def make_env(config) -> tuple[CaptureEnv, EnvParams]:
+    """The environment of a capture SceneConfig with an ``env:`` block (ValueError
+    naming what is missing otherwise)."""
+    if config.env is None:
+        raise ValueError(f"scene '{config.name}': no env: block (add `env: {{}}` for the defaults)")
+    env_cfg, net = config.env, config.net
+    scene, params, state = build(config)
+    if env_cfg.randomize.wind is not None and not scene.quadrotor.has_wind:
+        scene = dataclasses.replace(scene, quadrotor=dataclasses.replace(scene.quadrotor, has_wind=True))
+    team = team_policy(config.model_copy(update={"team": config.team or _default_team()}), scene)
+    quads = [q.body for q in config.quadrotors]
+    bodies = {b.name: b for b in config.bodies}
+    start = np.asarray([bodies[q].pos for q in quads], float)
+    slots = start - start.mean(axis=0)
+    slots[:, 2] = 0.0
+    knots = [net.knot_name(i, j) for i in range(net.knots) for j in range(net.knots)]
+    line_names = [n for n in scene.spring_names if n.startswith((f"{net.name}_h", f"{net.name}_v"))]
+    line_index = [scene.spring_names.index(n) for n in line_names]
+    n_points = scene.n_points
+    a = [scene.spring_node_a[i] for i in line_index]
+    b = [scene.spring_node_b[i] for i in line_index]
+    if max(a + b) >= n_points:
+        raise ValueError("net lines must join point masses")
+    tethers = [scene.marker_names.index(f"{u}.{net.name}_tether") for u in net.tethers.uavs] if net.tethers else []
+    if not tethers:
+        raise ValueError("env: the net has no tethers (net.tethers), so nothing carries it")
+    control_steps = int(round(1.0 / env_cfg.policy_rate / config.sim.dt))
+    max_steps = int(round(config.sim.t_end / (control_steps * config.sim.dt)))
+    env = CaptureEnv(
+        scene=scene, n_agents=len(quads), agents=tuple(quads),
+        quad_bodies=tuple(scene.body_names.index(q) for q in quads),
+        target_body=scene.body_names.index(config.target.name), target_radius=float(config.target.radius),
+        line_radius=0.5 * float(net.line.diameter),
+        knot_points=tuple(scene.point_names.index(k) for k in knots),
+        border_points=tuple(scene.point_names.index(k) for k in border_knots(net)),
+        tether_markers=tuple(tethers), line_nodes_a=tuple(a), line_nodes_b=tuple(b),
+        slots=tuple(map(tuple, slots.tolist())), control_steps=control_steps, max_steps=max_steps,
+        policy_dt=control_steps * config.sim.dt, success=env_cfg.success, failure=env_cfg.failure,
+        scales=env_cfg.reward_scales, randomized_wind=env_cfg.randomize.wind is not None, scripted=team)
+    weights = env_cfg.weights()
+    env_params = EnvParams(sim=params, start=state,
+                           weights=jnp.asarray([weights[k] for k in REWARD_TERMS], scene.dtype),
+                           ranges=_ranges(config, scene.dtype))
+    return env, env_params
+
+
+def _default_team():
+    from mysim_jax.tasks.config import TeamConfig
+
+    return TeamConfig(policy="scripted")
