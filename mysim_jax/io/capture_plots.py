@@ -155,10 +155,11 @@ def animate_capture(columns, config, path, max_frames: int = 90, fps: int = 15) 
     return Path(path)
 
 
-def capture_report(columns, scene, params, config, out_dir) -> dict:
+def capture_report(columns, scene, params, config, out_dir, animate: bool = True) -> dict:
     """Verdict (:func:`~mysim_jax.tasks.outcome.capture_outcome`), UAV–target distances,
-    tether tensions and lift use of a capture run, with its figures and GIF written into
-    ``out_dir``; returns the summary dict (``plots`` lists the files written)."""
+    tether tensions and lift use of a capture run, with its figures and GIF (unless
+    ``animate`` is False) written into ``out_dir``; returns the summary dict (``plots``
+    lists the files written)."""
     from mysim_jax.tasks.outcome import capture_outcome, tether_tensions, thrust_fraction, uav_target_distances
 
     out_dir = Path(out_dir)
@@ -166,7 +167,8 @@ def capture_report(columns, scene, params, config, out_dir) -> dict:
     tensions = tether_tensions(columns, scene, params, config)
     distances = uav_target_distances(columns, config)
     paths = plot_capture(columns, config, out_dir, tensions=tensions, distances=distances)
-    paths.append(animate_capture(columns, config, out_dir / "capture.gif"))
+    if animate:
+        paths.append(animate_capture(columns, config, out_dir / "capture.gif"))
     return {
         **outcome.summary(),
         "min_uav_target_distance_m": float(min(d.min() for d in distances.values())),

@@ -35,14 +35,16 @@ state, the target's, the net centre's, the fraction left.
 **Rewards** ``(n_agents,)``: the weighted sum of the terms of
 :mod:`mysim_jax.tasks.rewards`; ``info["terms"]`` holds every weighted term ``(n_agents,)``.
 
-**Episode end.** ``terminated`` on success (the target held for ``success.hold_time``)
+**Episode end.** ``terminated`` on success (the target held at every policy step over
+``success.hold_time``, from its first held step: the measure of
+:func:`~mysim_jax.tasks.outcome.capture_outcome` on the policy-step grid)
 or any failure (:data:`~mysim_jax.tasks.env_config.FAILURES`); ``truncated`` when the
 time limit is reached without either. ``info`` flags which (``success``,
 ``failures[name]``, ``timeout``) and carries the episode's return and length. On either,
 the environment resets inside ``step`` (auto-reset): the returned ``obs``, ``state`` and
 ``info["global_state"]`` are the new episode's first; ``info`` describes the episode that
-ended, with its last observation and global state in ``info["final_obs"]`` and
-``info["final_global_state"]`` (equal to ``obs`` and ``info["global_state"]`` on other
+ended, with its last observation, global state and state in ``info["final_obs"]``,
+``info["final_global_state"]`` and ``info["final_state"]`` (the first two equal to ``obs`` and ``info["global_state"]`` on other
 steps). A step that succeeds reports no failure (``info["failed"]`` is their union).
 
 **Randomisation** per episode, from the reset key: the target's spawn (``target.spawn``)
@@ -109,7 +111,8 @@ class EnvState:
     sim: State
     episode: Episode
     steps: jnp.ndarray            # () int32, policy steps taken this episode
-    held_time: jnp.ndarray        # () s the target has been held without a break
+    held: jnp.ndarray             # () bool, the target was held after the last step
+    held_time: jnp.ndarray        # () s from the first held step of the current hold to the last
     touched: jnp.ndarray          # () bool, the target has touched the net this episode
     returns: jnp.ndarray          # (n_agents,) sum of rewards this episode
 
@@ -178,7 +181,9 @@ class CaptureEnv:
         with jax.named_scope("rewards"):
             snap = self.snapshot(sim, sim_params)
             flags = self.flags(snap)
-            held_time = jnp.where(flags.held, state.held_time + self.policy_dt, 0.0).astype(dtype)
+            # measured as capture_outcome measures it: from the first held sample, so a
+            # hold of k consecutive held steps lasts (k - 1) policy periods
+            held_time = jnp.where(flags.held & state.held, state.held_time + self.policy_dt, 0.0).astype(dtype)
             succeeded = flags.held & (held_time >= self.success.hold_time - 1e-6)
             # a step that succeeds is not a failure (the flags are exclusive in info)
             failures = {k: v & ~succeeded for k, v in flags.failures.items()}
@@ -207,14 +212,15 @@ class CaptureEnv:
             "episode_length": steps,
             "done": done,
         }
-        after = EnvState(sim=sim, episode=state.episode, steps=steps, held_time=held_time, touched=touched,
-                         returns=returns)
+        after = EnvState(sim=sim, episode=state.episode, steps=steps, held=flags.held, held_time=held_time,
+                         touched=touched, returns=returns)
         key_reset, key_obs = jax.random.split(key)
         fresh = self._reset_state(key_reset, params)
         # the episode's last observation (before the reset), e.g. to bootstrap a value
         # on truncation
         info["final_obs"] = self._observe(key_obs, after, params)
         info["final_global_state"] = self.global_state(after)
+        info["final_state"] = after
         state = jax.tree.map(lambda a, b: jnp.where(done, a, b), fresh, after)
         obs = jnp.where(done, self._observe(key_obs, state, params), info["final_obs"])
         info["global_state"] = jnp.where(done, self.global_state(state), info["final_global_state"])
@@ -263,7 +269,8 @@ class CaptureEnv:
         episode = self.draw_episode(k_episode, params.ranges)
         sim = spawn_target(self.scene, self.episode_params(params, episode), params.start, k_spawn)
         dtype = sim.phys.body_pos.dtype
-        return EnvState(sim=sim, episode=episode, steps=jnp.zeros((), jnp.int32), held_time=jnp.zeros((), dtype),
+        return EnvState(sim=sim, episode=episode, steps=jnp.zeros((), jnp.int32), held=jnp.zeros((), bool),
+                        held_time=jnp.zeros((), dtype),
                         touched=jnp.zeros((), bool), returns=jnp.zeros((self.n_agents,), dtype))
 
     def snapshot(self, sim: State, sim_params: Params) -> Snapshot:

@@ -1,0 +1,190 @@
+"""Record one episode of the capture environment, for plots, animations and debugging.
+
+    record = record_episode(env, params, policy, key)
+    record.trajectory      # sim.Trajectory on the policy-step grid, the format simulate() returns
+    record.rewards         # (length, n_agents), and every term, flag and action per step
+
+:func:`episode_rollout` is the pure part (one ``lax.scan`` over ``env.max_steps`` policy
+steps, saving every step; jit it, vmap it); :func:`record_episode` jits it, runs it and
+cuts the rows at the end of the first episode on the host.
+
+**The terminal state is the one before the reset.** :meth:`CaptureEnv.step` resets
+inside the step when an episode ends, so its returned state is already the next
+episode's. Here every policy step is split in two: the physics of the step is run with
+:func:`advance_sim` (the same few lines as in ``CaptureEnv.step``), and then
+``env.step`` itself — on a copy of the environment with ``control_steps = 0``, so its
+physics loop is empty — is applied to the advanced state to do everything else
+(rewards, success and failure checks, episode bookkeeping, the reset). The physics runs
+once, the reward logic is the environment's own, and the advanced state is the
+pre-reset state. A test checks that this gives the same episode as ``env.step``.
+
+**Keys.** The key is used exactly as :func:`~mysim_jax.tasks.evaluate.run_episodes`
+uses slot ``b``'s key ``fold_in(key, b)``: ``record_episode(env, params, policy,
+fold_in(key, 0))`` replays the first episode of slot 0 of ``run_episodes(..., key)``
+with the same draws, and the same states up to floating-point rounding, which differs
+between compiled programs. Contact is chaotic: once the target touches the net, that
+rounding grows (millimetres within a few steps) and the replay can end differently from
+the batched episode (as two batched runs of different batch sizes can).
+
+**Rows.** The trajectory has ``length + 1`` rows: the reset state at ``t = 0`` and the
+state after every policy step, the last one at ``t = length · policy_dt``.
+Accelerations are evaluated at the saved states with the actuator inputs the
+controller holds from there (as :func:`~mysim_jax.sim.simulate` does): at a state
+inside the episode, under the setpoint of the action taken from it; at the last state,
+under the last action's setpoint (it is held there when the episode ends).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from mysim_jax.control.setpoint import setpoint_from_action
+from mysim_jax.sim import Trajectory, accelerations, effect_updates, held_inputs
+from mysim_jax.sim import step as sim_step
+from mysim_jax.tasks.env_config import FAILURES, REWARD_TERMS
+
+
+def clean_actions(env, actions, dtype):
+    """Actions as ``CaptureEnv.step`` applies them: NaN components to 0, then clipped to ``[-1, 1]``."""
+    actions = env.check_actions(actions)
+    actions = jnp.where(jnp.isfinite(actions), actions.astype(dtype), 0.0)
+    return jnp.clip(actions, -1.0, 1.0)
+
+
+def advance_sim(env, params, state, actions):
+    """The physics of one policy step of ``env.step``: the sim state after it."""
+    actions = clean_actions(env, actions, state.sim.phys.body_pos.dtype)
+    sim_params = env.episode_params(params, state.episode)
+    setpoint = setpoint_from_action(env.scene, sim_params, actions)
+    return jax.lax.fori_loop(0, env.control_steps, lambda _, s: sim_step(env.scene, sim_params, s, setpoint),
+                             state.sim)
+
+
+def held_accelerations(env, sim_params, sim, actions):
+    """Accelerations of the sim state ``sim`` with the inputs the controller holds from
+    there under the setpoint of ``actions`` (one state; vmap over rows)."""
+    scene = env.scene
+    setpoint = setpoint_from_action(scene, sim_params, clean_actions(env, actions, sim.phys.body_pos.dtype))
+    inputs = held_inputs(scene, sim_params, sim, setpoint)[0]
+    held = effect_updates(scene, sim_params, sim)[0] if scene.effects else None
+    return accelerations(scene, sim_params, sim.phys, inputs, held)
+
+
+def episode_rollout(env, params, policy, key):
+    """``max_steps`` policy steps from a reset drawn from ``key`` (pure; module docstring).
+
+    Returns ``(first, sim_params, rows)``: the reset sim state, the first episode's
+    physics parameters, and per-step stacked ``rows`` (leading axis ``max_steps``):
+    ``sim`` (the state after the step, before any reset), ``actions`` (as the policy
+    gave them), ``reward``, ``terms`` (weighted, per agent),
+    ``success``, ``failures``, ``timeout``, ``held``, ``touching``, ``done``, ``returns``
+    (the episode's return so far, per agent). Rows after the first ``done`` belong to the
+    following episodes (the environment auto-resets); :func:`record_episode` drops them.
+    """
+    no_physics = dataclasses.replace(env, control_steps=0)
+    k_reset, k_run = jax.random.split(key)
+    obs, start = env.reset(k_reset, params)
+    sim_params = env.episode_params(params, start.episode)
+
+    def one(carry, _):
+        k, obs, state = carry
+        k, k_act, k_step = jax.random.split(k, 3)
+        actions = policy(k_act, obs, state, params)
+        sim = advance_sim(env, params, state, actions)
+        obs, state, reward, _, _, info = no_physics.step(k_step, state.replace(sim=sim), actions, params)
+        row = {"sim": sim, "actions": actions, "reward": reward, "terms": info["terms"], "success": info["success"],
+               "failures": jnp.stack([info["failures"][f] for f in FAILURES]), "timeout": info["timeout"],
+               "held": info["held"], "touching": info["touching"], "done": info["done"],
+               "returns": info["episode_return"]}
+        return (k, obs, state), row
+
+    _, rows = jax.lax.scan(one, (k_run, obs, start), None, length=env.max_steps)
+    return start.sim, sim_params, rows
+
+
+@dataclass
+class EpisodeRecord:
+    """One episode on the policy-step grid (host arrays; module docstring)."""
+
+    trajectory: Trajectory          # length + 1 rows; controller memory included (motor columns)
+    sim_params: object              # the episode's physics parameters (Params, NumPy leaves)
+    actions: np.ndarray             # (length, n_agents, 3) as the policy gave them
+    rewards: np.ndarray             # (length, n_agents)
+    terms: dict[str, np.ndarray]    # term -> (length, n_agents), weighted
+    held: np.ndarray                # (length,) bool, the target held after the step
+    touching: np.ndarray            # (length,) bool
+    success: bool
+    failures: dict[str, bool]       # name -> flagged on the last step
+    timeout: bool
+    returns: np.ndarray             # (n_agents,) the episode's return
+
+    @property
+    def length(self) -> int:
+        return len(self.rewards)
+
+    @property
+    def outcome(self) -> str:
+        """``success``, the first failure flagged (FAILURES order), or ``timeout``."""
+        if self.success:
+            return "success"
+        return next((f for f in FAILURES if self.failures[f]), "timeout")
+
+
+def record_episode(env, params, policy, key) -> EpisodeRecord:
+    """Run one episode (reset from ``key``, step until the first ``done``) and keep its
+    states up to and including the terminal, pre-reset one (module docstring)."""
+    first, sim_params, rows = jax.jit(lambda p, k: episode_rollout(env, p, policy, k))(params, key)
+    first, sim_params, rows = jax.tree.map(np.asarray, (first, sim_params, rows))
+    done = np.flatnonzero(rows["done"])
+    if done.size == 0:       # the time limit ends every episode within max_steps
+        raise RuntimeError(f"record_episode: no episode ended within max_steps = {env.max_steps}")
+    n = int(done[0]) + 1
+
+    def cut(a):
+        return a[:n]
+
+    states = jax.tree.map(lambda a, b: np.concatenate([a[None], b[:n]]), first, rows["sim"])
+    # row k's acceleration under the action taken from it; the last row under the last action
+    held_actions = np.concatenate([rows["actions"][:n], rows["actions"][n - 1:n]])
+    acc = jax.jit(jax.vmap(lambda p, s, a: held_accelerations(env, p, s, a), in_axes=(None, 0, 0)))(
+        sim_params, states, held_actions)
+    acc = jax.tree.map(np.asarray, acc)
+    failures = rows["failures"][n - 1]
+    return EpisodeRecord(
+        trajectory=Trajectory(time=states.time, phys=states.phys, acc=acc, controller=states.controller),
+        sim_params=sim_params, actions=cut(rows["actions"]), rewards=cut(rows["reward"]),
+        terms={t: cut(rows["terms"][t]) for t in REWARD_TERMS}, held=cut(rows["held"]),
+        touching=cut(rows["touching"]), success=bool(rows["success"][n - 1]),
+        failures={f: bool(failures[i]) for i, f in enumerate(FAILURES)}, timeout=bool(rows["timeout"][n - 1]),
+        returns=rows["returns"][n - 1])
+
+
+def record_columns(env, record: EpisodeRecord) -> dict[str, np.ndarray]:
+    """The ``trajectory.csv`` columns ``scripts/simulate.py`` writes (states, then the
+    controller's reference and motor columns) for a recorded episode."""
+    from mysim_jax.control.tracking import motor_columns, reference_columns
+    from mysim_jax.io.trajectory import trajectory_columns
+
+    traj = record.trajectory
+    columns = trajectory_columns(env.scene, traj)
+    columns.update(reference_columns(env.scene, record.sim_params, traj.time))
+    columns.update(motor_columns(env.scene, traj.controller))
+    return columns
+
+
+def step_columns(env, record: EpisodeRecord) -> dict[str, np.ndarray]:
+    """Per policy step of a recorded episode: ``time`` (at the end of the step), every
+    agent's reward, every weighted term (mean over agents), ``held`` and ``touching``."""
+    columns = {"time": np.asarray(record.trajectory.time[1:])}
+    for i, agent in enumerate(env.agents):
+        columns[f"reward_{agent}"] = record.rewards[:, i]
+    for t in REWARD_TERMS:
+        columns[f"term_{t}"] = record.terms[t].mean(axis=1)
+    columns["held"] = record.held.astype(int)
+    columns["touching"] = record.touching.astype(int)
+    return columns

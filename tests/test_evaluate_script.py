@@ -1,0 +1,155 @@
+"""scripts/evaluate.py end to end on a small capture scene, its input checks, and
+mysim_jax.tasks.episode.record_episode (the recorded episode ends at the pre-reset state)."""
+
+import json
+import subprocess
+import sys
+
+import jax
+import numpy as np
+import pytest
+
+from mysim_jax.config import load_config
+from mysim_jax.io.trajectory import read_trajectory_csv
+from mysim_jax.tasks.env_config import FAILURES, REWARD_TERMS
+
+from conftest import CONFIGS, ROOT
+
+SCRIPT = ROOT / "scripts" / "evaluate.py"
+CONFIG = CONFIGS / "capture_falling.yaml"
+# a 3 x 3 net on one-mass tethers, 0.4 s (10 policy steps of 0.04 s): compiles in seconds
+SMALL = ["net.knots=3", "net.tethers.n_masses=1", "sim.t_end=0.4", "sim.precision=float32",
+         "output.plot=[target,uav0]"]
+
+
+def _run(*args):
+    sets = [a for s in SMALL for a in ("--set", s)]
+    return subprocess.run([sys.executable, str(SCRIPT), *map(str, args), *sets, "--no-progress"],
+                          capture_output=True, text=True, cwd=ROOT)
+
+
+def test_outputs_and_consistent_metrics(tmp_path):
+    out = tmp_path / "eval"
+    res = _run(CONFIG, "--policy", "scripted", "--episodes", 4, "--batch", 2, "--seed", 3, "--out", out,
+               "--no-animation")
+    assert res.returncode == 0, res.stderr
+    assert "no env: block" in res.stderr          # capture_falling.yaml has none: defaults, with a note
+    for name in ("metrics.json", "episodes.csv", "outcomes.png", "reward_terms.png", "lengths.png", "returns.png",
+                 "trajectory.csv", "config.yaml", "capture_top.png", "capture_side.png", "episode_steps.csv",
+                 "episode_rewards.png"):
+        assert (out / name).stat().st_size > 0, name
+    assert not (out / "capture.gif").exists()
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert (metrics["policy"], metrics["episodes"], metrics["batch"], metrics["seed"]) == ("scripted", 4, 2, 3)
+    assert metrics["scene"] == "capture_falling" and metrics["env_block"] == "defaults"
+
+    rows = read_trajectory_csv(out / "episodes.csv")
+    assert len(rows["episode"]) == 4
+    assert sorted(np.bincount(rows["slot"].astype(int))) == [2, 2]     # every slot ran its share
+    flags = {"success": rows["success"], "timeout": rows["timeout"],
+             **{f: rows[f"failure_{f}"] for f in FAILURES}}
+    rates = {"success": metrics["success"], "timeout": metrics["timeout"], **metrics["failures"]}
+    for name, flag in flags.items():
+        r = rates[name]
+        assert r["count"] == int(flag.sum()) and r["rate"] == pytest.approx(flag.mean()), name
+        lo, hi = r["interval95"]
+        assert 0.0 <= lo <= r["rate"] <= hi <= 1.0, name
+    # an episode ends one way: success, or a failure, or the time limit
+    assert np.all(rows["success"] + rows["timeout"] + (sum(rows[f"failure_{f}"] for f in FAILURES) > 0) == 1)
+    assert metrics["mean_return"] == pytest.approx(rows["return"].mean(), rel=1e-6)
+    assert metrics["mean_length_steps"] == pytest.approx(rows["length_steps"].mean())
+    for t in REWARD_TERMS:
+        assert metrics["mean_terms"][t] == pytest.approx(rows[f"term_{t}"].mean(), rel=1e-6, abs=1e-9)
+    np.testing.assert_allclose(sum(rows[f"term_{t}"] for t in REWARD_TERMS), rows["return"], rtol=1e-4)
+
+    # the recorded episode (slot 0's first) in simulate.py's format, on the policy-step grid
+    traj = read_trajectory_csv(out / "trajectory.csv")
+    assert {"time", "target_x", "uav0_qw", "uav0_az", "uav0_rotor4", "net_k1_1_vz"} <= set(traj)
+    rec = metrics["recorded_episode"]
+    first = int(np.flatnonzero(rows["slot"] == 0)[0])
+    assert len(traj["time"]) == rec["length_steps"] + 1 == int(rows["length_steps"][first]) + 1
+    np.testing.assert_allclose(traj["time"], np.arange(len(traj["time"])) * metrics["policy_dt"], atol=1e-5)
+    assert rec["mean_return"] == pytest.approx(rows["return"][first], rel=1e-3)
+    assert {"caught", "min_uav_target_distance_m"} <= set(rec["capture"])
+
+
+@pytest.mark.parametrize("case", ["missing_config", "missing_policy", "no_make_policy", "zero_episodes",
+                                  "bad_override"])
+def test_bad_input_exits_2_and_writes_nothing(tmp_path, case):
+    out = tmp_path / "eval"
+    no_function = tmp_path / "policy.py"
+    no_function.write_text("def something_else(env, params):\n    return None\n")
+    args = {
+        "missing_config": (tmp_path / "nope.yaml", "--policy", "scripted", "--episodes", 2),
+        "missing_policy": (CONFIG, "--policy", tmp_path / "nope.py", "--episodes", 2),
+        "no_make_policy": (CONFIG, "--policy", no_function, "--episodes", 2),
+        "zero_episodes": (CONFIG, "--policy", "scripted", "--episodes", 0),
+        "bad_override": (CONFIG, "--policy", "scripted", "--episodes", 2, "--set", "env.policy_rate=7"),
+    }[case]
+    message = {"missing_config": "no such config file", "missing_policy": "no such file",
+               "no_make_policy": "make_policy", "zero_episodes": "--episodes 0", "bad_override": "policy_rate"}[case]
+    res = _run(*args, "--out", out)
+    assert res.returncode == 2, res.stderr
+    assert res.stderr.startswith("error:") and message in res.stderr, res.stderr
+    assert "Traceback" not in res.stderr
+    assert not out.exists() and not list(tmp_path.glob(".eval*"))
+
+
+def test_record_episode_stops_at_the_pre_reset_state():
+    from mysim_jax.tasks.capture import make_env
+    from mysim_jax.tasks.episode import record_episode
+    from mysim_jax.tasks.evaluate import random_policy
+
+    # random setpoints and a UAV dipping 1 cm fails the episode: it ends on a failure, before the time limit
+    config = load_config(CONFIG, ["env.failure.min_altitude=3.89", *SMALL])
+    env, params = make_env(config)
+    policy = random_policy(env)
+    key = jax.random.PRNGKey(3)
+    rec = record_episode(env, params, policy, key)
+    assert 1 <= rec.length < env.max_steps and rec.outcome == "uav_altitude" and not rec.timeout
+    t = rec.trajectory.time
+    assert len(t) == rec.length + 1 and rec.rewards.shape == (rec.length, env.n_agents)
+    # the last row is the terminal state, not the next episode's reset (which is at t = 0)
+    np.testing.assert_allclose(t, np.arange(rec.length + 1) * env.policy_dt, atol=1e-5)
+    assert np.isfinite(rec.trajectory.acc.body_acc).all()
+
+    # the same episode stepped with env.step: same rewards, same states, and its state after
+    # the last step is already the reset one
+    k_reset, k = jax.random.split(key)
+    obs, state = env.reset(k_reset, params)
+    step = jax.jit(env.step)
+    for i in range(rec.length):
+        k, k_act, k_step = jax.random.split(k, 3)
+        obs, state, reward, _, _, info = step(k_step, state, policy(k_act, obs, state, params), params)
+        np.testing.assert_allclose(reward, rec.rewards[i], rtol=1e-4, atol=1e-5)
+        if i < rec.length - 1:
+            np.testing.assert_allclose(state.sim.phys.body_pos, rec.trajectory.phys.body_pos[i + 1], atol=1e-5)
+    assert bool(info["done"]) and bool(info["failures"]["uav_altitude"])
+    np.testing.assert_allclose(info["episode_return"], rec.returns, rtol=1e-4)
+    assert float(state.sim.time) == 0.0 and int(state.steps) == 0
+
+
+def test_policy_files_are_checked_before_compiling(tmp_path):
+    from mysim_jax.tasks.capture import make_env
+    from mysim_jax.tasks.policies import PolicyError, check_policy, policy_maker
+
+    env, params = make_env(load_config(CONFIG, ["env={}", *SMALL]))
+    good = tmp_path / "hold.py"
+    good.write_text("import jax.numpy as jnp\n\n"
+                    "def make_policy(env, params):\n"
+                    "    return lambda key, obs, state, params: jnp.zeros(env.action_shape, obs.dtype)\n")
+    check_policy(env, params, policy_maker(str(good))(env, params), str(good))
+    wrong = tmp_path / "wrong.py"
+    wrong.write_text("import jax.numpy as jnp\n\n"
+                     "def make_policy(env, params):\n"
+                     "    return lambda key, obs, state, params: jnp.zeros((env.n_agents, 2))\n")
+    with pytest.raises(PolicyError, match=r"shape \(4, 2\).*expected a real \(float\) array of shape \(4, 3\)"):
+        check_policy(env, params, policy_maker(str(wrong))(env, params), str(wrong))
+    broken = tmp_path / "broken.py"
+    broken.write_text("def make_policy(env, params):\n    return 1 +\n")
+    with pytest.raises(PolicyError, match="importing it failed: SyntaxError"):
+        policy_maker(str(broken))
+    checkpoint = tmp_path / "policy.ckpt"
+    checkpoint.write_text("")
+    with pytest.raises(PolicyError, match="not a Python file"):
+        policy_maker(str(checkpoint))
