@@ -365,3 +365,23 @@ def test_scripted_team_catches_and_random_team_does_not():
     random = run_episodes(env, params, random_policy(env), 2, 2, jax.random.PRNGKey(0), progress=False)
     assert not random.success.any()
     assert (np.stack(list(random.failures.values())).any(axis=0) | random.timeout).all()
+
+
+@pytest.mark.slow
+def test_success_agrees_with_the_capture_verdict_of_the_recorded_episode():
+    """The environment's success and capture_outcome (simulate.py's verdict, from the saved
+    trajectory on the policy-step grid) agree on when the hold is long enough."""
+    from mysim_jax.tasks.episode import record_columns, record_episode
+    from mysim_jax.tasks.evaluate import scripted_policy
+    from mysim_jax.tasks.outcome import capture_outcome
+
+    config = load_config("configs/capture_env_falling.yaml")
+    env, params = make_env(config)
+    record = record_episode(env, params, scripted_policy(env), jax.random.PRNGKey(2))
+    assert record.success
+    outcome = capture_outcome(record_columns(env, record), config, hold_time=env.success.hold_time)
+    assert outcome.caught
+    # the episode ends on the first step at which the held steps span hold_time: the
+    # last n steps held (n - 1 periods >= hold_time), the one before them not
+    n = math.ceil(env.success.hold_time / env.policy_dt - 1e-6) + 1
+    assert record.held[-n:].all() and not record.held[-n - 1]

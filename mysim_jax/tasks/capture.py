@@ -165,10 +165,9 @@ class CaptureEnv:
 
     def step(self, key, state: EnvState, actions, params: EnvParams):
         """``(obs, state, reward, terminated, truncated, info)`` (module docstring)."""
-        actions = self.check_actions(actions)
         dtype = state.sim.phys.body_pos.dtype
-        nan = ~jnp.isfinite(actions)
-        actions = jnp.clip(jnp.where(nan, 0.0, actions.astype(dtype)), -1.0, 1.0)
+        nan = ~jnp.isfinite(self.check_actions(actions))
+        actions = self.clean_actions(actions, dtype)
         sim_params = self.episode_params(params, state.episode)
         setpoint = setpoint_from_action(self.scene, sim_params, actions)
 
@@ -237,6 +236,12 @@ class CaptureEnv:
         if not (jnp.issubdtype(actions.dtype, jnp.floating) or jnp.issubdtype(actions.dtype, jnp.integer)):
             raise ValueError(f"actions: dtype {actions.dtype}, expected a real (float) array")
         return actions
+
+    def clean_actions(self, actions, dtype):
+        """Actions as :meth:`step` applies them: shape checked, NaN components set to 0,
+        then clipped to ``[-1, 1]``."""
+        actions = self.check_actions(actions)
+        return jnp.clip(jnp.where(jnp.isfinite(actions), actions.astype(dtype), 0.0), -1.0, 1.0)
 
     def draw_episode(self, key, ranges: Ranges) -> Episode:
         leaves_low, treedef = jax.tree.flatten(ranges.low)

@@ -10,13 +10,8 @@ cuts the rows at the end of the first episode on the host.
 
 **The terminal state is the one before the reset.** :meth:`CaptureEnv.step` resets
 inside the step when an episode ends, so its returned state is already the next
-episode's. Here every policy step is split in two: the physics of the step is run with
-:func:`advance_sim` (the same few lines as in ``CaptureEnv.step``), and then
-``env.step`` itself — on a copy of the environment with ``control_steps = 0``, so its
-physics loop is empty — is applied to the advanced state to do everything else
-(rewards, success and failure checks, episode bookkeeping, the reset). The physics runs
-once, the reward logic is the environment's own, and the advanced state is the
-pre-reset state. A test checks that this gives the same episode as ``env.step``.
+episode's; its ``info["final_state"]`` is the state before the reset, and that is what is
+saved here for every step.
 
 **Keys.** The key is used exactly as :func:`~mysim_jax.tasks.evaluate.run_episodes`
 uses slot ``b``'s key ``fold_in(key, b)``: ``record_episode(env, params, policy,
@@ -36,7 +31,6 @@ under the last action's setpoint (it is held there when the episode ends).
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 
 import jax
@@ -45,31 +39,14 @@ import numpy as np
 
 from mysim_jax.control.setpoint import setpoint_from_action
 from mysim_jax.sim import Trajectory, accelerations, effect_updates, held_inputs
-from mysim_jax.sim import step as sim_step
 from mysim_jax.tasks.env_config import FAILURES, REWARD_TERMS
-
-
-def clean_actions(env, actions, dtype):
-    """Actions as ``CaptureEnv.step`` applies them: NaN components to 0, then clipped to ``[-1, 1]``."""
-    actions = env.check_actions(actions)
-    actions = jnp.where(jnp.isfinite(actions), actions.astype(dtype), 0.0)
-    return jnp.clip(actions, -1.0, 1.0)
-
-
-def advance_sim(env, params, state, actions):
-    """The physics of one policy step of ``env.step``: the sim state after it."""
-    actions = clean_actions(env, actions, state.sim.phys.body_pos.dtype)
-    sim_params = env.episode_params(params, state.episode)
-    setpoint = setpoint_from_action(env.scene, sim_params, actions)
-    return jax.lax.fori_loop(0, env.control_steps, lambda _, s: sim_step(env.scene, sim_params, s, setpoint),
-                             state.sim)
 
 
 def held_accelerations(env, sim_params, sim, actions):
     """Accelerations of the sim state ``sim`` with the inputs the controller holds from
     there under the setpoint of ``actions`` (one state; vmap over rows)."""
     scene = env.scene
-    setpoint = setpoint_from_action(scene, sim_params, clean_actions(env, actions, sim.phys.body_pos.dtype))
+    setpoint = setpoint_from_action(scene, sim_params, env.clean_actions(actions, sim.phys.body_pos.dtype))
     inputs = held_inputs(scene, sim_params, sim, setpoint)[0]
     held = effect_updates(scene, sim_params, sim)[0] if scene.effects else None
     return accelerations(scene, sim_params, sim.phys, inputs, held)
@@ -86,7 +63,6 @@ def episode_rollout(env, params, policy, key):
     (the episode's return so far, per agent). Rows after the first ``done`` belong to the
     following episodes (the environment auto-resets); :func:`record_episode` drops them.
     """
-    no_physics = dataclasses.replace(env, control_steps=0)
     k_reset, k_run = jax.random.split(key)
     obs, start = env.reset(k_reset, params)
     sim_params = env.episode_params(params, start.episode)
@@ -95,8 +71,8 @@ def episode_rollout(env, params, policy, key):
         k, obs, state = carry
         k, k_act, k_step = jax.random.split(k, 3)
         actions = policy(k_act, obs, state, params)
-        sim = advance_sim(env, params, state, actions)
-        obs, state, reward, _, _, info = no_physics.step(k_step, state.replace(sim=sim), actions, params)
+        obs, state, reward, _, _, info = env.step(k_step, state, actions, params)
+        sim = info["final_state"].sim
         row = {"sim": sim, "actions": actions, "reward": reward, "terms": info["terms"], "success": info["success"],
                "failures": jnp.stack([info["failures"][f] for f in FAILURES]), "timeout": info["timeout"],
                "held": info["held"], "touching": info["touching"], "done": info["done"],
