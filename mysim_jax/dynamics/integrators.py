@@ -58,7 +58,7 @@ def implicit_gyroscopic(inertia, omega, angacc, h):
     """
     j_omega = jnp.einsum("nij,nj->ni", inertia, omega)
     jacobian = inertia + h * (jnp.einsum("nij,njk->nik", vecmath.skew(omega), inertia) - vecmath.skew(j_omega))
-    return jnp.linalg.solve(jacobian, jnp.einsum("nij,nj->ni", inertia, angacc)[..., None])[..., 0]
+    return vecmath.solve3(jacobian, jnp.einsum("nij,nj->ni", inertia, angacc))
 
 
 def state_derivative(phys: PhysState, acc: Accelerations) -> PhysState:

@@ -13,8 +13,8 @@ from mysim_jax import vecmath
 
 
 def inertia_inverse(inertia):
-    """Inverse of body inertia matrices ``(..., 3, 3)``."""
-    return jnp.linalg.inv(inertia)
+    """Inverse of body inertia matrices ``(..., 3, 3)`` (closed form, :func:`vecmath.inv3`)."""
+    return vecmath.inv3(inertia)
 
 
 def body_accelerations(mass, inertia_inv, inertia, angvel, force, torque):
