@@ -26,10 +26,6 @@ from mysim_jax.net.rope import build_rope
 from mysim_jax.npgeom import rotate
 from mysim_jax.types import JointBucket, Params, PhysState, Scene, State
 
-# Dense one-hot accumulation beats segment_sum on CPU for small graphs (BENCHMARKS.md);
-# above this many nodes the dense matrix costs more than it saves.
-MATMUL_ACCUMULATE_MAX_NODES = 128
-
 # ``substeps: auto`` takes sub-steps of at most this fraction of the per-element explicit
 # stability limits of contact pairs and Baumgarte terms: a per-element estimate ignores
 # coupling between elements (which can raise the top frequency by up to ~√2) and the
@@ -225,7 +221,10 @@ def build(config: SceneConfig):
         rtol=config.sim.rtol,
         atol=config.sim.atol,
         max_steps=config.sim.max_steps,
-        accumulate="matmul" if n_nodes <= MATMUL_ACCUMULATE_MAX_NODES else "segment_sum",
+        # node forces are scattered (segment_sum): with the batch axis last
+        # (mysim_jax.batching) a scatter adds contiguous batch rows, where the dense
+        # incidence matmul does n_nodes times the work (BENCHMARKS.md, sections a and b)
+        accumulate="segment_sum",
         contact=contact_scene,
         quadrotor=quad_scene,
     )

@@ -332,9 +332,10 @@ def _accelerations_on_grid(scene: Scene, params: Params, states: State, policy=N
 def single_env_scene(scene: Scene) -> Scene:
     """The scene as ``simulate`` runs it: one environment, ``segment_sum`` accumulation.
 
-    Built scenes use the dense ``matmul`` accumulation that suits large batches; for a
-    single environment ``segment_sum`` is faster (BENCHMARKS.md, section b). The physics
-    is the same up to the order of floating-point additions.
+    Built scenes already use ``segment_sum``; a scene switched to the dense ``matmul``
+    accumulation by hand is switched back, since for a single environment the scatter is
+    faster (BENCHMARKS.md, section b). The physics is the same up to the order of
+    floating-point additions.
     """
     return dataclasses.replace(scene, accumulate="segment_sum")
 

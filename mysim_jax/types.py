@@ -85,9 +85,9 @@ class Scene:
     rtol: float = 1e-8
     atol: float = 1e-10
     max_steps: int = 10_000_000
-    # how node forces are summed: "matmul" (dense one-hot incidence, fast for small nets)
-    # or "segment_sum" (scales to large nets); chosen in build() and measured in bench.py
-    accumulate: str = "matmul"
+    # how node forces are summed: "segment_sum" (a scatter-add; what build() chooses) or
+    # "matmul" (a dense one-hot incidence product); bench.py measures both
+    accumulate: str = "segment_sum"
     # --- contact (mysim_jax/contact): None when the scene has no contact ---------------
     contact: ContactScene | None = None
     # --- quadrotors, their controller and cameras (mysim_jax/dynamics/quadrotor.py) ----

@@ -101,10 +101,10 @@ def take_rows(x, index):
 def scatter_rows(values, index, n: int, method: str):
     """Sum rows of ``values`` ``(k, 3)`` into ``n`` rows by the static ``index`` ``(k,)``.
 
-    ``method="matmul"`` multiplies by a constant one-hot matrix (fastest for small graphs
-    at large batch on CPU); ``"segment_sum"`` uses ``jax.ops.segment_sum`` (fastest for a
-    single environment). BENCHMARKS.md section (b) measures both, and a padded-slice sum
-    per run of ``index``, which was slower than both at every batch size.
+    ``method="segment_sum"`` uses ``jax.ops.segment_sum`` (a scatter-add; with the batch
+    axis last, see :mod:`mysim_jax.batching`, it adds contiguous batch rows);
+    ``"matmul"`` multiplies by a constant one-hot matrix. BENCHMARKS.md section (b)
+    measures both.
     """
     index = np.asarray(index, dtype=np.int32).reshape(-1)
     if method == "matmul":
