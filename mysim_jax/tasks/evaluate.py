@@ -1,6 +1,7 @@
 """Evaluate a team on many episodes of a capture environment, batched.
 
-:func:`run_episodes` runs ``batch`` environments side by side (one jitted ``vmap`` of
+:func:`run_episodes` runs ``batch`` environments side by side (one jitted batch-last
+``mysim_jax.batching.vmap`` of
 :meth:`CaptureEnv.step` scanned over ``chunk`` policy steps per call, a progress bar
 between calls) until every environment has finished ``ceil(n / batch)`` episodes, and
 keeps exactly those first episodes of every slot (the first ``n`` of them in slot order).
@@ -20,6 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from mysim_jax import batching
 from mysim_jax.tasks.env_config import FAILURES, REWARD_TERMS
 from mysim_jax.tasks.sweep import wilson_interval
 
@@ -101,7 +103,7 @@ def run_episodes(env, params, policy, n_episodes: int, batch: int, key, chunk: i
     def advance(carry):
         return jax.lax.scan(one, carry, None, length=chunk)
 
-    advance = jax.jit(jax.vmap(advance))
+    advance = jax.jit(batching.vmap(advance))     # batch axis last inside (mysim_jax.batching)
 
     def start(k):
         k_reset, k_run = jax.random.split(k)
