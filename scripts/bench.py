@@ -7,9 +7,11 @@
 
 Sections (``--only`` takes their letters):
 
-  a  rope-net throughput: jit(vmap(scan of K steps)) at batch 1, 64, 1024, 4096 (float32,
-     semi-implicit Euler, dt 1e-4): env-steps/s, compile time, memory per env; and the
-     capture scene's env-steps/s at batch 1024 (float32, scripted team policy).
+  a  rope-net throughput: jit(batching.vmap(scan of K steps)) at batch 1, 64, 1024, 4096
+     (float32, semi-implicit Euler, dt 1e-4): env-steps/s, compile time, memory per env,
+     side by side with a hand-written batch-last kernel (mysim_jax/bench/rope_kernel.py)
+     and with plain jax.vmap; and the capture scene's env-steps/s at batch 1024 (float32,
+     scripted team policy), batch-last and jax.vmap.
   b  node-force accumulation: Scene.accumulate "matmul" vs "segment_sum", side by side.
   c  MuJoCo (C engine, one thread) on the same net exported by mysim_jax.io.mjcf.
   d  accuracy against cost: each integrator / step / tolerance / precision against a
@@ -22,7 +24,8 @@ Sections (``--only`` takes their letters):
      capture scene, sub-steps of its fixed control period) also report the observed order
      of the fixed-step methods across slack-taut switches.
   e  capture environment (configs/capture_env_falling.yaml): team (policy) steps/s of
-     jit(vmap(CaptureEnv.step)) with the scripted team at batch 1 to 4096, compile time,
+     jit(batching.vmap(CaptureEnv.step)) with the scripted team at batch 1 to 4096 (and
+     jax.vmap up to 1024, side by side), compile time,
      memory per env; and where a policy step's time goes (control periods, physics
      stages, the environment's own work) at batch 256.
   f  profile: where the time of one batched step goes, by timing stage variants.
@@ -36,7 +39,10 @@ redone (up to 2x the repeats + 1); each section says how busy the machine was. C
 done ahead of time (``.lower().compile()``) and timed separately.
 
 A run with --quick or --only writes to docs/bench/partial/ unless --out is given, so a
-smoke test never overwrites the full BENCHMARKS.md.
+smoke test never overwrites the full BENCHMARKS.md. ``--only a,e --update`` instead
+reruns those sections and splices them into the existing BENCHMARKS.md: the sections not
+rerun, and their summary lines, are kept as they were, and the header says which
+sections come from which run.
 """
 
 from __future__ import annotations
@@ -71,7 +77,8 @@ THROUGHPUT_OVERRIDES = ("sim.precision=float32", "sim.integrator=semi_implicit_e
                         "sim.dt=1e-4", "sim.substeps=1")
 TARGET_ENV_STEPS = 1_000_000      # env-steps/s at batch 4096
 TARGET_POLICY_STEPS = 20_000      # capture environment: team (policy) steps/s at batch 4096
-TARGET_MUJOCO_RATIO = 10.0        # ours@4096 / MuJoCo single-thread
+TARGET_MUJOCO_RATIO = 50.0        # ours@4096 / MuJoCo single-thread
+TARGET_KERNEL_RATIO = 0.8         # library / hand-written batch-last kernel at B = 1024 and 4096
 HEADLINE_BATCH = 4096
 CAPTURE_BATCH = 1024              # capture-scene throughput (section a)
 
@@ -80,7 +87,8 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from tqdm.auto import tqdm  # noqa: E402
 
-from mysim_jax import vecmath  # noqa: E402
+from mysim_jax import batching, vecmath  # noqa: E402
+from mysim_jax.bench.rope_kernel import from_node_columns, rope_net_kernel, to_node_columns  # noqa: E402
 from mysim_jax.build import build  # noqa: E402
 from mysim_jax.config import ConfigError, load_config  # noqa: E402
 from mysim_jax.dynamics.forces import spring_tension  # noqa: E402
@@ -251,8 +259,10 @@ class Compiled:
 
 
 def compile_batched(label: str, run_env: Callable, params, state, batch: int, n_steps: int,
-                    batch_params: bool = False, chunk: int | None = None, keep_hlo: bool = False) -> Compiled:
-    """``jit(vmap(run_env))`` over a batch of ``batch`` copies of ``state``.
+                    batch_params: bool = False, chunk: int | None = None, keep_hlo: bool = False,
+                    vmap: Callable = jax.vmap) -> Compiled:
+    """``jit(vmap(run_env))`` over a batch of ``batch`` copies of ``state``; ``vmap`` is
+    ``jax.vmap`` (batch axis first) or ``mysim_jax.batching.vmap`` (batch axis last).
 
     ``run_env(params, state) -> state`` runs one env for ``n_steps`` steps. Params are
     shared by all envs (``in_axes=None``) unless ``batch_params``. With ``chunk``, the batch
@@ -260,7 +270,7 @@ def compile_batched(label: str, run_env: Callable, params, state, batch: int, n_
     vmap of ``chunk`` envs), so one chunk's state stays in cache for all its steps.
     """
     in_axes = (0 if batch_params else None, 0)
-    vmapped = jax.vmap(run_env, in_axes=in_axes)
+    vmapped = vmap(run_env, in_axes=in_axes)
     if chunk is None:
         fn = jax.jit(vmapped)
     else:
@@ -418,35 +428,73 @@ def _capture_throughput_run(n_steps: int):
     return scene, params, state, run_env
 
 
+def compile_kernel(scene, params, state, batch: int, n_steps: int) -> tuple[Compiled, Callable]:
+    """The hand-written batch-last kernel (:mod:`mysim_jax.bench.rope_kernel`) on ``batch``
+    copies of ``state``; also returns a function giving its final positions ``(B, n, 3)``."""
+    run = jax.jit(rope_net_kernel(scene, params, n_steps))
+    pos = to_node_columns(broadcast(state.phys.point_pos, batch))
+    vel = to_node_columns(broadcast(state.phys.point_vel, batch))
+    jax.block_until_ready((pos, vel))
+    t0 = time.perf_counter()
+    compiled = run.lower(pos, vel).compile()
+    compile_s = time.perf_counter() - t0
+    try:
+        memory = compiled.memory_analysis()
+    except Exception:  # noqa: BLE001 - not every backend reports it
+        memory = None
+    return (Compiled("kernel", batch, n_steps, lambda: compiled(pos, vel), compile_s, memory),
+            lambda: from_node_columns(compiled(pos, vel)[0]))
+
+
 def section_a(cfg, results) -> list[str]:
     scene, params, state = _throughput_scene()
     batches = (1, 64, 1024, 4096)
     runners: dict[str, Compiled] = {}
-    bar = tqdm(total=len(batches) + 2 + (len(batches) + 2) * (cfg.repeats + 1), desc="(a) throughput", leave=False)
+    kernel_pos = {}
+    n_calls = 3 * len(batches) + 3
+    bar = tqdm(total=n_calls * (cfg.repeats + 2), desc="(a) throughput", leave=False)
     for b in batches:
         k = steps_for_batch(b, cfg.env_steps_per_call)
-        runners[f"B={b}"] = compile_batched(f"{b}", library_run_env(scene, k), params, state, b, k)
-        bar.update(1)
+        runners[f"B={b}"] = compile_batched(f"{b}", library_run_env(scene, k), params, state, b, k,
+                                            vmap=batching.vmap)
+        runners[f"B={b} jax.vmap"] = compile_batched(f"{b}, `jax.vmap` (batch first)", library_run_env(scene, k),
+                                                     params, state, b, k)
+        runners[f"B={b} kernel"], kernel_pos[b] = compile_kernel(scene, params, state, b, k)
+        bar.update(3)
     b = HEADLINE_BATCH
     k = steps_for_batch(b, cfg.env_steps_per_call)
     runners["B=4096 params batched"] = compile_batched("4096, params batched too", library_run_env(scene, k),
-                                                       params, state, b, k, batch_params=True)
+                                                       params, state, b, k, batch_params=True, vmap=batching.vmap)
     bar.update(1)
     cap_scene, cap_params, cap_state, cap_run = _capture_throughput_run(cfg.capture_steps)
-    capture = compile_batched("capture", cap_run, cap_params, cap_state, CAPTURE_BATCH, cfg.capture_steps)
-    bar.update(1)
+    capture = compile_batched("capture", cap_run, cap_params, cap_state, CAPTURE_BATCH, cfg.capture_steps,
+                              vmap=batching.vmap)
+    capture_first = compile_batched("capture, jax.vmap", cap_run, cap_params, cap_state, CAPTURE_BATCH,
+                                    cfg.capture_steps)
+    bar.update(2)
     wait_for_quiet(cfg.max_wait_s, "a")
-    times = time_round_robin({**{key: r.call for key, r in runners.items()}, "capture": capture.call}, cfg.repeats,
-                             bar, section="a")
+    times = time_round_robin({**{key: r.call for key, r in runners.items()}, "capture": capture.call,
+                              "capture_first": capture_first.call}, cfg.repeats, bar, section="a")
     bar.close()
-    rows = [ThroughputRow(r.label, r.batch, r.n_steps, times[key], r.compile_s, r.bytes_per_env())
-            for key, r in runners.items()]
+    rows_all = {key: ThroughputRow(r.label, r.batch, r.n_steps, times[key], r.compile_s, r.bytes_per_env())
+                for key, r in runners.items()}
+    rows = [row for key, row in rows_all.items() if not key.endswith(("jax.vmap", "kernel"))]
     cap_row = ThroughputRow("capture", CAPTURE_BATCH, cfg.capture_steps, times["capture"], capture.compile_s,
                             capture.bytes_per_env())
-    results["capture_throughput"] = (cap_row, cap_scene.substeps)
+    cap_first = ThroughputRow("capture, jax.vmap", CAPTURE_BATCH, cfg.capture_steps, times["capture_first"],
+                              capture_first.compile_s, capture_first.bytes_per_env())
+    results["capture_throughput"] = (cap_row, cap_scene.substeps, cap_first)
     results["a"] = rows
     headline = rows[batches.index(HEADLINE_BATCH)]
     results["ours_4096"] = headline.env_steps_per_s
+    ratio = {b: rows_all[f"B={b}"].env_steps_per_s / rows_all[f"B={b} kernel"].env_steps_per_s for b in batches}
+    first = {b: rows_all[f"B={b}"].env_steps_per_s / rows_all[f"B={b} jax.vmap"].env_steps_per_s for b in batches}
+    results["kernel_ratio"] = ratio
+    results["kernel_rows"] = {b: rows_all[f"B={b} kernel"].env_steps_per_s for b in batches}
+    # the kernel is separate code: check that it computes the library's trajectory
+    lib_final = jax.jit(batching.vmap(library_run_env(scene, steps_for_batch(64, cfg.env_steps_per_call)),
+                                      in_axes=(None, 0)))(params, broadcast(state, 64)).phys.point_pos
+    kernel_diff = float(jnp.abs(kernel_pos[64]() - lib_final).max())
 
     mem = runners["B=4096"].memory
     lines = [
@@ -454,7 +502,8 @@ def section_a(cfg, results) -> list[str]:
         "",
         f"`configs/rope_net.yaml` with `{' '.join('--set ' + o for o in THROUGHPUT_OVERRIDES)}` "
         f"({scene.n_points} point masses, {scene.n_springs} springs, {scene.accumulate!r} accumulation as "
-        "built). One call = `jax.jit(jax.vmap(run_env, in_axes=(None, 0)))(params, states)` where "
+        "built). One call = `jax.jit(mysim_jax.batching.vmap(run_env, in_axes=(None, 0)))(params, states)` "
+        "(the library's batched path: the per-environment step evaluated with the batch axis last) where "
         "`run_env` is a `lax.scan` of K `mysim_jax.sim.step` calls: the batch of states is the single-env "
         "state broadcast to B copies, **params are shared by all envs (not vmapped)**; the last row "
         "also broadcasts and vmaps params (`in_axes=(0, 0)`). "
@@ -467,6 +516,32 @@ def section_a(cfg, results) -> list[str]:
     for r in rows:
         lines.append(f"| {r.label} | {r.n_steps} | {r.env_steps_per_s:,.0f} | {median(r.times):.3f} | "
                      f"{spread(r.times)} | {r.compile_s:.2f} | {r.bytes_per_env / 1024:.2f} |")
+    lines += [
+        "",
+        "### Against a hand-written batch-last kernel and against `jax.vmap`",
+        "",
+        "The same rollout, timed round-robin with the rows above: the hand-written kernel of "
+        "`mysim_jax/bench/rope_kernel.py` (every node its own `(3, B)` array, the batch the contiguous last "
+        "axis, every operation element-wise, the topology unrolled: no vmap, no gathers, no scatters) and the "
+        "library's step batched with plain `jax.vmap` (batch axis first). Ratio = library (batch-last) / other.",
+        "",
+        "| batch B | library env-steps/s | kernel env-steps/s | library / kernel | `jax.vmap` env-steps/s "
+        "| library / `jax.vmap` |",
+        "|---:|---:|---:|---:|---:|---:|",
+    ]
+    for b in batches:
+        lib_r, ker_r, first_r = rows_all[f"B={b}"], rows_all[f"B={b} kernel"], rows_all[f"B={b} jax.vmap"]
+        lines.append(f"| {b} | {lib_r.env_steps_per_s:,.0f} | {ker_r.env_steps_per_s:,.0f} | **{ratio[b]:.2f}×** | "
+                     f"{first_r.env_steps_per_s:,.0f} | {first[b]:.2f}× |")
+    big = [b for b in batches if b >= 1024]
+    kernel_met = all(ratio[b] >= TARGET_KERNEL_RATIO for b in big)
+    lines += [
+        "",
+        f"**Target library ≥ {TARGET_KERNEL_RATIO}× the kernel at B = {' and '.join(map(str, big))}: "
+        f"{'MET' if kernel_met else 'NOT MET'}.** The kernel's final positions after K steps at B = 64 differ from "
+        f"the library's by {kernel_diff:.1e} m (float32 round-off: the same physics).",
+    ]
+    results["kernel_met"] = kernel_met
     met = headline.env_steps_per_s >= TARGET_ENV_STEPS
     lines += [
         "",
@@ -501,7 +576,7 @@ def section_a(cfg, results) -> list[str]:
         f"One env step = one control period `sim.dt` = {cap_scene.dt:g} s: the scripted team policy "
         "(`mysim_jax.tasks.scripted.team_policy`) and the cascaded PID run once, then "
         f"{n_sub} physics sub-steps of {cap_scene.substep:.3g} s ({cap_scene.integrator}, `substeps: auto`). "
-        f"One call = `jax.jit(jax.vmap(run_env, in_axes=(None, 0)))(params, states)` with `run_env` one "
+        f"One call = `jax.jit(mysim_jax.batching.vmap(run_env, in_axes=(None, 0)))(params, states)` with `run_env` one "
         f"`mysim_jax.sim.rollout(scene, params, state, K, K, policy)` of K = {cfg.capture_steps} env steps "
         f"(a short rollout from the start: the target is still falling and the net is not yet hit; "
         f"B·K = {CAPTURE_BATCH * cfg.capture_steps:,} env steps per call), the B states the single-env start "
@@ -513,12 +588,16 @@ def section_a(cfg, results) -> list[str]:
         f"| capture_falling | {CAPTURE_BATCH} | {cap_row.n_steps} | {cap_row.env_steps_per_s:,.0f} | "
         f"{cap_row.env_steps_per_s * n_sub:,.0f} | {median(cap_row.times):.3f} | {spread(cap_row.times)} | "
         f"{cap_row.compile_s:.2f} | {cap_row.bytes_per_env / 1024:.1f} |",
+        f"| capture_falling, `jax.vmap` (batch first) | {CAPTURE_BATCH} | {cap_first.n_steps} | "
+        f"{cap_first.env_steps_per_s:,.0f} | {cap_first.env_steps_per_s * n_sub:,.0f} | {median(cap_first.times):.3f} | "
+        f"{spread(cap_first.times)} | {cap_first.compile_s:.2f} | {cap_first.bytes_per_env / 1024:.1f} |",
         f"| rope_net (row B = 1024 above) | 1024 | {rows[2].n_steps} | {rows[2].env_steps_per_s:,.0f} | "
         f"{rows[2].env_steps_per_s:,.0f} | {median(rows[2].times):.3f} | {spread(rows[2].times)} | "
         f"{rows[2].compile_s:.2f} | {rows[2].bytes_per_env / 1024:.2f} |",
         "",
         f"In simulated time: {cap_row.env_steps_per_s * cap_scene.dt:,.1f} simulated seconds per wall second over the "
-        f"batch, i.e. {cap_row.env_steps_per_s * cap_scene.dt / CAPTURE_BATCH:.2e} per env.",
+        f"batch, i.e. {cap_row.env_steps_per_s * cap_scene.dt / CAPTURE_BATCH:.2e} per env. Batch-last against "
+        f"`jax.vmap`: {cap_row.env_steps_per_s / cap_first.env_steps_per_s:.2f}×.",
         "",
     ]
     return lines
@@ -1781,6 +1860,12 @@ def summary_lines(results) -> list[str]:
         v = results["ours_4096"]
         out.append(f"- Throughput at B = {HEADLINE_BATCH}: **{v:,.0f} env-steps/s** — target ≥ {TARGET_ENV_STEPS:,}: "
                    f"**{'met' if v >= TARGET_ENV_STEPS else 'NOT met'}**.")
+    if "kernel_ratio" in results:
+        r = results["kernel_ratio"]
+        out.append("- Library (batch-last, `mysim_jax.batching.vmap`) / hand-written batch-last kernel, same run: "
+                   + ", ".join(f"B={b}: **{x:.2f}×**" for b, x in r.items())
+                   + f" — target ≥ {TARGET_KERNEL_RATIO}× at B = 1024 and 4096: "
+                   f"**{'met' if results['kernel_met'] else 'NOT met'}**.")
     if "env_rows" in results:
         top = results["env_rows"][-1]
         out.append(f"- Capture environment (e), scripted team, B = {top.batch}: **{top.env_steps_per_s:,.1f} team "
@@ -1824,10 +1909,12 @@ def summary_lines(results) -> list[str]:
                          + f", {closest.wall_per_sim_s:.2f} s/sim-s")
             out.append(line + ".")
     if "capture_throughput" in results:
-        row, n_sub = results["capture_throughput"]
+        row, n_sub, first = results["capture_throughput"]
         out.append(f"- Capture scene (a), float32, B = {row.batch}, scripted team policy: "
                    f"**{row.env_steps_per_s:,.0f} env-steps/s** (2 ms control periods) = "
-                   f"{row.env_steps_per_s * n_sub:,.0f} physics sub-steps/s ({n_sub} sub-steps each).")
+                   f"{row.env_steps_per_s * n_sub:,.0f} physics sub-steps/s ({n_sub} sub-steps each); "
+                   f"with `jax.vmap` (batch first) {first.env_steps_per_s:,.0f} "
+                   f"({row.env_steps_per_s / first.env_steps_per_s:.2f}×).")
     for case, orders in results.get("orders", {}).items():
         parts = [f"{integ} {prec} p = {o['slope']:.2f}" for (integ, prec), o in orders.items() if prec == "float64"]
         if parts:
@@ -1859,8 +1946,9 @@ def summary_lines(results) -> list[str]:
 # =========================================================================================
 
 
-def _env_call(env, params, batch: int, n_steps: int, kind: str = "env"):
-    """AOT-compiled ``jit(vmap(...))`` over ``batch`` environments reset from distinct keys:
+def _env_call(env, params, batch: int, n_steps: int, kind: str = "env", vmap: Callable = batching.vmap):
+    """AOT-compiled ``jit(vmap(...))`` over ``batch`` environments reset from distinct keys
+    (``vmap``: the library's batch-last ``mysim_jax.batching.vmap`` or ``jax.vmap``):
     ``kind="env"``: ``n_steps`` team steps (:meth:`CaptureEnv.step` with the scripted team's
     actions); ``kind="control"``: ``n_steps`` control periods of the physics alone
     (:func:`mysim_jax.sim.step` with the scripted team's setpoint held). Returns a Compiled."""
@@ -1881,7 +1969,7 @@ def _env_call(env, params, batch: int, n_steps: int, kind: str = "env"):
             return step(env.scene, sim_params, s, sp), None
         return jax.lax.scan(period, state.sim, None, length=n_steps)[0]
 
-    fn = jax.jit(jax.vmap(run_env))
+    fn = jax.jit(vmap(run_env))
     jax.block_until_ready(states)
     t0 = time.perf_counter()
     compiled = fn.lower(keys, states).compile()
@@ -1903,16 +1991,23 @@ def section_e(cfg, results) -> list[str]:
     env, params = _env_variant([])
     scene = env.scene
     rows: list[ThroughputRow] = []
+    first_rows: dict[int, ThroughputRow] = {}
     bar = tqdm(total=len(cfg.env_batches), desc="(e) capture env", leave=False)
     for b in cfg.env_batches:
         k = max(1, int(round(32 / b)))          # about 32 team steps per call (one at B >= 64)
-        c = _env_call(env, params, b, k)
+        calls = {"env": _env_call(env, params, b, k)}
+        if b <= cfg.env_first_max_batch:        # the batch-first path, side by side
+            calls["first"] = _env_call(env, params, b, k, vmap=jax.vmap)
         wait_for_quiet(cfg.max_wait_s, "e")
-        times = time_round_robin({"env": c.call}, cfg.env_repeats, section="e")["env"]
-        rows.append(ThroughputRow(f"{b}", b, k, times, c.compile_s, c.bytes_per_env()))
+        times = time_round_robin({key: c.call for key, c in calls.items()}, cfg.env_repeats, section="e")
+        rows.append(ThroughputRow(f"{b}", b, k, times["env"], calls["env"].compile_s, calls["env"].bytes_per_env()))
+        if "first" in calls:
+            first_rows[b] = ThroughputRow(f"{b}", b, k, times["first"], calls["first"].compile_s,
+                                          calls["first"].bytes_per_env())
         bar.update(1)
     bar.close()
     results["env_rows"] = rows
+    results["env_first_rows"] = first_rows
 
     # where the time goes, at B = 256: the physics alone (control periods), and variants
     # of the scene with one stage removed
@@ -1932,7 +2027,7 @@ def section_e(cfg, results) -> list[str]:
     same = [f"sim.substeps={scene.substeps}"]      # every variant at the scene's sub-step
     for key, (_, overrides, kind) in variants.items():
         e, p = (env, params) if not overrides else _env_variant(overrides + same)
-        c = _env_call(e, p, pb, 1 if kind == "env" else n, kind)
+        c = _env_call(e, p, pb, 1 if kind == "env" else n, kind)   # batch-last
         calls[key], compiled[key], substeps[key] = c.call, c, e.scene.substeps
     auto_no_contact = _env_variant(["contact=null"])[0].scene.substeps
     wait_for_quiet(cfg.max_wait_s, "e")
@@ -1947,21 +2042,23 @@ def section_e(cfg, results) -> list[str]:
         f"`configs/capture_env_falling.yaml` (float32, {scene.n_points} point masses, {scene.n_springs} springs, "
         f"4 quadrotors and the target, contact, line drag; {env.control_steps} control periods of "
         f"{scene.dt * 1e3:g} ms per team step at 25 Hz, {scene.substeps} semi-implicit Euler sub-steps each). "
-        "One call = `jax.jit(jax.vmap(run_env))(keys, states)` with `run_env` a `lax.scan` of K "
+        "One call = `jax.jit(mysim_jax.batching.vmap(run_env))(keys, states)` (batch axis last) with `run_env` a `lax.scan` of K "
         "`CaptureEnv.step` calls whose actions are the scripted team's (`CaptureEnv.scripted_actions`): "
         "B environments reset from distinct keys, so their spawns, masses and wind differ; auto-reset "
         f"included. Team steps/s = B·K / median of {cfg.env_repeats} timed calls after one warm-up call. Memory "
         "per env = (arguments + outputs + temporaries − aliased) of the compiled call / B.",
         "",
         "| batch B | K team steps/call | team steps/s | control periods/s | physics sub-steps/s | median call [s] "
-        "| spread | compile [s] | memory/env [KiB] |",
-        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "| spread | compile [s] | memory/env [KiB] | `jax.vmap` team steps/s | batch-last / `jax.vmap` |",
+        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in rows:
         v = r.env_steps_per_s
+        f = first_rows.get(r.batch)
+        cmp = f"{f.env_steps_per_s:,.1f} | {v / f.env_steps_per_s:.2f}×" if f is not None else "– | –"
         lines.append(f"| {r.batch} | {r.n_steps} | {v:,.1f} | {v * env.control_steps:,.0f} | "
                      f"{v * env.control_steps * scene.substeps:,.0f} | {median(r.times):.3f} | {spread(r.times)} | "
-                     f"{r.compile_s:.1f} | {r.bytes_per_env / 1024:.1f} |")
+                     f"{r.compile_s:.1f} | {r.bytes_per_env / 1024:.1f} | {cmp} |")
     top = rows[-1]
     need = TARGET_POLICY_STEPS * env.control_steps * scene.substeps
     lines += [
@@ -1970,6 +2067,10 @@ def section_e(cfg, results) -> list[str]:
         f"{'MET' if top.env_steps_per_s >= TARGET_POLICY_STEPS else 'NOT MET'}** "
         f"({top.env_steps_per_s:,.1f} at B = {top.batch}, "
         f"{top.env_steps_per_s / TARGET_POLICY_STEPS:.2%} of it).",
+        "",
+        f"`jax.vmap` rows are timed only up to B = {cfg.env_first_max_batch} (at B = 4096 one batch-first call "
+        "takes over two minutes). For B = 4096 the batch-first figure is the previous full run's, at git bb2af88 "
+        "on this machine type: 28.3 team steps/s.",
         "",
         f"### Where a team step's time goes (B = {pb})",
         "",
@@ -2000,8 +2101,8 @@ def section_e(cfg, results) -> list[str]:
         "capsules alone "
         f"{100 * (1 - t['no_line_contact'] / t['physics']):.0f}%; line drag {100 * (1 - t['no_drag'] / t['physics']):.0f}%.",
         "- The sub-step count is set by the stiffest element (the contact stiffness on the net's lightest masses; "
-        "see the config): halving it halves the cost of a team step. What closes the gap is speed work on "
-        "the physics itself: a batch-last layout, fewer contact candidates per sub-step, implicit lines.",
+        "see the config): halving it halves the cost of a team step. The batch-last layout is in; what is "
+        "left is the work per sub-step itself: fewer contact candidates per sub-step, implicit lines.",
         "",
     ]
     return lines
@@ -2010,6 +2111,55 @@ def section_e(cfg, results) -> list[str]:
 # =========================================================================================
 # main
 # =========================================================================================
+
+
+_SECTION_HEAD = re.compile(r"^## \(([a-z])\) ")
+
+
+def _split_sections(lines: list[str]) -> tuple[list[str], list[str], dict[str, list[str]]]:
+    """``(header, summary, {letter: lines})`` of a BENCHMARKS.md text."""
+    header, summary, sections, current = [], [], {}, None
+    for ln in lines:
+        m = _SECTION_HEAD.match(ln)
+        if m:
+            current = m.group(1)
+            sections[current] = []
+        elif ln.startswith("## Summary"):
+            current = "summary"
+            continue
+        if current is None:
+            header.append(ln)
+        elif current == "summary":
+            summary.append(ln)
+        else:
+            sections[current].append(ln)
+    return header, summary, sections
+
+
+def splice_sections(old: list[str], new: list[str], rerun: list[str]) -> list[str]:
+    """The new run's header, summary and sections ``rerun``, with every other section of
+    the old text (and the old summary lines that name it, ``(x)``) kept as it was."""
+    old_header, old_summary, old_sections = _split_sections(old)
+    header, summary, sections = _split_sections(new)
+    kept = [s for s in SECTIONS if s in old_sections and s not in rerun]
+    if not kept:
+        return new
+    old_code = next((ln for ln in old_header if ln.startswith("| code |")), "| code | unknown |")
+    old_date = next((ln for ln in old_header if ln.startswith("| date |")), "| date | unknown |")
+    note = (f"Sections {', '.join(rerun)} are from this run; sections {', '.join(kept)} (and their summary "
+            f"lines) are kept from the earlier run ({old_date.split('|')[2].strip()}, "
+            f"{old_code.split('|')[2].strip()}), spliced by `scripts/bench.py --only {','.join(rerun)} --update`.")
+    kept_summary = [ln for ln in old_summary
+                    if ln.startswith("- ") and any(f"({s})" in ln for s in kept)
+                    and not any(f"({s})" in ln for s in rerun)]
+    summary = [ln for ln in summary if ln.strip()] + kept_summary
+    out = header + [note, "", "## Summary", ""] + summary + [""]
+    for s in SECTIONS:
+        if s in sections:
+            out += sections[s]
+        elif s in kept:
+            out += old_sections[s]
+    return out
 
 
 @dataclass
@@ -2027,6 +2177,7 @@ class BenchConfig:
     capture_steps: int = 2            # (a): env steps per call of the capture-scene rollout
     env_batches: tuple[int, ...] = (1, 16, 64, 256, 1024, 4096)   # (e)
     env_repeats: int = 3              # (e): timed calls per row (a row at B = 4096 takes ~1 min a call)
+    env_first_max_batch: int = 1024   # (e): largest batch also timed with jax.vmap (batch first)
 
 
 def main(argv=None) -> int:
@@ -2036,6 +2187,8 @@ def main(argv=None) -> int:
                         help=f"comma-separated sections to run, from {','.join(SECTIONS)} (default: all)")
     parser.add_argument("--out", default=None, help="markdown file to write (default BENCHMARKS.md for a full run, "
                         "docs/bench/partial/BENCHMARKS.md with --quick/--only)")
+    parser.add_argument("--update", action="store_true", help="with --only: replace those sections in the "
+                        "existing output file (default BENCHMARKS.md) and keep the others from its earlier run")
     parser.add_argument("--cases", default="", help="section (d) only: comma-separated accuracy cases to run "
                         "(rope_net, rope_net_slack, collision_light, collision_heavy, capture_falling; default: all)")
     args = parser.parse_args(argv)
@@ -2049,13 +2202,17 @@ def main(argv=None) -> int:
         parser.error(f"--cases: unknown case(s) {[c for c in cases if c not in known_cases]}; choose from "
                      f"{','.join(known_cases)}")
     partial = args.quick or set(sections) != set(SECTIONS) or bool(cases)
-    if args.out is not None:
+    if args.update and (args.quick or cases):
+        parser.error("--update splices full-size sections into BENCHMARKS.md: not with --quick or --cases")
+    if args.update and args.out is None:
+        out = ROOT / "BENCHMARKS.md"
+    elif args.out is not None:
         out = Path(args.out)
     elif partial:
         out = ROOT / "docs" / "bench" / "partial" / "BENCHMARKS.md"
     else:
         out = ROOT / "BENCHMARKS.md"
-    plots_dir = ROOT / "docs" / "bench" / ("partial" if partial and args.out is None else "")
+    plots_dir = ROOT / "docs" / "bench" / ("partial" if partial and args.out is None and not args.update else "")
     plots_dir.mkdir(parents=True, exist_ok=True)
     out.parent.mkdir(parents=True, exist_ok=True)
     cfg = BenchConfig(
@@ -2069,6 +2226,7 @@ def main(argv=None) -> int:
         capture_steps=1 if args.quick else 2,
         env_batches=(1, 16, 64) if args.quick else (1, 16, 64, 256, 1024, 4096),
         env_repeats=2 if args.quick else 3,
+        env_first_max_batch=16 if args.quick else 1024,
     )
 
     started = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
@@ -2087,6 +2245,8 @@ def main(argv=None) -> int:
     wall = time.perf_counter() - t_start
 
     text = header_lines(args, started, load_start, load_average(), wall) + summary_lines(results) + body
+    if args.update and out.exists():
+        text = splice_sections(out.read_text().splitlines(), text, order)
     # plot links are relative to the repository root; fix them up for other output folders
     rel = os.path.relpath(plots_dir, out.parent)
     text = [ln.replace("](docs/bench/", f"]({rel}/" if rel != "docs/bench" else "](docs/bench/") for ln in text]
