@@ -129,6 +129,7 @@ def devices(out: str) -> None:
         placed = parallel.shard_envs(start, mesh)
         result = sharded(placed)
         arrays |= flat(result, f"{kind}/sharded")
+        arrays |= flat(parallel.local_envs(result), f"{kind}/local")    # both shards are local here
         facts[kind] = sharding_facts(result) | {"input": sharding_facts(placed),
                                                  "collectives": collectives(sharded, placed)}
     # bad input: 7 environments over 2 devices

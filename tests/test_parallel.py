@@ -121,6 +121,8 @@ def test_rope_net_rollout_sharded_over_two_devices(two_devices, kind):
     sharded, single = runs(arrays, f"{kind}/sharded"), runs(arrays, f"{kind}/single")
     # bit for bit what one device computes for each device's block of environments
     assert_bitwise(sharded, concatenate(runs(arrays, f"{kind}/block0"), runs(arrays, f"{kind}/block1")))
+    # this process holds both shards: local_envs puts them back in environment order
+    assert_bitwise(runs(arrays, f"{kind}/local"), sharded)
     # the environments did differ, and moved
     pos = sharded["[1].phys.point_pos"]
     assert pos.shape == (8, 10, 21, 3) and np.ptp(pos[:, -1, 0, 0]) > 1e-3
