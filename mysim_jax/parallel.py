@@ -30,11 +30,13 @@ a smaller batch. The jitted result has its in- and out-shardings along ``"env"``
 inputs already placed by :func:`shard_envs` are used where they are, and outputs stay
 sharded (nothing is gathered to one device unless the caller asks for it).
 
-Results: an environment's numbers do not depend on which device computes it, but the
-per-device program is compiled for a smaller batch, and XLA may vectorise or fuse a
-smaller batch differently. Expect equality with a single-device run up to floating-point
-round-off of the dtype, usually bit for bit (``tests/test_parallel.py`` states what it
-measured and how it compares).
+Results: an environment's numbers do not depend on which device computes it, so a
+sharded run equals, bit for bit, one device running each device's block of environments.
+Against one device running the whole batch at once they agree to floating-point round-off
+only: the per-device program is compiled for a smaller batch, and XLA may vectorise a
+smaller batch differently (one device alone shows the same, without any sharding). In a
+long rollout of stiff dynamics that round-off grows as the dynamics amplify it, exactly as
+it would between two batch sizes on one device (``tests/test_parallel.py`` compares both).
 """
 
 from __future__ import annotations
