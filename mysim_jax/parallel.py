@@ -41,7 +41,7 @@ it would between two batch sizes on one device (``tests/test_parallel.py`` compa
 
 from __future__ import annotations
 
-from typing import Any, Callable, Sequence
+from typing import Callable, Sequence
 
 import jax
 import numpy as np
