@@ -1,0 +1,244 @@
+"""The environment axis on several devices and hosts (mysim_jax/parallel.py).
+
+A JAX process's device count is fixed when jax is imported, so the two-device and
+two-process runs happen in child processes (tests/parallel_worker.py) started with their
+own environment; this process keeps its one device, its default 32-bit mode and its
+``XLA_FLAGS`` (the last test checks that).
+
+What "equal" means here. An environment's numbers do not depend on the device that
+computes it, so a sharded run must equal, **bit for bit**, one device running the same
+per-device block of environments. Against one device running the *whole* batch at once the
+results agree only to round-off: XLA compiles the batched rollout differently for a batch
+of 8 than for a block of 4 (vectorisation), so the last bits of a few operations differ
+from the first steps on (the same happens on one device alone, batch 8 against two
+batches of 4, without any sharding). In the rope-net rollout the positions then differ by
+an ulp or two (1e-7 m at 0.65 m); the rope masses oscillate at ω = sqrt(EA / (l m)) ≈
+3.5e3 rad/s, so a position difference δx shows as ω δx ≈ 4e-4 m/s in the velocities.
+Those runs are compared with these tolerances, which say nothing about sharding; the
+bitwise comparison is the one that tests sharding.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from conftest import ROOT
+from mysim_jax import parallel
+
+WORKER = ROOT / "tests" / "parallel_worker.py"
+XLA_FLAGS_AT_IMPORT = os.environ.get("XLA_FLAGS")
+DEVICES_AT_IMPORT = jax.device_count()
+TIMEOUT = 240   # s per child process; they take a few seconds to ~40 s on 2 shared cores
+
+
+def child_env(**extra) -> dict:
+    """This process's environment for a child: our ``mysim_jax`` first on the path, no
+    64-bit switch, no inherited ``XLA_FLAGS`` unless given, one thread pool per child."""
+    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAX_ENABLE_X64")}
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT)] + [p for p in [os.environ.get("PYTHONPATH")] if p])
+    env["JAX_PLATFORMS"] = "cpu"
+    env.update(extra)
+    return env
+
+
+def run_worker(tmp_path, *args, **env):
+    out = str(tmp_path / args[0])
+    res = subprocess.run([sys.executable, str(WORKER), *args, out], env=child_env(**env), cwd=ROOT,
+                         capture_output=True, text=True, timeout=TIMEOUT)
+    assert res.returncode == 0, res.stderr[-4000:]
+    return load(out)
+
+
+def load(out: str):
+    with np.load(out + ".npz") as z:
+        arrays = {k: z[k] for k in z.files}
+    return arrays, json.loads(open(out + ".json").read())
+
+
+def runs(arrays, prefix: str) -> dict:
+    """``{leaf path: array}`` of one run in a worker's output."""
+    return {k[len(prefix) + 1:]: v for k, v in arrays.items() if k.startswith(prefix + "/")}
+
+
+def assert_bitwise(a: dict, b: dict):
+    assert a.keys() == b.keys() and a
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k], err_msg=k, strict=True)
+
+
+def max_abs_difference(a: dict, b: dict) -> float:
+    assert a.keys() == b.keys() and a
+    return max(float(np.max(np.abs(a[k].astype(float) - b[k].astype(float)), initial=0.0)) for k in a)
+
+
+# rope-net rollout against one device running the whole batch (module docstring)
+ROUND_OFF = {"point_pos": 1e-6, "point_vel": 5e-4, "time": 0.0}
+
+
+def assert_round_off(a: dict, b: dict):
+    assert a.keys() == b.keys() and a
+    for k in a:
+        if a[k].size:
+            np.testing.assert_allclose(a[k], b[k], rtol=0, atol=ROUND_OFF[k.rsplit(".", 1)[-1]], err_msg=k)
+
+
+def concatenate(*parts: dict) -> dict:
+    return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+
+
+TWO_WAY = {"specs": ["P('env',)"], "n_devices": [2]}
+
+
+# --- two devices in one process -----------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def two_devices(tmp_path_factory):
+    return run_worker(tmp_path_factory.mktemp("devices"), "devices",
+                      XLA_FLAGS="--xla_force_host_platform_device_count=2")
+
+
+@pytest.mark.parametrize("kind", ["jax", "batching"])
+def test_rope_net_rollout_sharded_over_two_devices(two_devices, kind):
+    """8 rope-net environments with different initial velocities, a 300-step rollout
+    batched with ``jax.vmap`` or ``batching.vmap``, sharded over 2 devices."""
+    arrays, facts = two_devices
+    assert facts["device_count"] == 2
+    # input and output really are split over the two devices, 4 environments on each
+    for placed in (facts[kind], facts[kind]["input"]):
+        assert {k: placed[k] for k in TWO_WAY} == TWO_WAY
+        assert placed["shard_rows"] == [[4, 4]] and placed["shard_devices"] == [[0, 1]]
+    assert facts[kind]["collectives"] == []
+    sharded, single = runs(arrays, f"{kind}/sharded"), runs(arrays, f"{kind}/single")
+    # bit for bit what one device computes for each device's block of environments
+    assert_bitwise(sharded, concatenate(runs(arrays, f"{kind}/block0"), runs(arrays, f"{kind}/block1")))
+    # this process holds both shards: local_envs puts them back in environment order
+    assert_bitwise(runs(arrays, f"{kind}/local"), sharded)
+    # the environments did differ, and moved
+    pos = sharded["[1].phys.point_pos"]
+    assert pos.shape == (8, 10, 21, 3) and np.ptp(pos[:, -1, 0, 0]) > 1e-3
+    # against one device running all 8 at once: round-off (module docstring)
+    assert_round_off(sharded, single)
+    print(f"{kind}: sharded vs one device, batch 8: max |difference| {max_abs_difference(sharded, single):.3g}")
+
+
+def test_sharded_vmap_and_batching_vmap_agree(two_devices):
+    """The same rollout batched batch-first and batch-last, both sharded, agree (round-off)."""
+    arrays, _ = two_devices
+    assert_round_off(runs(arrays, "jax/sharded"), runs(arrays, "batching/sharded"))
+
+
+def test_batch_not_divisible_by_devices_is_a_clear_error(two_devices):
+    _, facts = two_devices
+    for name in ("shard_envs", "sharded"):
+        message = facts["errors"][name]
+        assert message is not None, f"{name} accepted 7 environments on 2 devices"
+        assert "(7, 21, 3)" in message and "not divisible by 2 devices" in message, message
+
+
+def test_capture_env_steps_sharded_over_two_devices(tmp_path):
+    """Reset and two policy steps (1080 physics sub-steps) of 4 capture environments, params
+    replicated, keys sharded: the same as one device running the 4 environments."""
+    arrays, facts = run_worker(tmp_path, "capture", XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    assert {k: facts["sharded"][k] for k in TWO_WAY} == TWO_WAY
+    assert facts["sharded"]["shard_rows"] == [[2, 2]]
+    sharded, single = runs(arrays, "sharded"), runs(arrays, "single")
+    rewards = sharded["[1][1]"]
+    assert rewards.shape == (4, 2, 4) and np.all(np.isfinite(rewards))
+    # two policy steps are short enough for float32 round-off to stay at a few ulp of each
+    # value (motor speeds are O(1e3) rad/s, so compare relative to each leaf's scale)
+    for k in sharded:
+        scale = max(1.0, float(np.max(np.abs(single[k].astype(float)), initial=0.0)))
+        np.testing.assert_allclose(sharded[k].astype(float), single[k].astype(float), rtol=0, atol=1e-5 * scale,
+                                   err_msg=k)
+    print(f"capture: sharded vs one device: max |difference| {max_abs_difference(sharded, single):.3g}")
+
+
+# --- two processes (multi-host) -------------------------------------------------------------
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_rope_net_rollout_on_two_processes(tmp_path):
+    """Two processes joined by ``jax.distributed`` on 127.0.0.1, one CPU device each, run the
+    8-environment rollout as one global array; each writes its half."""
+    port = free_port()
+    outs = [str(tmp_path / f"host{i}") for i in range(2)]
+    procs = [subprocess.Popen([sys.executable, str(WORKER), "host", str(i), str(port), outs[i]],
+                              env=child_env(), cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+             for i in range(2)]
+    try:
+        logs = [p.communicate(timeout=TIMEOUT) for p in procs]
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+    for p, (_, err) in zip(procs, logs):
+        assert p.returncode == 0, err[-4000:]
+    halves = [load(out) for out in outs]
+    for i, (arrays, facts) in enumerate(halves):
+        assert facts["process_index"] == i and facts["process_count"] == 2
+        assert facts["device_count"] == 2 and facts["local_device_count"] == 1
+        assert facts["global_shape"] == [8, 10, 21, 3] and facts["rows"] == [[4 * i, 4 * i + 4]]
+        assert {k: facts["sharded"][k] for k in TWO_WAY} == TWO_WAY
+        assert runs(arrays, "local")["[1].phys.point_pos"].shape == (4, 10, 21, 3)
+    together = concatenate(*(runs(arrays, "local") for arrays, _ in halves))
+
+    # the same rollout in this process, on its one device
+    sys.path.insert(0, str(WORKER.parent))
+    try:
+        from parallel_worker import rope_net_problem
+    finally:
+        sys.path.remove(str(WORKER.parent))
+    start, run = rope_net_problem()
+    single = jax.jit(jax.vmap(run))
+
+    def flat(tree):
+        return {jax.tree_util.keystr(p): np.asarray(x) for p, x in jax.tree_util.tree_leaves_with_path(tree)}
+
+    blocks = [flat(single(jax.tree.map(lambda x: x[4 * i:4 * i + 4], start))) for i in range(2)]
+    assert_bitwise(together, concatenate(*blocks))
+    assert_round_off(together, flat(single(start)))
+
+
+# --- this process (one device) --------------------------------------------------------------
+
+
+def test_one_device_mesh_and_argument_checks():
+    mesh = parallel.env_mesh()
+    assert mesh.axis_names == ("env",) and mesh.size == jax.device_count()
+    tree = {"a": jnp.arange(6.0).reshape(3, 2), "b": jnp.ones((3,))}
+    placed = parallel.shard_envs(tree, mesh)
+    assert placed["a"].sharding.spec == jax.sharding.PartitionSpec("env")
+    out = parallel.sharded(lambda t, w: jax.vmap(lambda a, b: a * w + b[None])(t["a"], t["b"]),
+                           mesh, in_axes=(0, None))(placed, parallel.replicate(jnp.float32(2.0), mesh))
+    np.testing.assert_array_equal(np.asarray(out), np.arange(6.0).reshape(3, 2) * 2 + 1)
+    np.testing.assert_array_equal(parallel.local_envs(out), np.asarray(out))
+    with pytest.raises(ValueError, match=r"scalar \(shape \(\)\)"):
+        parallel.shard_envs({"t": jnp.float32(0.0)}, mesh)
+    with pytest.raises(ValueError, match="in_axes entries must be 0 or None"):
+        parallel.sharded(lambda x: x, mesh, in_axes=(1,))
+    with pytest.raises(ValueError, match="in_axes has 2 entries for 1 arguments"):
+        parallel.sharded(lambda x, y: x, mesh, in_axes=(0, None))(jnp.ones(2))
+
+
+def test_main_process_untouched():
+    """The two-device flag and any 64-bit switch stayed in the children."""
+    assert os.environ.get("XLA_FLAGS") == XLA_FLAGS_AT_IMPORT
+    assert jax.device_count() == DEVICES_AT_IMPORT
+    assert not jax.config.jax_enable_x64
+    assert jnp.zeros(1).dtype == jnp.float32
