@@ -175,10 +175,12 @@ def _diffeqsolve(scene: Scene, params: Params, phys: PhysState, t0, t1, ts=None,
 
 
 def solve_adaptive(scene: Scene, params: Params, phys: PhysState, t0, t1, ts=None, progress=False, inputs=None,
-                   held=None):
+                   held=None, stats: bool = False):
     """Integrate with the scene's diffrax solver from ``t0`` to ``t1``.
 
-    Returns the states at ``ts`` (stacked) if given, else the state at ``t1``. A solve
+    Returns the states at ``ts`` (stacked) if given, else the state at ``t1``; with
+    ``stats=True``, ``(states, stats)`` where ``stats`` holds the solver's
+    ``num_accepted_steps``, ``num_rejected_steps`` (int arrays) and ``successful`` (bool). A solve
     that fails (``max_steps`` reached, e.g. because the state turned non-finite and every
     step was rejected) does not raise inside jit: the states it did not reach are ``inf``
     (at ``ts``) or NaN (at ``t1``: diffrax would return the state where it stopped,
@@ -187,9 +189,12 @@ def solve_adaptive(scene: Scene, params: Params, phys: PhysState, t0, t1, ts=Non
     sol = _diffeqsolve(scene, params, phys, t0, t1, ts, progress, inputs, held)
     ys = sol.ys
     ys = ys.replace(body_quat=quat_normalize(ys.body_quat))
+    ok = sol.result == diffrax.RESULTS.successful
     if ts is None:
-        ok = sol.result == diffrax.RESULTS.successful
         ys = jax.tree.map(lambda a: jnp.where(ok, a[0], jnp.nan), ys)
+    if stats:
+        return ys, {"num_accepted_steps": sol.stats["num_accepted_steps"],
+                    "num_rejected_steps": sol.stats["num_rejected_steps"], "successful": ok}
     return ys
 
 

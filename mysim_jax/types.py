@@ -88,6 +88,9 @@ class Scene:
     # how node forces are summed: "segment_sum" (a scatter-add; what build() chooses) or
     # "matmul" (a dense one-hot incidence product); bench.py measures both
     accumulate: str = "segment_sum"
+    # how spring ends are gathered: "slices" (static contiguous slices where the index has
+    # few runs, markers.take_rows; what build() chooses) or "index" (x[index_array])
+    gather: str = "slices"
     # --- contact (mysim_jax/contact): None when the scene has no contact ---------------
     contact: ContactScene | None = None
     # --- quadrotors, their controller and cameras (mysim_jax/dynamics/quadrotor.py) ----

@@ -55,7 +55,6 @@ import os
 import platform
 import re
 import shlex
-import subprocess
 import sys
 import time
 from contextlib import contextmanager
@@ -87,11 +86,10 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from tqdm.auto import tqdm  # noqa: E402
 
-from mysim_jax import batching, vecmath  # noqa: E402
+from mysim_jax import batching  # noqa: E402
 from mysim_jax.bench.rope_kernel import from_node_columns, rope_net_kernel, to_node_columns  # noqa: E402
 from mysim_jax.build import build  # noqa: E402
 from mysim_jax.config import ConfigError, load_config  # noqa: E402
-from mysim_jax.dynamics.forces import spring_tension  # noqa: E402
 from mysim_jax.dynamics.integrators import FIXED_STEP  # noqa: E402
 from mysim_jax.sim import output_times, rollout, single_env_scene, solve_adaptive, step, steps_per_output  # noqa: E402
 from mysim_jax.tasks.scripted import team_policy  # noqa: E402
@@ -102,252 +100,16 @@ from mysim_jax.tasks.scripted import team_policy  # noqa: E402
 # =========================================================================================
 
 
-def median(xs) -> float:
-    return float(np.median(np.asarray(xs, dtype=float)))
-
-
-def spread(xs) -> str:
-    """Relative spread of repeats, (max - min) / median, as a percentage string."""
-    xs = np.asarray(xs, dtype=float)
-    return f"{100.0 * (xs.max() - xs.min()) / np.median(xs):.0f}%"
-
-
-class CpuMonitor:
-    """CPU time taken by *other* processes, from /proc/stat and /proc/self/stat (Linux).
-
-    The benchmark machine may be shared (e.g. someone running pytest); their load slows
-    every timing here. ``share(a, b)`` is the fraction of the whole machine's CPU capacity
-    that other processes used between two samples.
-    """
-
-    def __init__(self):
-        self.available = Path("/proc/stat").exists() and Path("/proc/self/stat").exists()
-
-    def sample(self):
-        if not self.available:
-            return None
-        with open("/proc/stat") as f:
-            vals = [int(v) for v in f.readline().split()[1:9]]
-        with open("/proc/self/stat") as f:
-            text = f.read()
-        rest = text[text.rfind(")") + 2:].split()
-        own = int(rest[11]) + int(rest[12])          # utime + stime of all our threads
-        return sum(vals), vals[3] + vals[4], own     # total, idle + iowait, own (clock ticks)
-
-    @staticmethod
-    def share(a, b) -> float:
-        if a is None or b is None or b[0] <= a[0]:
-            return float("nan")
-        total = b[0] - a[0]
-        busy = total - (b[1] - a[1])
-        return max(0.0, busy - (b[2] - a[2])) / total
-
-
-CPU = CpuMonitor()
-QUIET_SHARE = 0.10          # a timing round counts as quiet if others used < 10% of the machine
-_CONTENTION: dict[str, list[float]] = {}   # section -> others' share per timed round
-
-
-def wait_for_quiet(max_wait_s: float, label: str) -> float:
-    """Wait (up to ``max_wait_s``) until other processes leave the machine idle for 2 s."""
-    if not CPU.available:
-        return 0.0
-    t0 = time.perf_counter()
-    quiet = 0
-    while time.perf_counter() - t0 < max_wait_s:
-        a = CPU.sample()
-        time.sleep(0.5)
-        if CPU.share(a, CPU.sample()) < QUIET_SHARE:
-            quiet += 1
-            if quiet >= 2:
-                break
-        else:
-            quiet = 0
-    waited = time.perf_counter() - t0
-    _CONTENTION.setdefault(label + ":waited", []).append(waited)
-    return waited
-
-
-def time_round_robin(calls: dict[str, Callable[[], Any]], repeats: int, bar=None,
-                     section: str = "", max_rounds: int | None = None) -> dict[str, list[float]]:
-    """Warm each call up once, then time rounds of one call of each, in turn.
-
-    A round during which other processes took more than ``QUIET_SHARE`` of the machine
-    is recorded but not counted; rounds continue until ``repeats`` quiet rounds or
-    ``max_rounds`` rounds (default 2 × repeats + 1). Returns the times of the quiet rounds
-    if there are at least ``min_quiet(repeats)`` of them, else of all rounds (the section's
-    contention note then says so).
-    """
-    for fn in calls.values():
-        jax.block_until_ready(fn())
-        if bar is not None:
-            bar.update(1)
-    max_rounds = max_rounds or 2 * repeats + 1
-    all_times: dict[str, list[float]] = {k: [] for k in calls}
-    quiet_times: dict[str, list[float]] = {k: [] for k in calls}
-    shares = []
-    for _ in range(max_rounds):
-        start = CPU.sample()
-        round_times = {}
-        for key, fn in calls.items():
-            t0 = time.perf_counter()
-            jax.block_until_ready(fn())
-            round_times[key] = time.perf_counter() - t0
-        share = CPU.share(start, CPU.sample())
-        shares.append(share)
-        for key, t in round_times.items():
-            all_times[key].append(t)
-            if not share >= QUIET_SHARE:          # nan (no /proc) counts as quiet
-                quiet_times[key].append(t)
-        n_quiet = len(next(iter(quiet_times.values())))
-        if bar is not None and (n_quiet <= repeats):
-            bar.update(len(calls) if not share >= QUIET_SHARE else 0)
-        if n_quiet >= repeats:
-            break
-    _CONTENTION.setdefault(section, []).extend(shares)
-    n_quiet = len(next(iter(quiet_times.values())))
-    return quiet_times if n_quiet >= min_quiet(repeats) else all_times
-
-
-def min_quiet(repeats: int) -> int:
-    """Fewest quiet rounds whose median is used instead of the median of all rounds."""
-    return min(repeats, max(3, (repeats + 1) // 2))
-
-
-def contention_note(section: str, repeats: int) -> str:
-    """One sentence on how busy the machine was during a section's timed rounds."""
-    shares = [x for x in _CONTENTION.get(section, []) if np.isfinite(x)]
-    waited = sum(_CONTENTION.get(section + ":waited", []))
-    if not shares:
-        return "(CPU contention not measured: no /proc on this system.)"
-    quiet = sum(x < QUIET_SHARE for x in shares)
-    if quiet >= min_quiet(repeats):
-        used = f"only the {quiet} quiet rounds are counted"
-    else:
-        used = (f"**fewer than {min_quiet(repeats)} rounds were quiet, so all rounds are counted and the "
-                "numbers are depressed by the other load**")
-    return (f"Machine contention: other processes used a median {100 * median(shares):.0f}% (max "
-            f"{100 * max(shares):.0f}%) of the machine's CPU during the {len(shares)} timed rounds; {quiet} were "
-            f"quiet (< {100 * QUIET_SHARE:.0f}%) and {used}"
-            + (f"; the section first waited {waited:.0f} s for a quiet machine." if waited > 2.5 else ".")
-            )
-
-
-def broadcast(tree, batch: int):
-    """Stack ``batch`` identical copies of a single-env pytree (leading axis)."""
-    return jax.tree.map(lambda x: jnp.broadcast_to(x, (batch,) + x.shape), tree)
-
-
-@dataclass
-class Compiled:
-    """An ahead-of-time compiled batched rollout, ready to be timed."""
-
-    label: str
-    batch: int
-    n_steps: int
-    call: Callable[[], Any]
-    compile_s: float
-    memory: Any                   # jax CompiledMemoryStats (or None)
-    hlo_text: str = ""
-
-    def bytes_per_env(self) -> float:
-        m = self.memory
-        if m is None:
-            return float("nan")
-        total = m.argument_size_in_bytes + m.output_size_in_bytes + m.temp_size_in_bytes - m.alias_size_in_bytes
-        return total / self.batch
-
-
-def compile_batched(label: str, run_env: Callable, params, state, batch: int, n_steps: int,
-                    batch_params: bool = False, chunk: int | None = None, keep_hlo: bool = False,
-                    vmap: Callable = jax.vmap) -> Compiled:
-    """``jit(vmap(run_env))`` over a batch of ``batch`` copies of ``state``; ``vmap`` is
-    ``jax.vmap`` (batch axis first) or ``mysim_jax.batching.vmap`` (batch axis last).
-
-    ``run_env(params, state) -> state`` runs one env for ``n_steps`` steps. Params are
-    shared by all envs (``in_axes=None``) unless ``batch_params``. With ``chunk``, the batch
-    is split into ``batch // chunk`` chunks run one after another by ``lax.map`` (each a
-    vmap of ``chunk`` envs), so one chunk's state stays in cache for all its steps.
-    """
-    in_axes = (0 if batch_params else None, 0)
-    vmapped = vmap(run_env, in_axes=in_axes)
-    if chunk is None:
-        fn = jax.jit(vmapped)
-    else:
-        n_chunks = batch // chunk
-
-        def chunked(p, s):
-            split = jax.tree.map(lambda x: x.reshape((n_chunks, chunk) + x.shape[1:]), s)
-            if batch_params:
-                ps = jax.tree.map(lambda x: x.reshape((n_chunks, chunk) + x.shape[1:]), p)
-                out = jax.lax.map(lambda ab: vmapped(ab[0], ab[1]), (ps, split))
-            else:
-                out = jax.lax.map(lambda c: vmapped(p, c), split)
-            return jax.tree.map(lambda x: x.reshape((batch,) + x.shape[2:]), out)
-
-        fn = jax.jit(chunked)
-    pb = broadcast(params, batch) if batch_params else params
-    sb = broadcast(state, batch)
-    jax.block_until_ready((pb, sb))
-    t0 = time.perf_counter()
-    compiled = fn.lower(pb, sb).compile()
-    compile_s = time.perf_counter() - t0
-    try:
-        memory = compiled.memory_analysis()
-    except Exception:  # noqa: BLE001 - not every backend reports it
-        memory = None
-    return Compiled(label, batch, n_steps, lambda: compiled(pb, sb), compile_s, memory,
-                    compiled.as_text() if keep_hlo else "")
-
-
-def library_run_env(scene, n_steps: int) -> Callable:
-    """One env, ``n_steps`` library steps in a ``lax.scan`` (the state is the carry)."""
-    def run_env(params, state):
-        def body(s, _):
-            return step(scene, params, s), None
-        return jax.lax.scan(body, state, None, length=n_steps)[0]
-    return run_env
-
-
-def steps_for_batch(batch: int, env_steps_per_call: float) -> int:
-    """Scan length K so that one call does about ``env_steps_per_call`` env-steps."""
-    k = int(round(env_steps_per_call / batch / 50.0)) * 50
-    return int(min(20_000, max(100, k)))
+from mysim_jax.bench.timing import (  # noqa: E402
+    CPU, QUIET_SHARE, Compiled, aot_compile, broadcast, compile_batched, contention_note, contention_shares,
+    cpu_model, git_revision, library_run_env, load_average, median, record_contention, spread, steps_for_batch,
+    time_round_robin, wait_for_quiet,
+)
 
 
 # =========================================================================================
 # machine / header
 # =========================================================================================
-
-
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
-
-
-def git_revision() -> str:
-    try:
-        rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
-                             text=True, check=True).stdout.strip()
-        # the benchmark's own outputs (this file, its plots) do not count as changed code
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", ".",
-                                ":(exclude)BENCHMARKS.md", ":(exclude)docs/bench"], cwd=ROOT,
-                               capture_output=True, text=True, check=True).stdout.strip()
-        return rev + (" (with uncommitted changes)" if dirty else "")
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-
-
-def load_average() -> str:
-    try:
-        return " ".join(f"{x:.2f}" for x in os.getloadavg())
-    except OSError:
-        return "n/a"
 
 
 def header_lines(args, started: str, load_start: str, load_end: str, wall_s: float) -> list[str]:
@@ -434,14 +196,7 @@ def compile_kernel(scene, params, state, batch: int, n_steps: int) -> tuple[Comp
     run = jax.jit(rope_net_kernel(scene, params, n_steps))
     pos = to_node_columns(broadcast(state.phys.point_pos, batch))
     vel = to_node_columns(broadcast(state.phys.point_vel, batch))
-    jax.block_until_ready((pos, vel))
-    t0 = time.perf_counter()
-    compiled = run.lower(pos, vel).compile()
-    compile_s = time.perf_counter() - t0
-    try:
-        memory = compiled.memory_analysis()
-    except Exception:  # noqa: BLE001 - not every backend reports it
-        memory = None
+    compiled, compile_s, memory = aot_compile(run, pos, vel)
     return (Compiled("kernel", batch, n_steps, lambda: compiled(pos, vel), compile_s, memory),
             lambda: from_node_columns(compiled(pos, vel)[0]))
 
@@ -458,7 +213,7 @@ def section_a(cfg, results) -> list[str]:
         runners[f"B={b}"] = compile_batched(f"{b}", library_run_env(scene, k), params, state, b, k,
                                             vmap=batching.vmap)
         runners[f"B={b} jax.vmap"] = compile_batched(f"{b}, `jax.vmap` (batch first)", library_run_env(scene, k),
-                                                     params, state, b, k)
+                                                     params, state, b, k, vmap=jax.vmap)
         runners[f"B={b} kernel"], kernel_pos[b] = compile_kernel(scene, params, state, b, k)
         bar.update(3)
     b = HEADLINE_BATCH
@@ -470,7 +225,7 @@ def section_a(cfg, results) -> list[str]:
     capture = compile_batched("capture", cap_run, cap_params, cap_state, CAPTURE_BATCH, cfg.capture_steps,
                               vmap=batching.vmap)
     capture_first = compile_batched("capture, jax.vmap", cap_run, cap_params, cap_state, CAPTURE_BATCH,
-                                    cfg.capture_steps)
+                                    cfg.capture_steps, vmap=jax.vmap)
     bar.update(2)
     wait_for_quiet(cfg.max_wait_s, "a")
     times = time_round_robin({**{key: r.call for key, r in runners.items()}, "capture": capture.call,
@@ -1218,7 +973,7 @@ def run_method(case: AccuracyCase, method: Method, ref_qs, cfg) -> AccuracyRow:
                 if (len(quiet) >= cfg.accuracy_repeats or sum(walls) > cfg.accuracy_time_budget
                         or len(walls) >= 3 * cfg.accuracy_repeats):
                     break
-            _CONTENTION.setdefault("d", []).extend(shares)
+            record_contention("d", shares)
             if quiet:
                 walls = quiet
         except Exception as err:  # noqa: BLE001 - diffrax max_steps, XLA runtime errors
@@ -1242,40 +997,22 @@ def run_method(case: AccuracyCase, method: Method, ref_qs, cfg) -> AccuracyRow:
 
 
 def adaptive_stats(case: AccuracyCase, method: Method, t_stats: float):
-    """Accepted / rejected steps of an adaptive method over ``[0, t_stats]``.
-
-    ``mysim_jax.sim.solve_adaptive`` does not return diffrax's statistics, so this repeats
-    its solve (same solver, PID controller, rtol/atol, dt0 = scene.substep, max_steps) with
-    ``throw=False`` on the public ``mysim_jax.sim.derivative``. Valid for scenes without
-    rigid bodies (the library also renormalises quaternions inside its vector field).
-    """
-    import diffrax
-
-    from mysim_jax.sim import derivative
-
+    """Accepted / rejected steps of an adaptive method over ``[0, t_stats]``, from the
+    statistics ``mysim_jax.sim.solve_adaptive(..., stats=True)`` returns."""
     overrides = list(case.overrides) + list(method.overrides) + [
         f"sim.precision={method.precision}", f"sim.t_end={t_stats:g}", f"sim.output_dt={t_stats:g}"]
     if method.max_steps is not None:
         overrides.append(f"sim.max_steps={method.max_steps}")
     with precision_mode(method.precision):
         scene, params, state = build(load_config(case.config, overrides))
-        if scene.n_bodies:
-            return None
-        solver = {"tsit5": diffrax.Tsit5, "kvaerno5": diffrax.Kvaerno5}[scene.integrator]()
 
         def solve(p, y):
-            sol = diffrax.diffeqsolve(
-                diffrax.ODETerm(lambda t, y, p: derivative(scene, p, y)), solver, t0=0.0, t1=t_stats, dt0=scene.substep,
-                y0=y, args=p, saveat=diffrax.SaveAt(t1=True),
-                stepsize_controller=diffrax.PIDController(rtol=scene.rtol, atol=scene.atol),
-                max_steps=scene.max_steps, throw=False)
-            return (sol.stats["num_accepted_steps"], sol.stats["num_rejected_steps"],
-                    sol.result == diffrax.RESULTS.successful)
+            return solve_adaptive(scene, p, y, 0.0, t_stats, stats=True)[1]
 
         t0 = time.perf_counter()
-        acc, rej, ok = jax.jit(solve)(params, state.phys)
+        st = jax.jit(solve)(params, state.phys)
         wall = time.perf_counter() - t0
-    return int(acc), int(rej), bool(ok), wall
+    return int(st["num_accepted_steps"]), int(st["num_rejected_steps"]), bool(st["successful"]), wall
 
 
 def section_d(cfg, results) -> list[str]:
@@ -1378,8 +1115,8 @@ def section_d(cfg, results) -> list[str]:
         if adaptive:
             t_stats = 0.25
             lines += [
-                f"Adaptive solver statistics over the first {t_stats:g} s (a separate solve with the same "
-                "solver, controller, tolerances and dt0 as `solve_adaptive`, which does not return them):",
+                f"Adaptive solver statistics over the first {t_stats:g} s (a separate "
+                "`solve_adaptive(..., stats=True)` over that interval):",
                 "",
                 "| integrator | setting | precision | accepted | rejected | rejected share | mean accepted step [s] |",
                 "|---|---|---|---:|---:|---:|---:|",
@@ -1479,7 +1216,7 @@ def order_lines(case: AccuracyCase, orders: dict) -> list[str]:
 
 
 def accuracy_contention_note() -> str:
-    shares = [x for x in _CONTENTION.get("d", []) if np.isfinite(x)]
+    shares = contention_shares("d")
     if not shares:
         return "(CPU contention not measured: no /proc on this system.)"
     quiet = sum(x < QUIET_SHARE for x in shares)
@@ -1557,72 +1294,6 @@ def plot_accuracy(case: AccuracyCase, rows: list[AccuracyRow], plots_dir: Path) 
 # =========================================================================================
 
 
-def _contiguous_runs(index) -> list[tuple[int, int]]:
-    index = [int(i) for i in index]
-    runs, start = [], 0
-    for i in range(1, len(index) + 1):
-        if i == len(index) or index[i] != index[i - 1] + 1:
-            runs.append((index[start], index[i - 1] + 1))
-            start = i
-    return runs
-
-
-def _take_static(x, index):
-    """``x[index]`` for a static index array, as a concatenation of contiguous slices."""
-    parts = [x[a:b] for a, b in _contiguous_runs(index)]
-    return parts[0] if len(parts) == 1 else jnp.concatenate(parts, axis=0)
-
-
-def _variant_run_env(scene, n_steps: int, gather: str, accumulate: str):
-    """A points/anchors/linear-springs-only re-implementation of one semi-implicit Euler step.
-
-    Used only to time alternatives to single stages (checked against the library below):
-    ``gather`` "index" (``x[idx]``, as the library) or "slices" (static contiguous slices);
-    ``accumulate`` "matmul", "segment_sum" or "none" (no accumulation: the first n_points
-    spring forces, scaled by 1e-6, stand in for node forces, to isolate the gathers).
-    """
-    if scene.n_bodies or scene.n_markers or scene.has_loads:
-        raise ValueError("profiling variants cover point masses, anchors and springs only")
-    a = np.asarray(scene.spring_node_a, dtype=np.int32)
-    b = np.asarray(scene.spring_node_b, dtype=np.int32)
-    n, n_pts = scene.n_nodes, scene.n_points
-    signed = np.zeros((n, a.shape[0]))
-    signed[a, np.arange(a.shape[0])] += 1.0
-    signed[b, np.arange(b.shape[0])] -= 1.0
-    take = _take_static if gather == "slices" else (lambda x, i: x[i])
-
-    def accel(params, phys):
-        node_pos = jnp.concatenate([phys.point_pos, params.anchor_pos], axis=0)
-        node_vel = jnp.concatenate([phys.point_vel, jnp.zeros_like(params.anchor_pos)], axis=0)
-        dx = take(node_pos, b) - take(node_pos, a)
-        dv = take(node_vel, b) - take(node_vel, a)
-        length, unit = vecmath.safe_unit(dx)
-        rate = vecmath.dot(dv, unit)
-        tension = spring_tension(params.spring_stiffness, params.spring_damping, params.spring_rest_length,
-                                 length, rate, scene.spring_tension_only)
-        f = tension[:, None] * unit
-        if accumulate == "matmul":
-            node_force = jnp.asarray(signed, dtype=f.dtype) @ f
-        elif accumulate == "segment_sum":
-            node_force = jax.ops.segment_sum(f, a, n) - jax.ops.segment_sum(f, b, n)
-        else:
-            # no accumulation: keep the spring forces alive (so XLA cannot drop the
-            # stage) but scaled down so the wrong physics stays bounded
-            node_force = 1e-6 * f[:n_pts]
-        return node_force[:n_pts] / params.point_mass[:, None] + params.gravity
-
-    h = scene.substep
-
-    def run_env(params, state):
-        def body(s, _):
-            acc = accel(params, s.phys)
-            vel = s.phys.point_vel + h * acc
-            phys = s.phys.replace(point_pos=s.phys.point_pos + h * vel, point_vel=vel)
-            return s.replace(phys=phys, time=s.time + scene.dt), None
-        return jax.lax.scan(body, state, None, length=n_steps)[0]
-    return run_env
-
-
 def _gravity_only_run_env(scene, n_steps: int):
     """The floor: the same scan and semi-implicit update with gravity as the only force."""
     h = scene.substep
@@ -1634,31 +1305,6 @@ def _gravity_only_run_env(scene, n_steps: int):
             return s.replace(phys=phys, time=s.time + scene.dt), None
         return jax.lax.scan(body, state, None, length=n_steps)[0]
     return run_env
-
-
-@contextmanager
-def _index_gathers():
-    """Trace the spring stage with plain ``x[index_array]`` gathers instead of ``take_rows``."""
-    from mysim_jax.dynamics import forces
-
-    saved = forces.take_rows
-    forces.take_rows = lambda x, index: x[np.asarray(index, dtype=np.int32)]
-    try:
-        yield
-    finally:
-        forces.take_rows = saved
-
-
-@contextmanager
-def _minor_axis_reductions():
-    """Trace with dot/norm as reductions over the size-3 axis instead of vecmath's
-    component-wise forms (to test the claim in mysim_jax/vecmath.py's docstring)."""
-    saved = vecmath.dot
-    vecmath.dot = lambda u, v: jnp.sum(u * v, axis=-1)
-    try:
-        yield
-    finally:
-        vecmath.dot = saved
 
 
 def _hlo_census(text: str) -> dict[str, int]:
@@ -1674,66 +1320,56 @@ def section_f(cfg, results) -> list[str]:
     K = steps_for_batch(B, cfg.env_steps_per_call)
     lib = library_run_env(scene, K)
 
-    def variant(gather, accumulate):
-        return lambda: compile_batched("", _variant_run_env(scene, K, gather, accumulate), params, state, B, K)
+    def lib_with(**options):
+        return library_run_env(dataclasses.replace(scene, **options), K)
 
-    # (key, description, builder); "minor_axis" is built under a patch below
-    variants: list[tuple[str, str, Callable[[], Compiled] | None]] = [
-        ("library", "library step as in (a) (static-slice gathers via `markers.take_rows`, `matmul` accumulation)",
+    # every variant is an option of the Scene or of the call site, never a patched library function
+    variants: list[tuple[str, str, Callable[[], Compiled]]] = [
+        ("library", "library step as in (a): `batching.vmap` (batch last), slice gathers, `segment_sum`",
          lambda: compile_batched("library", lib, params, state, B, K, keep_hlo=True)),
-        ("library_segsum", "library step, `accumulate=\"segment_sum\"`",
-         lambda: compile_batched("", library_run_env(dataclasses.replace(scene, accumulate="segment_sum"), K),
-                                 params, state, B, K)),
-        ("library_index", "library step traced with `x[index_array]` gathers instead of `take_rows` (the old path)",
-         None),
-        ("params_batched", "library step, params broadcast and vmapped too",
+        ("first", "library step with `jax.vmap` (batch first)",
+         lambda: compile_batched("", lib, params, state, B, K, vmap=jax.vmap, keep_hlo=True)),
+        ("matmul", "library step, `Scene.accumulate=\"matmul\"` (dense incidence product)",
+         lambda: compile_batched("", lib_with(accumulate="matmul"), params, state, B, K)),
+        ("index", "library step, `Scene.gather=\"index\"` (`x[index_array]` gathers)",
+         lambda: compile_batched("", lib_with(gather="index"), params, state, B, K)),
+        ("params_batched", "library step, params broadcast and batched too",
          lambda: compile_batched("", lib, params, state, B, K, batch_params=True)),
-        ("chunked", "library step, the 4096 envs as 64 chunks × 64 (`lax.map` over a vmapped chunk)",
+        ("chunked", f"library step, the {B} envs as 64 chunks × {B // 64} (`lax.map` over a batched chunk)",
          lambda: compile_batched("", lib, params, state, B, K, chunk=64)),
-        ("minor_axis", "library step traced with `vecmath.dot = jnp.sum(u * v, -1)` (reduction over the size-3 axis)",
-         None),
-        ("floor", "floor: the scan + semi-implicit update with gravity only (no springs)",
+        ("floor", "floor: the scan + semi-implicit update with gravity only (no springs), batch last",
          lambda: compile_batched("", _gravity_only_run_env(scene, K), params, state, B, K)),
-        ("index_matmul", "re-implementation: index gathers + spring law + `matmul` (≈ library)", variant("index", "matmul")),
-        ("index_none", "re-implementation: index gathers + spring law, *no accumulation*", variant("index", "none")),
-        ("slices_none", "re-implementation: static-slice gathers + spring law, *no accumulation*", variant("slices", "none")),
-        ("slices_matmul", "re-implementation: **static-slice gathers** + spring law + `matmul`", variant("slices", "matmul")),
-        ("slices_segsum", "re-implementation: static-slice gathers + spring law + `segment_sum`",
-         variant("slices", "segment_sum")),
+        ("kernel", "the hand-written batch-last kernel of (a)",
+         lambda: compile_kernel(scene, params, state, B, K)[0]),
     ]
     if cfg.quick:
-        keep = {"library", "library_index", "floor", "index_none", "slices_none", "slices_matmul", "chunked"}
+        keep = {"library", "first", "index", "floor", "kernel"}
         variants = [v for v in variants if v[0] in keep]
     bar = tqdm(total=len(variants) * (cfg.repeats + 2), desc="(f) profile", leave=False)
     runners: dict[str, Compiled] = {}
     for key, _, make in variants:
-        if key == "minor_axis":
-            with _minor_axis_reductions():
-                runners[key] = compile_batched("", library_run_env(scene, K), params, state, B, K)
-        elif key == "library_index":
-            with _index_gathers():
-                runners[key] = compile_batched("", library_run_env(scene, K), params, state, B, K)
-        else:
-            runners[key] = make()
+        runners[key] = make()
         bar.update(1)
-    reference = jax.tree.map(np.asarray, runners["library"].call())
-    max_diff = {}
-    for key, r in runners.items():
-        out = jax.tree.map(np.asarray, r.call())
-        max_diff[key] = float(np.abs(out.phys.point_pos - reference.phys.point_pos).max())
+
+    def positions(key):
+        out = runners[key].call()
+        return np.asarray(from_node_columns(out[0]) if key == "kernel" else out.phys.point_pos)
+
+    reference = positions("library")
+    max_diff = {key: float(np.abs(positions(key) - reference).max()) for key in runners}
     wait_for_quiet(cfg.max_wait_s, "f")
     times = time_round_robin({k: r.call for k, r in runners.items()}, cfg.repeats, bar, section="f")
     bar.close()
     base = median(times["library"])
     census = _hlo_census(runners["library"].hlo_text)
+    census_first = _hlo_census(runners["first"].hlo_text)
     lines = [
         f"## (f) Where the time goes (batch {B}, float32, semi-implicit Euler)",
         "",
-        f"Stage variants of the batched rollout of (a) at B = {B}, K = {K}, all timed round-robin in one "
-        f"loop (median of {cfg.repeats} quiet rounds). *Re-implementation* rows are a small copy of the "
-        "library's point/anchor/spring pipeline in `scripts/bench.py` with one stage swapped; the last column "
-        f"is how far each variant's positions are from the library's after K steps (0 or float32 round-off = "
-        "same physics; rows that drop physics — floor, no accumulation — differ by design).",
+        f"Variants of the batched rollout of (a) at B = {B}, K = {K}, all timed round-robin in one loop (median "
+        f"of {cfg.repeats} quiet rounds). Each is an option of the Scene (`accumulate`, `gather`) or of the call "
+        "site (how it is batched); the last column is how far each variant's positions are from the library's "
+        "after K steps (0 or float32 round-off = same physics; the floor drops the springs by design).",
         "",
         "| variant | env-steps/s | ms per batched step | vs library | spread | \\|Δx\\| vs library [m] |",
         "|---|---:|---:|---:|---:|---:|",
@@ -1743,80 +1379,38 @@ def section_f(cfg, results) -> list[str]:
         t = median(times[key])
         lines.append(f"| {desc[key]} | {B * K / t:,.0f} | {1e3 * t / K:.3f} | {base / t:.2f}× | {spread(times[key])} | "
                      f"{max_diff[key]:.1e} |")
-    results["f"] = {k: B * K / median(v) for k, v in times.items()}
+    rate = {k: B * K / median(v) for k, v in times.items()}
+    results["f"] = rate
     lines += [
         "",
         contention_note("f", cfg.repeats),
         "",
-        "Optimised HLO of the library's batched rollout (`compiled.as_text()`), op counts: "
-        + ", ".join(f"{k} {v}" for k, v in census.items()) + ". The `matmul` accumulation is one "
-        f"[{scene.n_nodes}, {scene.n_springs}] × [{scene.n_springs}, {3 * B}] dot between transposes; with "
-        "`x[index_array]` (the old path) each spring-end gather is a `gather` op, which XLA:CPU runs as a "
-        "per-element loop under `vmap`.",
+        "Optimised HLO of the batched rollout (`compiled.as_text()`), op counts, batch last (library): "
+        + ", ".join(f"{k} {v}" for k, v in census.items()) + "; batch first (`jax.vmap`): "
+        + ", ".join(f"{k} {v}" for k, v in census_first.items()) + ".",
+        "",
+        "### Findings",
         "",
     ]
-    n_runs = (len(_contiguous_runs(scene.spring_node_a)), len(_contiguous_runs(scene.spring_node_b)))
-    lines += profile_findings(results["f"], max_diff, n_runs, scene)
-    return lines
-
-
-def profile_findings(rate: dict[str, float], max_diff: dict[str, float], n_runs: tuple[int, int], scene) -> list[str]:
-    """Plain statements read off the variant table (no additivity assumed: XLA fuses stages,
-    so removing one stage can save more or less than it 'costs' in the full step)."""
-    lib = rate["library"]
-    out = ["### Findings", ""]
 
     def x(key):
-        return rate[key] / lib
+        return rate[key] / rate["library"]
 
-    if "floor" in rate:
-        out.append(f"- The scan and the semi-implicit update alone (gravity only) run at {rate['floor']:,.0f} "
-                   f"env-steps/s, {x('floor'):.0f}× the library: almost all the time is the spring stage.")
-    if "index_none" in rate and "slices_none" in rate:
-        out.append(f"- Without any accumulation (incomplete physics, to isolate the gathers) the step with the "
-                   f"library's `x[index_array]` gathers runs at {rate['index_none']:,.0f} env-steps/s, with static "
-                   f"contiguous slices ({n_runs[0]} + {n_runs[1]} runs for the rope net) at "
-                   f"{rate['slices_none']:,.0f}: the index gathers alone cap the step at "
-                   f"{rate['index_none'] / 1e6:.2f}M env-steps/s. Under `vmap`, XLA:CPU emits a gather with a "
-                   "constant index array as a per-element loop.")
-    if "library_index" in rate:
-        out.append(f"- The library's static-slice gathers (`take_rows`) against the same step traced with "
-                   f"`x[index_array]`: {lib:,.0f} vs {rate['library_index']:,.0f} env-steps/s, "
-                   f"**{lib / rate['library_index']:.2f}×**, identical results "
-                   f"(|Δx| = {max_diff['library_index']:.0e} m).")
-    if "slices_matmul" in rate:
-        out.append(f"- The re-implementation with static-slice gathers and `matmul`: {rate['slices_matmul']:,.0f} "
-                   f"env-steps/s, {x('slices_matmul'):.2f}× the library (|Δx| = {max_diff['slices_matmul']:.0e} m).")
-    if "slices_none" in rate and "slices_matmul" in rate:
-        nnz = 2 * scene.n_springs
-        out.append(f"- Once the gathers are slices, the accumulation is the next cost: {rate['slices_none']:,.0f} → "
-                   f"{rate['slices_matmul']:,.0f} env-steps/s with `matmul`"
-                   + (f", {rate['slices_segsum']:,.0f} with `segment_sum`" if "slices_segsum" in rate else "")
-                   + f". The dense incidence matmul does {scene.n_nodes * scene.n_springs} multiply-adds per "
-                   f"component for {nnz} non-zeros, plus the layout transposes around the dot.")
-    if "library_segsum" in rate:
-        out.append(f"- `segment_sum` in the library step: {x('library_segsum'):.2f}× (see also b).")
+    lines.append(f"- The scan and the semi-implicit update alone (gravity only) run at {rate['floor']:,.0f} "
+                 f"env-steps/s, {x('floor'):.1f}× the library: the rest of the time is the spring stage.")
+    lines.append(f"- Batch last against batch first (`jax.vmap`) for the same per-environment code: "
+                 f"{1 / x('first'):.2f}×; against the hand-written kernel: {rate['library'] / rate['kernel']:.2f}×.")
+    for key, what in (("matmul", "the dense `matmul` accumulation"), ("index", "`x[index_array]` gathers")):
+        if key in rate:
+            lines.append(f"- With {what} instead: {x(key):.2f}× the library.")
     if "chunked" in rate:
-        out.append(f"- 64 chunks of 64 envs (a call-site change): {x('chunked'):.2f}× — "
-                   + ("cache blocking helps." if x("chunked") > 1.2 else
-                      "it hurts." if x("chunked") < 0.85 else
-                      "no clear gain (within the timing noise): the step is not limited by cache misses at this size."))
-    if "minor_axis" in rate:
-        slower = 1.0 / x("minor_axis")
-        out.append(f"- `vecmath.dot` as a reduction over the size-3 axis: {x('minor_axis'):.2f}× the component-wise "
-                   f"form, i.e. component-wise is {slower:.1f}× faster here"
-                   + ("." if slower > 1.2 else ": the component-wise form (vecmath.py) gains nothing in this run."))
+        lines.append(f"- 64 chunks (a call-site change): {x('chunked'):.2f}×"
+                     + (" — cache blocking helps." if x("chunked") > 1.2 else " — no clear gain."))
     if "params_batched" in rate:
-        out.append(f"- Vmapping params too (a parameter sweep) runs at {x('params_batched'):.2f}× the shared-params speed.")
-    out += [
-        "",
-        "Next for the library: the accumulation is now the largest cost after the gathers. Built scenes keep "
-        "`matmul` for small graphs (the batched case) and `simulate()` (one env) runs `segment_sum`, each the "
-        "faster of the two where it is used (section b). Other accumulations (a padded-slice sum per index "
-        "run, a rope-structured sum with one shifted difference per rope) are not measured here.",
-        "",
-    ]
-    return out
+        lines.append(f"- Batching params too (a parameter sweep) runs at {x('params_batched'):.2f}× the shared-params "
+                     "speed.")
+    lines.append("")
+    return lines
 
 
 # =========================================================================================
@@ -1931,13 +1525,12 @@ def summary_lines(results) -> list[str]:
             r = best[0]
             out.append(f"- Accuracy (d), {case}: cheapest run with the {what} within {tol:g} m: {r.method.integrator} "
                        f"{r.method.setting} {r.method.precision} ({err(r):.1e} m, {r.wall_per_sim_s:.2f} s/sim-s).")
-    if "f" in results and "slices_matmul" in results["f"]:
+    if "f" in results and "floor" in results["f"]:
         f = results["f"]
-        if "library_index" in f:
-            out.append(f"- Profile (f): the library's static-slice spring gathers (`take_rows`) run at "
-                       f"{f['library']:,.0f} env-steps/s against {f['library_index']:,.0f} for the same step with "
-                       f"`x[index_array]` gathers ({f['library'] / f['library_index']:.2f}×); the node-force "
-                       f"accumulation is now the largest cost (gravity-only floor {f.get('floor', float('nan')):,.0f}).")
+        out.append(f"- Profile (f), B = {HEADLINE_BATCH}: library (batch last) {f['library']:,.0f} env-steps/s; "
+                   + (f"`jax.vmap` {f['first']:,.0f}; " if "first" in f else "")
+                   + (f"hand-written kernel {f['kernel']:,.0f}; " if "kernel" in f else "")
+                   + f"gravity-only floor {f['floor']:,.0f}.")
     return out + [""]
 
 
@@ -1969,15 +1562,7 @@ def _env_call(env, params, batch: int, n_steps: int, kind: str = "env", vmap: Ca
             return step(env.scene, sim_params, s, sp), None
         return jax.lax.scan(period, state.sim, None, length=n_steps)[0]
 
-    fn = jax.jit(vmap(run_env))
-    jax.block_until_ready(states)
-    t0 = time.perf_counter()
-    compiled = fn.lower(keys, states).compile()
-    compile_s = time.perf_counter() - t0
-    try:
-        memory = compiled.memory_analysis()
-    except Exception:  # noqa: BLE001 - not every backend reports it
-        memory = None
+    compiled, compile_s, memory = aot_compile(jax.jit(vmap(run_env)), keys, states)
     return Compiled(kind, batch, n_steps, lambda: compiled(keys, states), compile_s, memory)
 
 
@@ -2020,8 +1605,13 @@ def section_e(cfg, results) -> list[str]:
         "no_line_contact": ("physics without the target–line capsule pairs",
                             ["contact.pairs=[[target, uavs], [uavs, uavs], [target, ground], [net, ground], "
                              "[uavs, ground]]"], "control"),
+        "no_friction": ("physics without contact friction (`contact.friction: null`)", ["contact.friction=null"],
+                        "control"),
         "no_drag": ("physics without line drag (`net.line.drag_coefficient=0`, tethers too)",
                     ["net.line.drag_coefficient=0", "net.tethers.line.drag_coefficient=0"], "control"),
+        "no_target_drag": ("physics without the target's air drag (`target.drag_coefficient=0`)",
+                           ["target.drag_coefficient=0"], "control"),
+        "no_wind": ("physics without wind (`env.randomize.wind: null`)", ["env.randomize.wind=null"], "control"),
     }
     calls, compiled, substeps = {}, {}, {}
     same = [f"sim.substeps={scene.substeps}"]      # every variant at the scene's sub-step
@@ -2099,7 +1689,14 @@ def section_e(cfg, results) -> list[str]:
         f"(without it a sub-step is {t['physics'] / t['no_contact']:.2f}× faster, and `substeps: auto` would "
         f"also allow {auto_no_contact} sub-steps per period instead of {scene.substeps}); the target–line "
         "capsules alone "
-        f"{100 * (1 - t['no_line_contact'] / t['physics']):.0f}%; line drag {100 * (1 - t['no_drag'] / t['physics']):.0f}%.",
+        f"{100 * (1 - t['no_line_contact'] / t['physics']):.0f}%; friction "
+        f"{100 * (1 - t['no_friction'] / t['physics']):.0f}%; line drag {100 * (1 - t['no_drag'] / t['physics']):.0f}%; "
+        f"the target's drag {100 * (1 - t['no_target_drag'] / t['physics']):.0f}%; wind "
+        f"{100 * (1 - t['no_wind'] / t['physics']):.0f}% (a share near 0 is within the timing noise). The tethers "
+        "cannot be left out of the environment (nothing would carry the net). The capture scene has no motor "
+        "lag, body drag, gimbal or "
+        "target propulsion (the evading target's), so they cost it nothing: `tests/test_effects_absent.py` "
+        "checks that a scene without an effect traces none of its work.",
         "- The sub-step count is set by the stiffest element (the contact stiffness on the net's lightest masses; "
         "see the config): halving it halves the cost of a team step. The batch-last layout is in; what is "
         "left is the work per sub-step itself: fewer contact candidates per sub-step, implicit lines.",

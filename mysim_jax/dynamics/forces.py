@@ -63,8 +63,9 @@ def spring_forces(scene: Scene, params: Params, node_pos, node_vel):
     """Forces ``(n_nodes, 3)`` that all springs exert on the nodes they join."""
     a = np.asarray(scene.spring_node_a, dtype=np.int32)
     b = np.asarray(scene.spring_node_b, dtype=np.int32)
-    dx = take_rows(node_pos, b) - take_rows(node_pos, a)
-    dv = take_rows(node_vel, b) - take_rows(node_vel, a)
+    take = take_rows if scene.gather == "slices" else (lambda x, index: x[index])
+    dx = take(node_pos, b) - take(node_pos, a)
+    dv = take(node_vel, b) - take(node_vel, a)
     length, unit = vecmath.safe_unit(dx)
     rate = vecmath.dot(dv, unit)
     tension = spring_tension(
