@@ -48,6 +48,7 @@ plus body-frame torque (:class:`~mysim_jax.dynamics.forces.Loads`).
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -67,6 +68,12 @@ def _normal_force(scene: Scene, cp, depth, depth_rate):
 
 
 def _friction(scene: Scene, cp, normal_force, slip):
+    """Friction force on b, under its own named scope (traced only when the scene has friction)."""
+    with jax.named_scope("friction"):
+        return _friction_law(scene, cp, normal_force, slip)
+
+
+def _friction_law(scene: Scene, cp, normal_force, slip):
     """Friction force ``(k, 3)`` on the sphere whose contact point slips at ``slip``."""
     speed_sq = law.CONTACT_LAWS[scene.contact.model].slip_speed_sq(vecmath.dot(slip, slip), cp)
     g = law.friction_per_speed(speed_sq, cp.mu_static, cp.mu_dynamic, cp.v_static, cp.v_dynamic)

@@ -18,6 +18,7 @@ over the step's sub-steps (zero-order hold).
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -67,6 +68,10 @@ def actuate(scene, params, state, control=None):
                             motor_command=jnp.clip(omega_cmd, qp.omega_min[:, None], qp.omega_max[:, None]))
     n_q = qs.n_quads
     dtype = speed_sq.dtype
-    wind = wind_force(qp, t) if qs.has_wind else jnp.zeros((n_q, 3), dtype=dtype)
+    if qs.has_wind:
+        with jax.named_scope("wind"):
+            wind = wind_force(qp, t)
+    else:
+        wind = jnp.zeros((n_q, 3), dtype=dtype)
     gimbal = gimbal_command(qp, t) if qs.n_gimbals else jnp.zeros((0, 2), dtype=dtype)
     return ActuatorInputs(rotor_speed_sq=speed_sq, wind_force=wind, gimbal_command=gimbal), memory

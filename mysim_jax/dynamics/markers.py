@@ -42,7 +42,8 @@ def node_states(scene: Scene, params: Params, phys: PhysState):
     pos = [phys.point_pos]
     vel = [phys.point_vel]
     if scene.n_markers:
-        mpos, mvel = marker_kinematics(scene, params, phys)
+        with jax.named_scope("markers"):
+            mpos, mvel = marker_kinematics(scene, params, phys)
         pos.append(mpos)
         vel.append(mvel)
     if scene.n_anchors:
@@ -126,9 +127,10 @@ def distribute_node_forces(scene: Scene, params: Params, phys: PhysState, node_f
     if nm == 0 or scene.n_bodies == 0:
         zeros = jnp.zeros((scene.n_bodies, 3), dtype=node_force.dtype)
         return point_force, zeros, zeros
-    f_marker = node_force[npt:npt + nm]
-    body = np.asarray(scene.marker_body, dtype=np.int32)
-    torque_local = vecmath.cross(params.marker_pos, quat_rotate_inv(phys.body_quat[body], f_marker))
-    both = jnp.concatenate([f_marker, torque_local], axis=-1)   # one scatter for both
-    summed = scatter_rows(both, body, scene.n_bodies, scene.accumulate)
+    with jax.named_scope("marker_loads"):
+        f_marker = node_force[npt:npt + nm]
+        body = np.asarray(scene.marker_body, dtype=np.int32)
+        torque_local = vecmath.cross(params.marker_pos, quat_rotate_inv(phys.body_quat[body], f_marker))
+        both = jnp.concatenate([f_marker, torque_local], axis=-1)   # one scatter for both
+        summed = scatter_rows(both, body, scene.n_bodies, scene.accumulate)
     return point_force, summed[:, :3], summed[:, 3:]

@@ -38,6 +38,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
@@ -138,12 +139,13 @@ def motor_response(omega_cmd, omega_prev, qp: QuadrotorParams, dt, has_lag: bool
     cmd = jnp.clip(omega_cmd, lo, hi)
     if not has_lag:
         return cmd, cmd * cmd
-    tau = qp.motor_time_constant[:, None]
-    decay = jnp.exp(-dt / tau)
-    b = omega_prev - cmd
-    omega_end = cmd + b * decay
-    ratio = tau / dt
-    mean_sq = cmd * cmd + 2.0 * cmd * b * ratio * (1.0 - decay) + b * b * (0.5 * ratio) * (1.0 - decay * decay)
+    with jax.named_scope("motor_lag"):
+        tau = qp.motor_time_constant[:, None]
+        decay = jnp.exp(-dt / tau)
+        b = omega_prev - cmd
+        omega_end = cmd + b * decay
+        ratio = tau / dt
+        mean_sq = cmd * cmd + 2.0 * cmd * b * ratio * (1.0 - decay) + b * b * (0.5 * ratio) * (1.0 - decay * decay)
     return omega_end, mean_sq
 
 
@@ -181,11 +183,13 @@ def aerodynamic_forces(scene, params, phys, nodes, inputs: ActuatorInputs) -> Lo
     body = np.asarray(qs.body, dtype=np.int32)
     force = jnp.zeros_like(phys.body_pos[body])
     if qs.has_wind:
-        force = force + inputs.wind_force
+        with jax.named_scope("wind"):
+            force = force + inputs.wind_force
     if qs.has_drag:
-        q = phys.body_quat[body]
-        v_body = quat_rotate_inv(q, phys.body_vel[body])
-        force = force + quat_rotate(q, -params.quadrotor.drag * v_body)
+        with jax.named_scope("body_drag"):
+            q = phys.body_quat[body]
+            v_body = quat_rotate_inv(q, phys.body_vel[body])
+            force = force + quat_rotate(q, -params.quadrotor.drag * v_body)
     dtype = force.dtype
     return Loads(node_force=jnp.zeros((scene.n_nodes, 3), dtype=dtype),
                  body_force=_on_bodies(scene, force, body),
