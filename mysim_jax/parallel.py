@@ -163,3 +163,14 @@ def sharded(fn: Callable, mesh: Mesh, in_axes: int | None | Sequence[int | None]
 
     run.lower = jitted.lower   # inspect the compiled program: run.lower(*args).compile().as_text()
     return run
+
+
+def jit_envs(fn: Callable, batch: int, in_axes: int | None | Sequence[int | None] = 0) -> Callable:
+    """The library's batched paths (evaluation, sweeps, training) jit through this:
+    ``sharded(fn, env_mesh(), in_axes)`` when several devices are visible and ``batch``
+    splits evenly over them, else plain ``jax.jit(fn)`` (one device, or a batch that does
+    not split: it then runs on the default device, as before)."""
+    n = jax.device_count()
+    if n > 1 and batch % n == 0:
+        return sharded(fn, env_mesh(), in_axes)
+    return jax.jit(fn)

@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mysim_jax import batching
+from mysim_jax import batching, parallel
 from mysim_jax.tasks.env_config import FAILURES, REWARD_TERMS
 from mysim_jax.tasks.sweep import wilson_interval
 
@@ -103,7 +103,8 @@ def run_episodes(env, params, policy, n_episodes: int, batch: int, key, chunk: i
     def advance(carry):
         return jax.lax.scan(one, carry, None, length=chunk)
 
-    advance = jax.jit(batching.vmap(advance))     # batch axis last inside (mysim_jax.batching)
+    # batch axis last inside (mysim_jax.batching); split over the devices when there are several
+    advance = parallel.jit_envs(batching.vmap(advance), batch)
 
     def start(k):
         k_reset, k_run = jax.random.split(k)

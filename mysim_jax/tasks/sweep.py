@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mysim_jax import batching
+from mysim_jax import batching, parallel
 from mysim_jax.build import build
 from mysim_jax.io.trajectory import trajectory_columns
 from mysim_jax.sim import rollout, steps_per_output
@@ -63,7 +63,8 @@ def capture_sweep(config, seeds) -> SweepResult:
     keys = jnp.stack([jax.random.PRNGKey(s) for s in seeds])
     starts = jax.vmap(lambda k: spawn_target(scene, params, state, k))(keys)
     t0 = time.perf_counter()
-    saved = jax.jit(batching.vmap(lambda s: rollout(scene, params, s, n_out * every, every, policy)[1]))(starts)
+    batched = batching.vmap(lambda s: rollout(scene, params, s, n_out * every, every, policy)[1])
+    saved = parallel.jit_envs(batched, len(seeds))(starts)
     saved, starts = jax.tree.map(np.asarray, saved), jax.tree.map(np.asarray, starts)
     wall = time.perf_counter() - t0
     uavs = [scene.body_names.index(q.body) for q in config.quadrotors]
