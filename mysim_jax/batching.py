@@ -14,20 +14,25 @@ function once into a jaxpr and evaluates that jaxpr on batched arrays whose batc
 the **last** one: each primitive is re-emitted with the batch appended as a trailing
 dimension (element-wise ops, slices, reshapes, broadcasts, reductions, ``dot_general``,
 gathers and scatters with per-environment-constant indices, ``scan``/``while``/``cond``
-bodies, nested ``jit``), so the compiled step works on contiguous batch rows exactly like
-the hand-written kernel. Primitives without a batch-last rule here (linear-algebra
+bodies, nested ``jit``), so the compiled step works on contiguous batch rows as a
+hand-written batch-last kernel does. Equations keep their ``jax.named_scope`` names. Primitives without a batch-last rule here (linear-algebra
 factorisations, PRNG primitives, ops on data-dependent indices, ...) fall back to JAX's
 own batching rule with the batch moved to the front and back again around that one op:
 always correct, only that op pays for a transpose.
 
-Choice of route (measured in ``scripts/bench.py``, section a): a batch-last array
-convention written into every physics function would have doubled the code and made each
-function harder to read; ``jax.custom_batching.custom_vmap`` on the step still needs a
-batch-last implementation to dispatch to; transposing once per rollout *and* re-emitting
-each primitive batch-last (this module) keeps one readable per-environment implementation
-and reaches the hand-written kernel's speed. Inputs and outputs keep the usual batch-first
-convention (``in_axes``/``out_axes`` 0 or None), so the layout change is one transpose at
-the edges of the batched call: batch around a whole rollout, not around a single step.
+Choice of route. A batch-last array convention written into every physics function would
+have given each function two layouts to get right (NumPy broadcasting aligns trailing
+axes, so every per-element parameter would need explicit expansion); ``jax.vmap`` with
+``in_axes=-1`` does not keep the batch last (its batching rules move the batch to the
+front as soon as shapes differ, e.g. a shared ``(n,)`` parameter times an ``(n, B)``
+state); ``jax.custom_batching.custom_vmap`` on the step still needs a batch-last
+implementation to dispatch to. Transposing once per rollout and re-emitting each
+primitive batch-last (this module) keeps the one readable per-environment implementation;
+``scripts/bench.py`` (sections a and f) times it against ``jax.vmap`` and against a
+hand-written batch-last kernel in the same run. Inputs and outputs keep the usual
+batch-first convention (``in_axes`` 0 or None, outputs batched along axis 0), so the
+layout change is one transpose at the edges of the batched call: batch around a whole
+rollout, not around a single step.
 
 Results equal ``jax.vmap``'s up to floating-point reassociation inside XLA's fusions
 (``tests/test_batching.py`` compares them on the library's scenes and on synthetic
