@@ -57,7 +57,7 @@ try:  # the name stack of re-emitted equations (JAX's own eval_jaxpr does the sa
 except ImportError:  # pragma: no cover - a JAX without it loses only the scope names
     _source_info_util = None
 
-__all__ = ["vmap", "to_batch_last", "from_batch_last", "eval_batch_last", "FALLBACK_COUNTS"]
+__all__ = ["vmap", "chunk_for", "to_batch_last", "from_batch_last", "eval_batch_last", "FALLBACK_COUNTS"]
 
 # ----------------------------------------------------------------------------------------
 # values: (array, batched).  A batched value has shape aval.shape + (B,).
@@ -522,7 +522,7 @@ def from_batch_last(tree):
     return jax.tree.map(_to_front, tree)
 
 
-def vmap(fun: Callable, in_axes: int | None | Sequence[int | None] = 0) -> Callable:
+def vmap(fun: Callable, in_axes: int | None | Sequence[int | None] = 0, chunk: int | None = None) -> Callable:
     """Like ``jax.vmap(fun, in_axes)`` (out_axes 0), computed with the batch axis last.
 
     ``in_axes`` is 0 (batched along the leading axis) or None (shared) for each positional
@@ -531,8 +531,61 @@ def vmap(fun: Callable, in_axes: int | None | Sequence[int | None] = 0) -> Calla
     arrays (see the module docstring), and the outputs are transposed back. Use it around
     a whole rollout (a ``lax.scan`` of steps), so that the transposes happen once per
     rollout and every step inside runs batch-last.
-    """
 
+    ``chunk``: run the batch as consecutive blocks of ``chunk`` environments
+    (``lax.map`` over blocks, each block batch-last), so that one block's working set
+    stays in the CPU's caches for the whole rollout. It pays for scenes whose
+    per-environment state is large (the capture scene: see BENCHMARKS.md, section e);
+    ``chunk_for`` picks it from the state's size. A batch that ``chunk`` does not divide,
+    or no larger than ``chunk``, runs as one block. Results do not depend on it.
+    """
+    if chunk is not None and (not isinstance(chunk, int) or chunk < 1):
+        raise ValueError(f"chunk must be a positive int or None, got {chunk!r}")
+    whole = _vmap_whole(fun, in_axes)
+    if chunk is None:
+        return whole
+
+    def chunked_fun(*args):
+        axes = in_axes if isinstance(in_axes, (list, tuple)) else (in_axes,) * len(args)
+        if len(axes) != len(args):
+            raise ValueError(f"in_axes has {len(axes)} entries for {len(args)} arguments")
+        sizes = {leaf.shape[0] for a, ax in zip(args, axes) if ax == 0 for leaf in jax.tree.leaves(a)}
+        size = next(iter(sizes)) if len(sizes) == 1 else None
+        if size is None or size <= chunk or size % chunk:
+            return whole(*args)
+        n_blocks = size // chunk
+        batched = [a for a, ax in zip(args, axes) if ax == 0]
+        blocks = jax.tree.map(lambda x: x.reshape((n_blocks, chunk) + x.shape[1:]), batched)
+
+        def one(block):
+            it = iter(block)
+            return whole(*[next(it) if ax == 0 else a for a, ax in zip(args, axes)])
+
+        out = lax.map(one, blocks)
+        return jax.tree.map(lambda x: x.reshape((size,) + x.shape[2:]), out)
+
+    return chunked_fun
+
+
+def chunk_for(state, cache_bytes: int = 1 << 20, per_env_factor: float = 16.0) -> int | None:
+    """A block size for :func:`vmap`'s ``chunk``: the largest power of two ``c`` with
+    ``c × per_env_factor × (bytes of one environment's state) <= cache_bytes``, or None
+    when no block is needed (a large one). ``state`` is one environment's (unbatched)
+    pytree; ``per_env_factor`` stands for the step's temporaries, which are several times
+    the state. The defaults come from the capture scene's measured optimum
+    (``scripts/bench.py``, section e)."""
+    nbytes = sum(np.asarray(leaf).nbytes for leaf in jax.tree.leaves(state) if hasattr(leaf, "shape"))
+    if nbytes == 0:
+        return None
+    c = 1
+    while 2 * c * per_env_factor * nbytes <= cache_bytes:
+        c *= 2
+        if c >= 4096:
+            return None
+    return max(c, 8)
+
+
+def _vmap_whole(fun: Callable, in_axes) -> Callable:
     def batched_fun(*args):
         axes = in_axes if isinstance(in_axes, (list, tuple)) else (in_axes,) * len(args)
         if len(axes) != len(args):
