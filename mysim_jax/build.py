@@ -344,7 +344,11 @@ def _joint_buckets(config: SceneConfig, body_index, anchor_index, marker_names) 
 
 def _check_stability(config, scene, point_mass, body_mass, inertia, marker_pos, stiffness, damping) -> int:
     """Reject a fixed step above the explicit limit of the stiffest spring, joint or
-    contact; resolve ``substeps: auto``. Returns the number of sub-steps to take."""
+    contact; resolve ``substeps: auto``. Returns the number of sub-steps to take.
+
+    With ``implicit_euler`` the springs between point masses (and to anchors) are implicit
+    and set no limit; springs on body markers, contact and Baumgarte terms are explicit
+    (stepped as semi-implicit Euler steps them) and keep theirs."""
     integrator = config.sim.integrator
     auto = config.sim.substeps == "auto"
     if integrator not in FIXED_STEP_INTEGRATORS:
