@@ -25,6 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from mysim_jax import batching
 from mysim_jax.bench import stability_margin as SM
 from mysim_jax.build import IMPLICIT_AUTO_FACTOR, build
 from mysim_jax.config import IMPLICIT_ITERATIONS, ConfigError, config_from_dict, load_config
@@ -268,6 +269,16 @@ def test_cg_residual_on_the_capture_nets(name):
         print(f"{name}: {springs.n_springs} implicit springs, {scene.n_points} points, h = {h:.3g} s: "
               f"residual {res:.2e}")
         assert res < bound
+
+
+def test_batch_last_step_needs_no_fallback():
+    """The CG solve (gathers, segment_sum, a fixed-length loop, closed-form 3 x 3 inverses)
+    has a batch-last rule for every primitive."""
+    scene, params, state = build(_rope_config("implicit_euler", 1e-3, "float32"))
+    states = jax.tree.map(lambda x: jnp.broadcast_to(x, (2,) + x.shape), state)
+    batching.FALLBACK_COUNTS.clear()
+    jax.eval_shape(batching.vmap(lambda s: rollout(scene, params, s, 2, 1)), states)
+    assert batching.FALLBACK_COUNTS == {}
 
 
 # --- gradients --------------------------------------------------------------------------------
