@@ -20,6 +20,7 @@ from mysim_jax.contact.build import build_contact, contact_stable_step
 from mysim_jax.contact.config import segment_table
 from mysim_jax.control.build import build_quadrotors, expand_cameras
 from mysim_jax.dynamics.joint_check import joint_groups, joint_problems
+from mysim_jax.dynamics.implicit_springs import spring_ends_on_markers
 from mysim_jax.dynamics.stability import NETWORK_STEP_SAFETY, scene_network_stable_step, stable_step
 from mysim_jax.effects import EFFECTS, BuildContext, scene_effects
 from mysim_jax.net.rope import build_rope
@@ -33,6 +34,13 @@ from mysim_jax.types import JointBucket, Params, PhysState, Scene, State
 # bound over all configurations with its own measured margin (NETWORK_STEP_SAFETY), so
 # ``auto`` uses it as the check does, and an auto step always passes the check.
 AUTO_SUBSTEP_SAFETY = 0.5
+
+# ``substeps: auto`` with ``implicit_euler``: sub-steps of at most this multiple of the
+# accepted explicit step of its implicit springs (README, "Stiff ropes at large steps":
+# stable in randomised runs at this multiple with the default CG iterations). It is not a
+# stability limit and explicit steps above it are accepted; beyond it the fixed number of
+# CG iterations resolves less of the solve and the step is far less accurate.
+IMPLICIT_AUTO_FACTOR = 10.0
 
 
 @dataclass
@@ -221,6 +229,7 @@ def build(config: SceneConfig):
         rtol=config.sim.rtol,
         atol=config.sim.atol,
         max_steps=config.sim.max_steps,
+        implicit_iterations=config.sim.cg_iterations,
         # node forces are scattered (segment_sum): with the batch axis last
         # (mysim_jax.batching) a scatter adds contiguous batch rows, where the dense
         # incidence matmul does n_nodes times the work (BENCHMARKS.md, sections a and b)
@@ -335,7 +344,11 @@ def _joint_buckets(config: SceneConfig, body_index, anchor_index, marker_names) 
 
 def _check_stability(config, scene, point_mass, body_mass, inertia, marker_pos, stiffness, damping) -> int:
     """Reject a fixed step above the explicit limit of the stiffest spring, joint or
-    contact; resolve ``substeps: auto``. Returns the number of sub-steps to take."""
+    contact; resolve ``substeps: auto``. Returns the number of sub-steps to take.
+
+    With ``implicit_euler`` the springs between point masses (and to anchors) are implicit
+    and set no limit; springs on body markers, contact and Baumgarte terms are explicit
+    (stepped as semi-implicit Euler steps them) and keep theirs."""
     integrator = config.sim.integrator
     auto = config.sim.substeps == "auto"
     if integrator not in FIXED_STEP_INTEGRATORS:
@@ -353,15 +366,27 @@ def _check_stability(config, scene, point_mass, body_mass, inertia, marker_pos, 
         return scene.anchor_names[node - n_points - n_markers]
 
     problems, limits, auto_steps = [], [], []
-    if scene.n_springs:
-        bound, worst = scene_network_stable_step(integrator, scene, point_mass, body_mass, inertia, marker_pos,
-                                                 stiffness, damping)
+    explicit_springs = np.arange(scene.n_springs)
+    what_network = "the spring network"
+    if integrator == "implicit_euler" and scene.n_springs:
+        # springs between point masses (and to anchors) are implicit: no step limit of their
+        # own; auto takes IMPLICIT_AUTO_FACTOR times their explicit limit (measured stable)
+        explicit_springs = spring_ends_on_markers(scene)
+        implicit = np.setdiff1d(np.arange(scene.n_springs), explicit_springs)
+        if implicit.shape[0]:
+            bound, _ = _network_bound("semi_implicit_euler", scene, implicit, point_mass, body_mass, inertia,
+                                      marker_pos, stiffness, damping)
+            auto_steps.append(IMPLICIT_AUTO_FACTOR * NETWORK_STEP_SAFETY * bound)
+        what_network = "the springs on body markers (explicit with implicit_euler)"
+    if explicit_springs.shape[0]:
+        bound, worst = _network_bound(integrator, scene, explicit_springs, point_mass, body_mass, inertia,
+                                      marker_pos, stiffness, damping)
         limit = NETWORK_STEP_SAFETY * bound
         limits.append(limit)
         auto_steps.append(limit)
         if h > limit:
             problems.append(
-                f"the spring network (its top mode strains spring '{scene.spring_names[worst]}' most: "
+                f"{what_network} (its top mode strains spring '{scene.spring_names[worst]}' most: "
                 f"k = {stiffness[worst]:.4g} N/m, c = {damping[worst]:.4g} N s/m, joining "
                 f"'{node_name(scene.spring_node_a[worst])}' and '{node_name(scene.spring_node_b[worst])}') "
                 f"is stable only below "
@@ -387,10 +412,27 @@ def _check_stability(config, scene, point_mass, body_mass, inertia, marker_pos, 
         return max(1, math.ceil(config.sim.dt / min(finite) - 1e-9)) if finite else 1
     if problems:
         substeps = math.ceil(config.sim.dt / min(limits))
+        which = ("" if integrator != "implicit_euler" else
+                 " (implicit_euler takes only the springs between point masses and anchors implicitly; contact, "
+                 "joints and springs on body markers stay explicit and keep their limits)")
         raise ConfigError(
             f"sim.dt: step {h:.3g} s (dt = {config.sim.dt:g} / substeps = {config.sim.substeps}) "
-            f"exceeds the explicit stability limit of {integrator}: " + "; ".join(problems)
+            f"exceeds the explicit stability limit of {integrator}{which}: " + "; ".join(problems)
             + f". Use sim.substeps >= {substeps} (or sim.substeps: auto), a smaller dt, or an adaptive "
             "integrator (tsit5, kvaerno5)"
         )
     return config.sim.substeps
+
+
+def _network_bound(integrator, scene, springs, point_mass, body_mass, inertia, marker_pos, stiffness, damping):
+    """:func:`scene_network_stable_step` of the springs with indices ``springs`` only:
+    ``(bound, worst)`` with ``worst`` an index into all the scene's springs."""
+    springs = np.asarray(springs, dtype=np.int64)
+    sub = dataclasses.replace(
+        scene, spring_node_a=tuple(scene.spring_node_a[s] for s in springs),
+        spring_node_b=tuple(scene.spring_node_b[s] for s in springs),
+        spring_names=tuple(scene.spring_names[s] for s in springs),
+        spring_tension_only=tuple(scene.spring_tension_only[s] for s in springs))
+    bound, worst = scene_network_stable_step(integrator, sub, point_mass, body_mass, inertia, marker_pos,
+                                             stiffness[springs], damping[springs])
+    return bound, int(springs[worst]) if springs.shape[0] else 0

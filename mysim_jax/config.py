@@ -26,7 +26,7 @@ import copy
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any, Literal, Union
+from typing import Annotated, Any, Literal, Optional, Union
 
 import numpy as np
 import yaml
@@ -44,9 +44,17 @@ from mysim_jax.tasks.env_config import EnvConfig
 __all__ = ["ConfigError", "SceneConfig", "RunSettings", "load_config", "config_from_dict", "apply_override",
            "dump_config"]
 
-INTEGRATORS = ("semi_implicit_euler", "rk4", "tsit5", "kvaerno5")
-FIXED_STEP_INTEGRATORS = ("semi_implicit_euler", "rk4")
+INTEGRATORS = ("semi_implicit_euler", "rk4", "implicit_euler", "tsit5", "kvaerno5")
+FIXED_STEP_INTEGRATORS = ("semi_implicit_euler", "rk4", "implicit_euler")
 ADAPTIVE_INTEGRATORS = ("tsit5", "kvaerno5")
+
+# Conjugate-gradient iterations per step of ``implicit_euler`` (sim.implicit_iterations):
+# the default and the largest accepted. 20 keeps randomised nets stable up to 20x the
+# explicit step (twice what ``substeps: auto`` takes; with 10 iterations a 44-mass net
+# blows up at 20x) and solves the capture nets to ~1e-13 at their own step (README,
+# "Stiff ropes at large steps").
+IMPLICIT_ITERATIONS = 20
+MAX_IMPLICIT_ITERATIONS = 10_000
 
 # Run-size limits: a run beyond these is almost always a typo (t_end in ms, dt in s...).
 MAX_ENV_STEPS = 2**31 - 1          # environment steps of one run (the controller counts them in int32)
@@ -112,11 +120,28 @@ class SimConfig(StrictModel):
     dt: PosFloat
     substeps: Union[Annotated[int, Field(ge=1, le=1_000_000)], Literal["auto"]] = 1
     output_dt: PosFloat
-    integrator: Literal["semi_implicit_euler", "rk4", "tsit5", "kvaerno5"] = "semi_implicit_euler"
+    integrator: Literal["semi_implicit_euler", "rk4", "implicit_euler", "tsit5", "kvaerno5"] = "semi_implicit_euler"
     precision: Literal["float32", "float64"] = "float32"
     rtol: Tolerance = 1e-8
     atol: Tolerance = 1e-10
     max_steps: Annotated[int, Field(ge=1, le=2**31 - 1)] = 10_000_000
+    # conjugate-gradient iterations per step of implicit_euler (None: IMPLICIT_ITERATIONS)
+    implicit_iterations: Optional[Annotated[int, Field(ge=1, le=MAX_IMPLICIT_ITERATIONS)]] = None
+
+    @property
+    def cg_iterations(self) -> int:
+        """CG iterations per step the built scene uses (0 unless ``implicit_euler``)."""
+        if self.integrator != "implicit_euler":
+            return 0
+        return IMPLICIT_ITERATIONS if self.implicit_iterations is None else self.implicit_iterations
+
+    @model_validator(mode="after")
+    def _implicit_iterations_need_implicit_euler(self):
+        if self.implicit_iterations is not None and self.integrator != "implicit_euler":
+            raise ValueError(
+                f"implicit_iterations = {self.implicit_iterations} is a setting of integrator: implicit_euler, "
+                f"not of {self.integrator}: remove it or use integrator: implicit_euler")
+        return self
 
     @property
     def output_every(self) -> int:

@@ -33,6 +33,7 @@ from mysim_jax.control.actuation import actuate
 from mysim_jax.dynamics import constraints as _constraints
 from mysim_jax.dynamics.forces import ForceStage, Loads, spring_forces
 from mysim_jax.dynamics.gimbal import gimbal_servo_forces
+from mysim_jax.dynamics.implicit_springs import ImplicitSpringSolve
 from mysim_jax.dynamics.integrators import FIXED_STEP, state_derivative
 from mysim_jax.dynamics.markers import distribute_node_forces, node_states
 from mysim_jax.dynamics.quadrotor import aerodynamic_forces, rotor_forces
@@ -238,12 +239,17 @@ def step(scene: Scene, params: Params, state: State, control=None) -> State:
         def accel(phys):
             return accelerations(scene, params, phys, control, held)
 
+        implicit = (ImplicitSpringSolve(scene, params, scene.implicit_iterations)
+                    if integrator.takes_implicit_springs else None)
+
+        def substep(phys):
+            return integrator.step(accel, phys, h, params.body_inertia, implicit)
+
         phys = state.phys
         if scene.substeps == 1:
-            phys = integrator.step(accel, phys, h, params.body_inertia)
+            phys = substep(phys)
         else:
-            phys = jax.lax.fori_loop(0, scene.substeps,
-                                     lambda _, p: integrator.step(accel, p, h, params.body_inertia), phys)
+            phys = jax.lax.fori_loop(0, scene.substeps, lambda _, p: substep(p), phys)
     else:
         phys = solve_adaptive(scene, params, state.phys, state.time, state.time + scene.dt, inputs=control,
                               held=held)

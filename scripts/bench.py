@@ -512,12 +512,16 @@ def default_methods(quick: bool) -> tuple[Method, ...]:
             fixed_step_methods("semi_implicit_euler", (5e-5, 1e-4, 2e-4), ("float64",))
             + fixed_step_methods("semi_implicit_euler", (1e-4,), ("float32",))
             + fixed_step_methods("rk4", (1e-4, 3e-4), ("float64",))
+            + fixed_step_methods("implicit_euler", (1e-3,), ("float64",))
             + adaptive_methods("tsit5", (1e-8,), "float64")
         )
     dts = (2e-5, 5e-5, 1e-4, 2e-4, 3e-4)
     return tuple(
         fixed_step_methods("semi_implicit_euler", dts, ("float64", "float32"))
         + fixed_step_methods("rk4", dts, ("float64", "float32"))
+        # linearly implicit springs: from the explicit range up to ~10x the explicit limit
+        + fixed_step_methods("implicit_euler", (2e-5, 1e-4, 3e-4, 1e-3), ("float64",))
+        + fixed_step_methods("implicit_euler", (1e-4, 1e-3), ("float32",))
         + adaptive_methods("tsit5", (1e-6, 1e-8, 1e-10), "float64")
         # float32 resolves ~1e-7 relative: the config rejects tolerances below 1e-6 there
         # (config.FLOAT32_MIN_TOLERANCE); these are the tightest and a looser float32 setting
@@ -615,6 +619,9 @@ def capture_methods(quick: bool) -> tuple[Method, ...]:
         + substep_methods("rk4", CAPTURE_DT, (20,), ("float64",))
         + substep_methods("rk4", CAPTURE_DT, (26,), ("float64", "float32"))
         + substep_methods("rk4", CAPTURE_DT, (52, 104), ("float64",))
+        # implicit net springs; contact and the tethers on the UAVs stay explicit (auto: 33)
+        + substep_methods("implicit_euler", CAPTURE_DT, (33,), ("float64", "float32"))
+        + substep_methods("implicit_euler", CAPTURE_DT, (66,), ("float64",))
         + TSIT5_CAPTURE
     )
 

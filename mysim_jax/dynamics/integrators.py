@@ -12,6 +12,9 @@ They hold no memory between steps.
   First order, cheap, energy-stable; the default for RL-scale batches.
 * :class:`RK4` — classical 4th-order Runge-Kutta on (positions, quaternions, velocities)
   with ``dq/dt = ½ q ⊗ ω``; quaternions renormalised after each step.
+* :class:`ImplicitEuler` — semi-implicit Euler whose point-mass velocity update is one
+  linearised backward-Euler solve on the springs between point masses (and to anchors):
+  stable far above the explicit limit of a stiff rope network. First order.
 
 Adaptive diffrax solvers (``tsit5`` explicit, ``kvaerno5`` implicit for stiff problems)
 are driven from :mod:`mysim_jax.sim` since they integrate over an interval, not one step.
@@ -35,13 +38,19 @@ AccelFn = Callable[[PhysState], Accelerations]
 class Integrator(abc.ABC):
     """Advance a multibody state by one fixed step.
 
-    ``step(accel_fn, phys, h, body_inertia)`` must be pure: no state is kept on the
-    integrator. ``body_inertia`` ``(n_bodies, 3, 3)`` (body frame) is for integrators that
-    treat part of Euler's equations implicitly; others ignore it.
+    ``step(accel_fn, phys, h, body_inertia, implicit)`` must be pure: no state is kept on
+    the integrator. ``body_inertia`` ``(n_bodies, 3, 3)`` (body frame) is for integrators
+    that treat part of Euler's equations implicitly; others ignore it. ``implicit`` is
+    given only to integrators with ``takes_implicit_springs``: an object whose
+    ``velocity_change(phys, point_acc, h)`` returns the points' velocity change of a
+    linearised backward-Euler step on the springs between point masses
+    (:class:`~mysim_jax.dynamics.implicit_springs.ImplicitSpringSolve`).
     """
 
+    takes_implicit_springs: bool = False
+
     @abc.abstractmethod
-    def step(self, accel_fn: AccelFn, phys: PhysState, h, body_inertia=None) -> PhysState:
+    def step(self, accel_fn: AccelFn, phys: PhysState, h, body_inertia=None, implicit=None) -> PhysState:
         ...
 
 
@@ -73,25 +82,31 @@ def state_derivative(phys: PhysState, acc: Accelerations) -> PhysState:
     )
 
 
+def symplectic_update(phys: PhysState, acc: Accelerations, point_vel, h, body_inertia=None) -> PhysState:
+    """The rest of a semi-implicit Euler step once the points' new velocities ``point_vel``
+    ``(n_points, 3)`` are known: points move with them, bodies update their velocities
+    from ``acc`` (the gyroscopic term implicitly) and then move with the new ones."""
+    body_vel = phys.body_vel + h * acc.body_acc
+    angacc = acc.body_angacc
+    if body_inertia is not None and body_inertia.shape[0]:
+        angacc = implicit_gyroscopic(body_inertia, phys.body_angvel, angacc, h)
+    body_angvel = phys.body_angvel + h * angacc
+    return PhysState(
+        point_pos=phys.point_pos + h * point_vel,
+        point_vel=point_vel,
+        body_pos=phys.body_pos + h * body_vel,
+        body_quat=quat_integrate(phys.body_quat, body_angvel, h),
+        body_vel=body_vel,
+        body_angvel=body_angvel,
+    )
+
+
 class SemiImplicitEuler(Integrator):
     """Symplectic (semi-implicit) Euler."""
 
-    def step(self, accel_fn, phys, h, body_inertia=None):
+    def step(self, accel_fn, phys, h, body_inertia=None, implicit=None):
         acc = accel_fn(phys)
-        point_vel = phys.point_vel + h * acc.point_acc
-        body_vel = phys.body_vel + h * acc.body_acc
-        angacc = acc.body_angacc
-        if body_inertia is not None and body_inertia.shape[0]:
-            angacc = implicit_gyroscopic(body_inertia, phys.body_angvel, angacc, h)
-        body_angvel = phys.body_angvel + h * angacc
-        return PhysState(
-            point_pos=phys.point_pos + h * point_vel,
-            point_vel=point_vel,
-            body_pos=phys.body_pos + h * body_vel,
-            body_quat=quat_integrate(phys.body_quat, body_angvel, h),
-            body_vel=body_vel,
-            body_angvel=body_angvel,
-        )
+        return symplectic_update(phys, acc, phys.point_vel + h * acc.point_acc, h, body_inertia)
 
 
 class RK4(Integrator):
@@ -105,7 +120,7 @@ class RK4(Integrator):
     _A = (0.0, 0.5, 0.5, 1.0)          # stage offsets c_i = a_i,i-1
     _W = (1.0 / 6, 2.0 / 6, 2.0 / 6, 1.0 / 6)
 
-    def step(self, accel_fn, phys, h, body_inertia=None):
+    def step(self, accel_fn, phys, h, body_inertia=None, implicit=None):
         def f(y):
             return state_derivative(y, accel_fn(y))
 
@@ -124,4 +139,41 @@ class RK4(Integrator):
         return out.replace(body_quat=quat_normalize(out.body_quat))
 
 
-FIXED_STEP = {"semi_implicit_euler": SemiImplicitEuler(), "rk4": RK4()}
+class ImplicitEuler(Integrator):
+    """Semi-implicit Euler with the springs between point masses taken implicitly.
+
+    Implicit: the velocity update of the point masses, ``(M + hD + h²S) Δv = h (f − h S v)``
+    (one Newton step of backward Euler, linearised at the current state), where ``S`` and
+    ``D`` are the positive semi-definite stiffness and damping of the rope segments and
+    springs joining two point masses or a point mass and an anchor
+    (:mod:`mysim_jax.dynamics.implicit_springs`); solved by a fixed number of
+    block-Jacobi-preconditioned conjugate-gradient iterations (``sim.implicit_iterations``).
+    Then ``x' = x + h v'``.
+
+    Explicit, exactly as in :class:`SemiImplicitEuler`: every force in ``f`` is evaluated
+    at the current state (contact, rotors, drag, loads, gravity, and springs with an end
+    on a body marker), rigid bodies (velocity update, the implicit gyroscopic term,
+    attitude by the exponential map) and joint constraints. Those keep their explicit
+    step limits, which the builder's check still applies; the spring network between
+    point masses does not limit the step.
+
+    Why this split: a net's stiffness sits in its many short segments between light lumped
+    masses; their Jacobian is a sparse, symmetric graph Laplacian of 3 x 3 blocks that a
+    few gathers and ``segment_sum`` apply without forming a matrix, so the solve stays
+    vmappable and differentiable. Taking body-attached springs, contact or joints
+    implicitly would couple the solve to rotations, constraint forces and non-smooth
+    contact laws.
+
+    First order (backward Euler damps the fastest modes strongly: the price of its
+    stability); with zero CG iterations it is exactly semi-implicit Euler.
+    """
+
+    takes_implicit_springs = True
+
+    def step(self, accel_fn, phys, h, body_inertia=None, implicit=None):
+        acc = accel_fn(phys)
+        dv = h * acc.point_acc if implicit is None else implicit.velocity_change(phys, acc.point_acc, h)
+        return symplectic_update(phys, acc, phys.point_vel + dv, h, body_inertia)
+
+
+FIXED_STEP = {"semi_implicit_euler": SemiImplicitEuler(), "rk4": RK4(), "implicit_euler": ImplicitEuler()}
