@@ -58,6 +58,7 @@ import shlex
 import sys
 import time
 from contextlib import contextmanager
+from functools import partial
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
@@ -223,7 +224,7 @@ def section_a(cfg, results) -> list[str]:
     bar.update(1)
     cap_scene, cap_params, cap_state, cap_run = _capture_throughput_run(cfg.capture_steps)
     capture = compile_batched("capture", cap_run, cap_params, cap_state, CAPTURE_BATCH, cfg.capture_steps,
-                              vmap=batching.vmap)
+                              vmap=partial(batching.vmap, chunk=batching.chunk_for(cap_state)))
     capture_first = compile_batched("capture, jax.vmap", cap_run, cap_params, cap_state, CAPTURE_BATCH,
                                     cfg.capture_steps, vmap=jax.vmap)
     bar.update(2)
@@ -331,7 +332,8 @@ def section_a(cfg, results) -> list[str]:
         f"One env step = one control period `sim.dt` = {cap_scene.dt:g} s: the scripted team policy "
         "(`mysim_jax.tasks.scripted.team_policy`) and the cascaded PID run once, then "
         f"{n_sub} physics sub-steps of {cap_scene.substep:.3g} s ({cap_scene.integrator}, `substeps: auto`). "
-        f"One call = `jax.jit(mysim_jax.batching.vmap(run_env, in_axes=(None, 0)))(params, states)` with `run_env` one "
+        f"One call = `jax.jit(mysim_jax.batching.vmap(run_env, in_axes=(None, 0), chunk={batching.chunk_for(cap_state)}))(params, states)` "
+        "(blocks from `batching.chunk_for`) with `run_env` one "
         f"`mysim_jax.sim.rollout(scene, params, state, K, K, policy)` of K = {cfg.capture_steps} env steps "
         f"(a short rollout from the start: the target is still falling and the net is not yet hit; "
         f"B·K = {CAPTURE_BATCH * cfg.capture_steps:,} env steps per call), the B states the single-env start "
@@ -1569,6 +1571,8 @@ def _env_call(env, params, batch: int, n_steps: int, kind: str = "env", vmap: Ca
             return step(env.scene, sim_params, s, sp), None
         return jax.lax.scan(period, state.sim, None, length=n_steps)[0]
 
+    if vmap is batching.vmap:      # the library's batched path: cache-sized blocks of environments
+        vmap = partial(batching.vmap, chunk=batching.chunk_for(jax.tree.map(lambda x: x[0], states)))
     compiled, compile_s, memory = aot_compile(jax.jit(vmap(run_env)), keys, states)
     return Compiled(kind, batch, n_steps, lambda: compiled(keys, states), compile_s, memory)
 
@@ -1639,7 +1643,8 @@ def section_e(cfg, results) -> list[str]:
         f"`configs/capture_env_falling.yaml` (float32, {scene.n_points} point masses, {scene.n_springs} springs, "
         f"4 quadrotors and the target, contact, line drag; {env.control_steps} control periods of "
         f"{scene.dt * 1e3:g} ms per team step at 25 Hz, {scene.substeps} semi-implicit Euler sub-steps each). "
-        "One call = `jax.jit(mysim_jax.batching.vmap(run_env))(keys, states)` (batch axis last) with `run_env` a `lax.scan` of K "
+        "One call = `jax.jit(mysim_jax.batching.vmap(run_env, chunk=c))(keys, states)` (batch axis last, in blocks of "
+        f"c = `batching.chunk_for(state)` = {batching.chunk_for(jax.tree.map(lambda x: x[0], env.reset(jax.random.PRNGKey(0), params)[1]))} environments when B is larger) with `run_env` a `lax.scan` of K "
         "`CaptureEnv.step` calls whose actions are the scripted team's (`CaptureEnv.scripted_actions`): "
         "B environments reset from distinct keys, so their spawns, masses and wind differ; auto-reset "
         f"included. Team steps/s = B·K / median of {cfg.env_repeats} timed calls after one warm-up call. Memory "

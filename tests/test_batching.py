@@ -227,3 +227,25 @@ def test_custom_jvp_keeps_its_rule_under_grad():
     got = jax.grad(lambda v: batching.vmap(clipped_sqrt)(v).sum())(x)
     np.testing.assert_array_equal(np.asarray(got), np.asarray(ref))
     np.testing.assert_array_equal(np.asarray(got), 7.0)
+
+
+def test_chunked_batch_equals_one_block_and_chunk_for_scales_with_the_state():
+    scene, params, states = _rope_batch(16, ROPE32)
+
+    def run(s):
+        return rollout(scene, params, s, 20, 20)[0]
+
+    whole = jax.jit(batching.vmap(run))(states)
+    blocks = jax.jit(batching.vmap(run, chunk=4))(states)
+    odd = jax.jit(batching.vmap(run, chunk=5))(states)        # does not divide: one block
+    for a, b, c in zip(jax.tree.leaves(whole), jax.tree.leaves(blocks), jax.tree.leaves(odd)):
+        np.testing.assert_array_equal(np.asarray(b), np.asarray(a))
+        np.testing.assert_array_equal(np.asarray(c), np.asarray(a))
+    one = jax.tree.map(lambda x: x[0], states)
+    assert batching.chunk_for(one) is None                     # a small state is not blocked
+    big = {"x": jnp.zeros((1250,), jnp.float32)}               # 5 kB, like the capture env's state
+    assert batching.chunk_for(big) == 128
+    assert batching.chunk_for({"x": jnp.zeros((12500,), jnp.float32)}) == 16    # ten times larger: blocks of 16
+    assert batching.chunk_for({"x": jnp.zeros((10 ** 6,), jnp.float32)}) == 8     # never below 8
+    with pytest.raises(ValueError, match="chunk must be a positive int"):
+        batching.vmap(run, chunk=0)

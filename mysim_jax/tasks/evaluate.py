@@ -103,15 +103,16 @@ def run_episodes(env, params, policy, n_episodes: int, batch: int, key, chunk: i
     def advance(carry):
         return jax.lax.scan(one, carry, None, length=chunk)
 
-    # batch axis last inside (mysim_jax.batching); split over the devices when there are several
-    advance = parallel.jit_envs(batching.vmap(advance), batch)
-
     def start(k):
         k_reset, k_run = jax.random.split(k)
         obs, state = env.reset(k_reset, params)
         return k_run, obs, state
 
     carry = jax.jit(jax.vmap(start))(jax.vmap(lambda b: jax.random.fold_in(key, b))(jnp.arange(batch)))
+    # batch axis last inside, in cache-sized blocks (mysim_jax.batching); split over the
+    # devices when there are several
+    block = batching.chunk_for(jax.tree.map(lambda x: x[0], carry[2]))
+    advance = parallel.jit_envs(batching.vmap(advance, chunk=block), batch)
     done_count = np.zeros(batch, int)
     term_sums = np.zeros((batch, len(REWARD_TERMS)))
     rows = []

@@ -63,7 +63,8 @@ def capture_sweep(config, seeds) -> SweepResult:
     keys = jnp.stack([jax.random.PRNGKey(s) for s in seeds])
     starts = jax.vmap(lambda k: spawn_target(scene, params, state, k))(keys)
     t0 = time.perf_counter()
-    batched = batching.vmap(lambda s: rollout(scene, params, s, n_out * every, every, policy)[1])
+    batched = batching.vmap(lambda s: rollout(scene, params, s, n_out * every, every, policy)[1],
+                            chunk=batching.chunk_for(state))
     saved = parallel.jit_envs(batched, len(seeds))(starts)
     saved, starts = jax.tree.map(np.asarray, saved), jax.tree.map(np.asarray, starts)
     wall = time.perf_counter() - t0
