@@ -1644,7 +1644,7 @@ def section_e(cfg, results) -> list[str]:
         f"4 quadrotors and the target, contact, line drag; {env.control_steps} control periods of "
         f"{scene.dt * 1e3:g} ms per team step at 25 Hz, {scene.substeps} semi-implicit Euler sub-steps each). "
         "One call = `jax.jit(mysim_jax.batching.vmap(run_env, chunk=c))(keys, states)` (batch axis last, in blocks of "
-        f"c = `batching.chunk_for(state)` = {batching.chunk_for(jax.tree.map(lambda x: x[0], env.reset(jax.random.PRNGKey(0), params)[1]))} environments when B is larger) with `run_env` a `lax.scan` of K "
+        f"c = `batching.chunk_for(state)` = {batching.chunk_for(env.reset(jax.random.PRNGKey(0), params)[1])} environments when B is larger) with `run_env` a `lax.scan` of K "
         "`CaptureEnv.step` calls whose actions are the scripted team's (`CaptureEnv.scripted_actions`): "
         "B environments reset from distinct keys, so their spawns, masses and wind differ; auto-reset "
         f"included. Team steps/s = B·K / median of {cfg.env_repeats} timed calls after one warm-up call. Memory "
