@@ -1461,11 +1461,11 @@ def summary_lines(results) -> list[str]:
     out = ["## Summary", ""]
     if "ours_4096" in results:
         v = results["ours_4096"]
-        out.append(f"- Throughput at B = {HEADLINE_BATCH}: **{v:,.0f} env-steps/s** — target ≥ {TARGET_ENV_STEPS:,}: "
+        out.append(f"- Throughput (a) at B = {HEADLINE_BATCH}: **{v:,.0f} env-steps/s** — target ≥ {TARGET_ENV_STEPS:,}: "
                    f"**{'met' if v >= TARGET_ENV_STEPS else 'NOT met'}**.")
     if "kernel_ratio" in results:
         r = results["kernel_ratio"]
-        out.append("- Library (batch-last, `mysim_jax.batching.vmap`) / hand-written batch-last kernel, same run: "
+        out.append("- Library (batch-last, `mysim_jax.batching.vmap`) / hand-written batch-last kernel (a), same run: "
                    + ", ".join(f"B={b}: **{x:.2f}×**" for b, x in r.items())
                    + f" — target ≥ {TARGET_KERNEL_RATIO}× at B = 1024 and 4096: "
                    f"**{'met' if results['kernel_met'] else 'NOT met'}**.")
@@ -1475,11 +1475,11 @@ def summary_lines(results) -> list[str]:
                    f"(policy) steps/s** — target ≥ {TARGET_POLICY_STEPS:,}: "
                    f"**{'met' if top.env_steps_per_s >= TARGET_POLICY_STEPS else 'NOT met'}** (where the time goes: (e)).")
     if "mujoco_steps_per_s" in results:
-        out.append(f"- MuJoCo (Euler, one thread): **{results['mujoco_steps_per_s']:,.0f} steps/s**; its payload z "
+        out.append(f"- MuJoCo (c), Euler, one thread: **{results['mujoco_steps_per_s']:,.0f} steps/s**; its payload z "
                    f"is {results['mujoco_err']:.2e} m from the float64 reference.")
     if "ratio" in results:
         r = results["ratio"]
-        out.append(f"- Ours@{HEADLINE_BATCH} / MuJoCo = **{r:.1f}×** — target ≥ {TARGET_MUJOCO_RATIO:.0f}×: "
+        out.append(f"- Ours@{HEADLINE_BATCH} (a) / MuJoCo (c) = **{r:.1f}×** — target ≥ {TARGET_MUJOCO_RATIO:.0f}×: "
                    f"**{'met' if r >= TARGET_MUJOCO_RATIO else 'NOT met'}**.")
     if "b" in results:
         out.append("- Node-force accumulation, env-steps/s (b): " + "; ".join(
@@ -1758,6 +1758,7 @@ def splice_sections(old: list[str], new: list[str], rerun: list[str]) -> list[st
     note = (f"Sections {', '.join(rerun)} are from this run; sections {', '.join(kept)} (and their summary "
             f"lines) are kept from the earlier run ({old_date.split('|')[2].strip()}, "
             f"{old_code.split('|')[2].strip()}), spliced by `scripts/bench.py --only {','.join(rerun)} --update`.")
+    # every summary line names its section(s), "(a)" ...; keep those of sections not rerun
     kept_summary = [ln for ln in old_summary
                     if ln.startswith("- ") and any(f"({s})" in ln for s in kept)
                     and not any(f"({s})" in ln for s in rerun)]
