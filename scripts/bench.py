@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """Benchmarks of mysim_jax: write BENCHMARKS.md and plots into docs/bench/.
 
-    python scripts/bench.py                  # full run: ~15 min on 2 cores
+    python scripts/bench.py                  # full run: ~45 min on 2 cores
     python scripts/bench.py --quick          # smoke test: fewer repeats and points
     python scripts/bench.py --only a,c       # some sections only
 
