@@ -247,12 +247,8 @@ def _gather(prim, vals, batched, params, size, eqn):
         return _fallback(prim, vals, batched, params, size)
     dn = params["dimension_numbers"]
     out_nd = len(eqn.outvars[0].aval.shape)
-    new_dn = lax.GatherDimensionNumbers(
-        offset_dims=tuple(dn.offset_dims) + (out_nd,),
-        collapsed_slice_dims=tuple(dn.collapsed_slice_dims),
-        start_index_map=tuple(dn.start_index_map),
-        operand_batching_dims=tuple(dn.operand_batching_dims),
-        start_indices_batching_dims=tuple(dn.start_indices_batching_dims))
+    # the batch is one more window (offset) dimension, the last of the output
+    new_dn = dn._replace(offset_dims=tuple(dn.offset_dims) + (out_nd,))
     out = lax.gather(operand, indices, new_dn, tuple(params["slice_sizes"]) + (size,),
                      indices_are_sorted=params["indices_are_sorted"], unique_indices=params["unique_indices"],
                      mode=params["mode"], fill_value=params["fill_value"])
@@ -269,12 +265,8 @@ def _scatter(prim, vals, batched, params, size, eqn):
         updates = _broadcast_to_batched(updates, tuple(eqn.invars[2].aval.shape), size)
     dn = params["dimension_numbers"]
     upd_nd = len(eqn.invars[2].aval.shape)
-    new_dn = lax.ScatterDimensionNumbers(
-        update_window_dims=tuple(dn.update_window_dims) + (upd_nd,),
-        inserted_window_dims=tuple(dn.inserted_window_dims),
-        scatter_dims_to_operand_dims=tuple(dn.scatter_dims_to_operand_dims),
-        operand_batching_dims=tuple(dn.operand_batching_dims),
-        scatter_indices_batching_dims=tuple(dn.scatter_indices_batching_dims))
+    # the batch is one more window dimension, the last of the updates
+    new_dn = dn._replace(update_window_dims=tuple(dn.update_window_dims) + (upd_nd,))
     new_params = dict(params, dimension_numbers=new_dn)
     return prim.bind(operand, indices, updates, **new_params), True
 
