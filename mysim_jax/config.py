@@ -612,11 +612,22 @@ def apply_override(raw: dict, assignment: str) -> None:
         raise ConfigError(f"--set {key}: parent is a value, not a section")
 
 
+def unaliased(raw: Any) -> Any:
+    """A copy of a YAML-parsed value in which no mapping or list is shared. YAML anchors
+    (``&ctrl`` ... ``*ctrl``) make one object appear at several places; a ``--set`` override
+    addresses one place and must change only that one."""
+    if isinstance(raw, dict):
+        return {k: unaliased(v) for k, v in raw.items()}
+    if isinstance(raw, list):
+        return [unaliased(v) for v in raw]
+    return copy.deepcopy(raw)
+
+
 def config_from_dict(raw: Any, source: str = "<dict>", overrides: list[str] | tuple[str, ...] = ()) -> SceneConfig:
     """Validate a raw (YAML-parsed) dict into a :class:`SceneConfig`."""
     if not isinstance(raw, dict):
         raise ConfigError(f"{source}: a scene file must be a YAML mapping at the top level")
-    raw = copy.deepcopy(raw)
+    raw = unaliased(raw)
     for ov in overrides:
         apply_override(raw, ov)
     try:

@@ -70,7 +70,8 @@ COLLISION_HEAVY = ROOT / "configs" / "collision_heavy.yaml"
 ROPE_NET_SLACK = ROOT / "configs" / "rope_net_slack.yaml"
 CAPTURE_FALLING = ROOT / "configs" / "capture_falling.yaml"
 CAPTURE_ENV = ROOT / "configs" / "capture_env_falling.yaml"
-SECTIONS = ("a", "b", "c", "d", "e", "f")
+SECTIONS = ("a", "b", "c", "d", "e", "f", "g")
+TRAIN_CAPTURE = ROOT / "configs" / "train_capture_falling.yaml"
 
 # The throughput setting of the performance targets.
 THROUGHPUT_OVERRIDES = ("sim.precision=float32", "sim.integrator=semi_implicit_euler",
@@ -1593,6 +1594,11 @@ def summary_lines(results) -> list[str]:
                 parts.append(part + ")")
         if parts:
             out.append("- Accuracy (d), rope_net_stiff (EA 1e9 N), payload z, cheapest run " + "; ".join(parts) + ".")
+    if "g" in results:
+        g = results["g"]
+        out.append(f"- Training (g), MAPPO on the capture environment: **{g['iteration']:,.0f} team env-steps/s "
+                   f"including the update**, against {g['env']:,.0f} for the environment alone "
+                   f"({g['iteration'] / g['env']:.0%}).")
     if "f" in results and "floor" in results["f"]:
         f = results["f"]
         out.append(f"- Profile (f), B = {HEADLINE_BATCH}: library (batch last) {f['library']:,.0f} env-steps/s; "
@@ -1831,6 +1837,57 @@ def splice_sections(old: list[str], new: list[str], rerun: list[str]) -> list[st
     return out
 
 
+# =========================================================================================
+# (g) training throughput
+# =========================================================================================
+
+
+def section_g(cfg, results) -> list[str]:
+    """MAPPO: one training iteration against the rollout alone and the environment alone
+    (mysim_jax/bench/training.py), on the environment and sizes of the default training file."""
+    from mysim_jax.bench.training import measure
+    from mysim_jax.mappo.run import load_run_config, make_environment
+    from mysim_jax.mappo.trainer import Trainer
+
+    overrides = ["algo.num_envs=16", "algo.num_steps=4", "algo.num_minibatches=4"] if cfg.quick else []
+    prepared = load_run_config(str(TRAIN_CAPTURE), overrides)
+    env, env_params = make_environment(prepared)
+    algo = prepared.config.algo
+    trainer = Trainer(algo, env, env_params)
+    wait_for_quiet(cfg.max_wait_s, "g")
+    m = measure(trainer, jax.random.PRNGKey(0), repeats=2 if cfg.quick else 3)
+    rate = {k: m.steps_per_s(k) for k in m.times}
+    results["g"] = rate
+    update_s = median(m.times["iteration"]) - median(m.times["rollout"])
+    lines = [
+        "## (g) Training throughput (MAPPO)",
+        "",
+        f"`{TRAIN_CAPTURE.relative_to(ROOT)}`" + (f" with `{' '.join(overrides)}`" if overrides else "")
+        + f": {algo.num_envs} environments × {algo.num_steps} team steps per iteration, update of "
+        f"{algo.update_epochs} epochs × {algo.num_minibatches} minibatches, networks {list(algo.hidden)} "
+        f"(mysim_jax/bench/training.py). Each call AOT-compiled; timed round-robin, median of "
+        f"{len(m.times['iteration'])} rounds. env-steps/s = team (policy) steps of all environments per second; "
+        f"a team step is {env.control_steps} control periods of {env.scene.substeps} physics sub-steps.",
+        "",
+        "| call | what | s per call | team env-steps/s | compile [s] |",
+        "|---|---|---:|---:|---:|",
+        f"| iteration | rollout + GAE + update (`Trainer.iteration`) | {median(m.times['iteration']):.2f} | "
+        f"{rate['iteration']:,.0f} | {m.compile_s['iteration']:.1f} |",
+        f"| rollout | policy + critic + environment steps, no update | {median(m.times['rollout']):.2f} | "
+        f"{rate['rollout']:,.0f} | {m.compile_s['rollout']:.1f} |",
+        f"| env | environment steps alone (zero actions) | {median(m.times['env']):.2f} | {rate['env']:,.0f} | "
+        f"{m.compile_s['env']:.1f} |",
+        "",
+        f"Training runs at **{rate['iteration'] / rate['env']:.0%}** of the environment's own steps/s; the update "
+        f"takes {update_s:.2f} s of an iteration ({update_s / median(m.times['iteration']):.0%}), the networks in "
+        f"the rollout {median(m.times['rollout']) - median(m.times['env']):.2f} s.",
+        "",
+        contention_note("g", 2 if cfg.quick else 3),
+        "",
+    ]
+    return lines
+
+
 @dataclass
 class BenchConfig:
     quick: bool
@@ -1903,7 +1960,8 @@ def main(argv=None) -> int:
     t_start = time.perf_counter()
     results: dict[str, Any] = {}
     body: list[str] = []
-    runners = {"a": section_a, "b": section_b, "c": section_c, "d": section_d, "e": section_e, "f": section_f}
+    runners = {"a": section_a, "b": section_b, "c": section_c, "d": section_d, "e": section_e, "f": section_f,
+               "g": section_g}
     order = [s for s in SECTIONS if s in sections]
     for s in tqdm(order, desc="bench sections", unit="section"):
         t0 = time.perf_counter()

@@ -4,10 +4,10 @@
     python scripts/evaluate.py configs/capture_env_falling.yaml --policy scripted --episodes 200 --out out/eval
     python scripts/evaluate.py CONFIG --policy my_policy.py --episodes 64 --batch 16 --seed 1 --out DIR
 
-``--policy`` is ``scripted`` (the scripted intercept team), ``random`` (uniform actions) or
-a Python file defining ``make_policy(env, params)`` that returns ``policy(key, obs, state,
-params) -> actions (n_agents, 3)`` for one environment (mysim_jax/tasks/policies.py;
-trained MAPPO checkpoints will be loadable the same way later). The scene needs
+``--policy`` is ``scripted`` (the scripted intercept team), ``random`` (uniform actions),
+a trained policy (the ``policy/`` folder of a ``scripts/train.py`` run), or a Python file
+defining ``make_policy(env, params)`` that returns ``policy(key, obs, state, params) ->
+actions (n_agents, 3)`` for one environment (mysim_jax/tasks/policies.py). The scene needs
 ``net:``, ``target:`` and controlled ``quadrotors:``; a scene without an ``env:`` block
 is evaluated with the defaults (``env: {}``, a note says so and ``config.yaml`` records
 them).
@@ -36,7 +36,6 @@ written to a temporary folder and moved into OUT only when complete.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 
 
@@ -48,7 +47,7 @@ def _error(message: str) -> int:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("config", help="YAML capture scene file")
-    parser.add_argument("--policy", required=True, help="scripted, random, or a Python file defining make_policy")
+    parser.add_argument("--policy", required=True, help="scripted, random, a trained policy folder (RUN/policy), or a Python file defining make_policy")
     parser.add_argument("--episodes", type=int, required=True, help="number of episodes (>= 1)")
     parser.add_argument("--out", required=True, help="output directory (created if missing)")
     parser.add_argument("--batch", type=int, default=64, help="environments run side by side (default 64)")
@@ -63,7 +62,7 @@ def main(argv=None) -> int:
         if value < low:
             return _error(f"{flag} {value}: must be at least {low}")
 
-    from mysim_jax.config import ConfigError, dump_config, load_config
+    from mysim_jax.config import ConfigError, load_config
     from mysim_jax.io.output import OutputError, check_output_dir
     from mysim_jax.tasks.policies import PolicyError, check_policy_spec
 
@@ -83,12 +82,10 @@ def main(argv=None) -> int:
         return _error(str(err))
 
     import jax
-    import numpy as np
 
     if config.sim.precision == "float64":
         jax.config.update("jax_enable_x64", True)
 
-    from mysim_jax.io.output import staged_output
     from mysim_jax.tasks.capture import make_env
     from mysim_jax.tasks.policies import check_policy, policy_maker
 
@@ -109,63 +106,12 @@ def main(argv=None) -> int:
     if env_note:
         print(env_note, file=sys.stderr)
 
-    from mysim_jax.io.capture_plots import capture_report
-    from mysim_jax.io.eval_plots import episode_columns, evaluation_plots, outcome_labels, plot_episode_rewards
-    from mysim_jax.io.trajectory import write_trajectory_csv
-    from mysim_jax.tasks.episode import record_columns, record_episode, step_columns
-    from mysim_jax.tasks.evaluate import run_episodes
+    from mysim_jax.tasks.report import summary_line, write_evaluation
 
-    key = jax.random.PRNGKey(args.seed)
-    batch = min(args.batch, args.episodes)
-    stats = run_episodes(env, params, policy, args.episodes, batch, key, progress=not args.no_progress)
-    # slot 0's first episode, replayed with its key (run_episodes seeds slot b with fold_in(key, b))
-    record = record_episode(env, params, policy, jax.random.fold_in(key, 0))
-
-    summary = stats.summary()
-    first = int(np.flatnonzero(stats.slot == 0)[0])
-    with staged_output(out) as tmp:
-        (tmp / "config.yaml").write_text(dump_config(config))
-        write_trajectory_csv(tmp / "episodes.csv", episode_columns(stats, env.policy_dt))
-        plots = [p.name for p in evaluation_plots(stats, tmp, env.policy_dt, config.name)]
-        columns = record_columns(env, record)
-        write_trajectory_csv(tmp / "trajectory.csv", columns)
-        steps = step_columns(env, record)
-        write_trajectory_csv(tmp / "episode_steps.csv", steps)
-        plots.append(plot_episode_rewards(steps, tmp / "episode_rewards.png", config.name).name)
-        capture = capture_report(columns, env.scene, record.sim_params, config, tmp, animate=not args.no_animation)
-        plots += capture["plots"]
-        metrics = {
-            "scene": config.name,
-            "config": str(args.config),
-            "overrides": list(args.overrides),
-            "env_block": "defaults" if env_note else "file",
-            "policy": args.policy,
-            "episodes": args.episodes,
-            "batch": batch,
-            "seed": args.seed,
-            "policy_dt": env.policy_dt,
-            "max_steps": env.max_steps,
-            **summary,
-            "recorded_episode": {
-                "slot": 0, "index_in_slot": 0, "outcome": record.outcome, "length_steps": record.length,
-                "length_s": float(record.trajectory.time[-1]), "mean_return": float(record.returns.mean()),
-                # the same episode in the batched run: identical draws, but after a contact the
-                # two compiled runs can drift apart and end differently
-                "evaluated_outcome": str(outcome_labels(stats)[first]),
-                "evaluated_length_steps": int(stats.length[first]),
-                "capture": capture,
-            },
-            "plots": plots,
-        }
-        (tmp / "metrics.json").write_text(json.dumps(metrics, indent=2))
-
-    s = summary["success"]
-    failures = ", ".join(f"{k.replace('_', ' ')} {v['rate']:.0%}" for k, v in summary["failures"].items()
-                         if v["count"])
-    print(f"{config.name}: {args.episodes} episodes of policy '{args.policy}' in {stats.wall_s:.1f} s "
-          f"(compile included): success {s['rate']:.1%} (95 % {s['interval95'][0]:.1%}-{s['interval95'][1]:.1%}), "
-          f"timeout {summary['timeout']['rate']:.1%}" + (f", failures: {failures}" if failures else "")
-          + f"; mean return {summary['mean_return']:.3g}; wrote {out}/ ({len(plots)} plots)")
+    metrics = write_evaluation(out, config, env, params, policy, policy_name=args.policy, episodes=args.episodes,
+                               batch=args.batch, seed=args.seed, config_path=args.config, overrides=args.overrides,
+                               env_note=env_note, progress=not args.no_progress, animate=not args.no_animation)
+    print(summary_line(config.name, args.policy, metrics, out))
     return 0
 
 

@@ -31,7 +31,8 @@ from mysim_jax.config import ConfigError, apply_override, config_from_dict, load
 
 from conftest import CONFIGS
 
-SCENES = {p.name: yaml.safe_load(p.read_text()) for p in sorted(CONFIGS.glob("*.yaml"))}
+SCENES = {p.name: yaml.safe_load(p.read_text()) for p in sorted(CONFIGS.glob("*.yaml"))
+          if not p.name.startswith("train_")}     # training files are not scenes
 FUZZ = settings(derandomize=True, deadline=None, max_examples=250,
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 

@@ -16,8 +16,8 @@ A policy spec is one of
               return jnp.zeros(env.action_shape, obs.dtype)   # hold the box's centre
           return policy
 
-Trained checkpoints (MAPPO) are not loadable yet; their loader will be one more kind of
-spec here (a checkpoint folder), so the scripts that take ``--policy`` need no change.
+* a trained policy folder (``policy/`` of a ``scripts/train.py`` run: ``policy.json`` and
+  ``policy.msgpack``, :mod:`mysim_jax.mappo.checkpoint`): the MAPPO actor's mean action.
 
 :func:`policy_maker` resolves a spec to a ``make_policy(env, params)`` function (it
 imports a policy file, so call it after choosing JAX's precision); :func:`check_policy`
@@ -40,8 +40,8 @@ class PolicyError(ValueError):
 
 
 def _usage() -> str:
-    return ("give 'scripted', 'random', or a Python file defining make_policy(env, params) -> "
-            "policy(key, obs, state, params)")
+    return ("give 'scripted', 'random', a trained policy folder, or a Python file defining "
+            "make_policy(env, params) -> policy(key, obs, state, params)")
 
 
 def check_policy_spec(spec: str, flag: str = "--policy") -> None:
@@ -52,7 +52,12 @@ def check_policy_spec(spec: str, flag: str = "--policy") -> None:
     if not path.exists():
         raise PolicyError(f"{flag} {spec}: not a built-in policy and no such file ({_usage()})")
     if path.is_dir():
-        raise PolicyError(f"{flag} {spec}: is a folder; trained checkpoints are not supported yet ({_usage()})")
+        from mysim_jax.mappo.checkpoint import is_policy_folder
+
+        if is_policy_folder(path):
+            return
+        raise PolicyError(f"{flag} {spec}: is a folder without policy.json and policy.msgpack (a trained policy "
+                          f"is the policy/ folder of a train.py run; {_usage()})")
     if path.suffix != ".py":
         raise PolicyError(f"{flag} {spec}: not a Python file (.py); {_usage()}")
 
@@ -66,6 +71,8 @@ def policy_maker(spec: str, flag: str = "--policy"):
         factory = scripted_policy if spec == "scripted" else random_policy
         return lambda env, params: factory(env)
     path = Path(spec)
+    if path.is_dir():
+        return _trained_policy_maker(path, flag)
     name = f"_mysim_policy_{path.stem}"
     module_spec = importlib.util.spec_from_file_location(name, path)
     if module_spec is None or module_spec.loader is None:
@@ -81,6 +88,31 @@ def policy_maker(spec: str, flag: str = "--policy"):
     if not callable(make):
         raise PolicyError(f"{flag} {spec}: defines no function make_policy(env, params) ({_usage()})")
     return make
+
+
+def _trained_policy_maker(path: Path, flag: str):
+    """``make_policy`` of a saved MAPPO policy; it checks that the environment's
+    observation and action shapes are those the policy was trained on."""
+    from mysim_jax.mappo.checkpoint import load_policy
+
+    try:
+        meta, arrays = load_policy(path)
+    except Exception as exc:    # a damaged file is an input error
+        raise PolicyError(f"{flag} {path}: cannot read the saved policy: {type(exc).__name__}: {exc}") from None
+    if meta.get("kind") != "mappo":
+        raise PolicyError(f"{flag} {path}: policy.json kind {meta.get('kind')!r}, expected 'mappo'")
+
+    def make_policy(env, params):
+        from mysim_jax.mappo.trainer import Actor, deterministic_policy
+
+        if int(meta["obs_size"]) != env.obs_size or tuple(meta["action_shape"]) != tuple(env.action_shape):
+            raise PolicyError(f"{flag} {path}: trained on observations of size {meta['obs_size']} and actions "
+                              f"{tuple(meta['action_shape'])}; this environment has {env.obs_size} and "
+                              f"{tuple(env.action_shape)} (another number of UAVs?)")
+        actor = Actor(int(meta["action_shape"][1]), tuple(meta["hidden"]), meta["activation"])
+        return deterministic_policy(actor, arrays, bool(meta["normalize_obs"]))
+
+    return make_policy
 
 
 def check_policy(env, params, policy, spec: str = "policy", flag: str = "--policy") -> None:

@@ -1,0 +1,206 @@
+"""Training configuration files: ``env:``, ``algo:`` and ``run:`` sections.
+
+A training file names the environment and the algorithm's settings::
+
+    name: train_capture_falling
+    env:
+      scene: capture_env_falling.yaml   # a capture scene file, relative to this file
+      set: ["env.rewards.success=10"]   # overrides of the scene file (as simulate.py --set)
+    algo:                               # MAPPO (mysim_jax/mappo/trainer.py); all have defaults
+      num_envs: 256
+      num_steps: 16
+      total_env_steps: 1000000
+      ...
+    run:
+      seed: 0
+      checkpoint_every: 5               # iterations
+      eval_episodes: 1000
+
+Instead of ``scene``, ``env.builtin: reach`` selects a small built-in task
+(:mod:`mysim_jax.mappo.toy`) that trains in seconds, for tests and smoke runs.
+
+Sizes derived from these (the batch, the minibatch, the number of iterations) are
+properties, computed rather than stored. Everything is checked here, before JAX is
+imported: unknown keys, a minibatch count that does not divide the batch, a non-positive
+learning rate, a missing scene file, each as a :class:`~mysim_jax.config_base.ConfigError`
+naming the field.
+"""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+from pydantic import Field, ValidationError, model_validator
+
+from mysim_jax.config_base import (ConfigError, Name, PosFloat, StrictModel, format_validation_error,
+                                   read_yaml_file)
+
+PosInt = Annotated[int, Field(gt=0)]
+NonNegInt = Annotated[int, Field(ge=0)]
+Fraction = Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)]
+BUILTIN_ENVS = ("reach",)
+
+
+class EnvSection(StrictModel):
+    """Which environment to train on: a capture scene file (with overrides), or a built-in
+    toy task."""
+
+    scene: str | None = None
+    set: list[str] = []
+    builtin: Literal["reach"] | None = None
+
+    @model_validator(mode="after")
+    def _one_source(self):
+        if (self.scene is None) == (self.builtin is None):
+            raise ValueError("give exactly one of scene (a capture scene file) and builtin "
+                             f"({', '.join(BUILTIN_ENVS)})")
+        if self.builtin is not None and self.set:
+            raise ValueError("set (scene overrides) applies to a scene file, not to a builtin environment")
+        return self
+
+
+class AlgoConfig(StrictModel):
+    """MAPPO's settings (:mod:`mysim_jax.mappo.trainer`). ``num_envs`` environments step
+    side by side for ``num_steps`` policy steps per iteration; the ``batch_size`` team
+    transitions of an iteration are split into ``num_minibatches`` minibatches and used
+    for ``update_epochs`` epochs."""
+
+    num_envs: PosInt = 256
+    num_steps: PosInt = 16                 # policy steps per environment per iteration
+    total_env_steps: PosInt = 1_000_000    # team (policy) steps over all environments
+    update_epochs: PosInt = 4
+    num_minibatches: PosInt = 4
+    lr: PosFloat = 3e-4
+    lr_schedule: Literal["constant", "linear"] = "linear"   # linear: decays to 0 at the last update
+    gamma: Fraction = 0.99
+    gae_lambda: Annotated[float, Field(ge=0, le=1)] = 0.95
+    clip_eps: PosFloat = 0.2               # policy ratio clipping
+    value_clip_eps: PosFloat = 0.2         # value clipping (in normalised value units)
+    vf_coef: PosFloat = 0.5
+    ent_coef: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 0.0
+    max_grad_norm: PosFloat = 0.5
+    hidden: list[PosInt] = [128, 128]      # hidden layer widths of both networks
+    activation: Literal["tanh", "relu"] = "tanh"
+    init_std: PosFloat = 0.3               # the policy's initial action standard deviation
+    normalize_obs: bool = True             # running mean / std of observations and states
+    value_norm: bool = True                # running mean / std of the value targets
+
+    @model_validator(mode="after")
+    def _sizes(self):
+        if self.batch_size % self.num_minibatches:
+            raise ValueError(f"num_minibatches = {self.num_minibatches} does not divide the batch "
+                             f"num_envs x num_steps = {self.num_envs} x {self.num_steps} = {self.batch_size}")
+        if self.total_env_steps < self.batch_size:
+            raise ValueError(f"total_env_steps = {self.total_env_steps} is less than one iteration's batch "
+                             f"(num_envs x num_steps = {self.batch_size})")
+        if not self.hidden:
+            raise ValueError("hidden: give at least one layer width")
+        return self
+
+    @property
+    def batch_size(self) -> int:
+        """Team transitions per iteration."""
+        return self.num_envs * self.num_steps
+
+    @property
+    def minibatch_size(self) -> int:
+        return self.batch_size // self.num_minibatches
+
+    @property
+    def num_iterations(self) -> int:
+        """Whole iterations in ``total_env_steps`` (rounded down)."""
+        return self.total_env_steps // self.batch_size
+
+    @property
+    def num_updates(self) -> int:
+        """Gradient steps over the whole run (for the learning-rate schedule)."""
+        return self.num_iterations * self.update_epochs * self.num_minibatches
+
+
+class RunConfig(StrictModel):
+    """Bookkeeping of a run."""
+
+    seed: NonNegInt = 0
+    checkpoint_every: PosInt = 10          # iterations between checkpoints
+    keep_checkpoints: PosInt = 2
+    time_limit_min: PosFloat | None = None   # stop training after this many minutes (then evaluate)
+    eval_episodes: PosInt = 1000
+    eval_batch: PosInt = 250
+    eval_seed: NonNegInt = 12345           # evaluation episodes are drawn apart from training's
+
+
+class TrainConfig(StrictModel):
+    """A whole training file (module docstring)."""
+
+    name: Name
+    description: str = ""
+    env: EnvSection
+    algo: AlgoConfig = AlgoConfig()
+    run: RunConfig = RunConfig()
+
+
+def apply_overrides(raw: dict, overrides) -> dict:
+    """``key=value`` overrides (``algo.lr=1e-3``) applied to a copy of a raw dict."""
+    from mysim_jax.config import apply_override
+
+    raw = copy.deepcopy(raw)
+    for ov in overrides:
+        apply_override(raw, ov)
+    return raw
+
+
+def train_config_from_dict(raw: Any, source: str = "<dict>", overrides=()) -> TrainConfig:
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{source}: a training file must be a YAML mapping at the top level")
+    raw = apply_overrides(raw, overrides)
+    try:
+        return TrainConfig.model_validate(raw)
+    except ValidationError as err:
+        raise ConfigError(f"{source}: invalid training configuration\n{format_validation_error(err)}") from None
+
+
+def load_train_config(path: str | Path, overrides=()) -> TrainConfig:
+    """Read, override and validate a training file; its scene file is checked too
+    (:func:`load_scene`)."""
+    config = train_config_from_dict(read_yaml_file(path, "training file"), str(path), overrides)
+    load_scene(config, path)
+    return config
+
+
+def scene_path(config: TrainConfig, train_path: str | Path) -> Path | None:
+    """The scene file, resolved relative to the training file's folder."""
+    if config.env.scene is None:
+        return None
+    p = Path(config.env.scene)
+    return p if p.is_absolute() else Path(train_path).parent / p
+
+
+def load_scene(config: TrainConfig, train_path: str | Path):
+    """The validated :class:`~mysim_jax.config.SceneConfig` of ``env.scene`` with
+    ``env.set`` applied, or None for a builtin environment. Raises ConfigError naming
+    ``env.scene`` when the file is missing or is not a capture scene with an ``env:`` block."""
+    from mysim_jax.config import load_config
+
+    path = scene_path(config, train_path)
+    if path is None:
+        return None
+    if not path.exists():
+        raise ConfigError(f"{train_path}: env.scene: no such file {path} (paths are relative to the training file)")
+    scene = load_config(path, list(config.env.set))
+    missing = [b for b, v in (("net", scene.net), ("target", scene.target), ("quadrotors", scene.quadrotors),
+                              ("env", scene.env)) if not v]
+    if missing:
+        raise ConfigError(f"{train_path}: env.scene: {path} is not a capture environment: it has no "
+                          f"{' and no '.join(missing)} block")
+    return scene
+
+
+def describe(config: TrainConfig) -> str:
+    """Derived sizes, one line."""
+    a = config.algo
+    return (f"{a.num_iterations} iterations of {a.num_envs} envs x {a.num_steps} steps = {a.batch_size:,} team steps "
+            f"({a.num_minibatches} minibatches of {a.minibatch_size:,}, {a.update_epochs} epochs); "
+            f"{a.num_iterations * a.batch_size:,} team steps in all")
+

@@ -1,0 +1,319 @@
+"""A training run on disk: what ``scripts/train.py`` does, as library code.
+
+A run folder ``OUT`` holds
+
+* ``train.yaml`` — the resolved training file, its ``env.scene`` pointing at
+  ``scene.yaml`` (the resolved scene, overrides applied): the folder is self-contained and
+  ``--resume OUT`` needs nothing else;
+* ``metrics.csv`` — one row per iteration (env steps, wall time, return, success rate,
+  losses, ...), and the same scalars as TensorBoard events under ``tb/``;
+* ``curves.png`` — learning curves;
+* ``checkpoints/<iteration>/`` — orbax checkpoints of the whole trainer state, every
+  ``run.checkpoint_every`` iterations and at the end;
+* ``policy/`` — the final deterministic policy (``scripts/evaluate.py --policy OUT/policy``);
+* ``eval/`` — the final evaluation, the report of ``scripts/evaluate.py``
+  (:func:`mysim_jax.tasks.report.write_evaluation`);
+* ``summary.json`` — iterations, env steps, training wall time and throughput, the
+  evaluation's success rate.
+
+**Resuming** continues from the last complete checkpoint: rows of ``metrics.csv`` after it
+are dropped and recomputed, so a run killed at any moment (SIGKILL included) loses at most
+``checkpoint_every`` iterations, and the resumed run's states equal those of an uninterrupted
+run bit for bit (same machine and JAX build).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import yaml
+
+from mysim_jax.config_base import ConfigError
+from mysim_jax.mappo.config import TrainConfig, load_scene, load_train_config, train_config_from_dict
+
+TRAIN_FILE = "train.yaml"
+SCENE_FILE = "scene.yaml"
+CSV_FIELDS = ("iteration", "env_steps", "wall_s", "iteration_s", "episodes", "mean_return", "success_rate",
+              "mean_length", "step_reward", "policy_loss", "value_loss", "entropy", "approx_kl", "clip_fraction",
+              "explained_variance", "grad_norm", "action_std", "lr")
+
+
+@dataclass
+class Prepared:
+    """A checked run: its configs and where it writes (nothing compiled yet)."""
+
+    config: TrainConfig
+    scene: object | None           # SceneConfig, or None for a builtin environment
+    out: Path
+    resume: bool
+    source: str
+
+
+def load_run_config(config_path: str, overrides=()) -> Prepared:
+    """A training file and its scene, checked, for use without a run folder (benchmarks,
+    notebooks): ``out`` is the default ``runs/<name>``, unchecked and not created."""
+    config = load_train_config(config_path, overrides)
+    scene = load_scene(config, config_path)
+    return Prepared(config, scene, Path("runs") / config.name, False, str(config_path))
+
+
+def prepare(config_path: str | None, overrides=(), out: str | None = None, resume: str | None = None) -> Prepared:
+    """Check a training file (or a run folder to resume) and the output folder. Raises
+    ConfigError or OutputError with a one-line message; imports no JAX."""
+    from mysim_jax.io.output import check_output_dir
+
+    if resume is not None:
+        run = Path(resume)
+        if not (run / TRAIN_FILE).is_file():
+            raise ConfigError(f"--resume {resume}: not a training run folder (no {TRAIN_FILE} in it)")
+        config = load_train_config(run / TRAIN_FILE, overrides)
+        scene = load_scene(config, run / TRAIN_FILE)
+        return Prepared(config, scene, run, True, str(run / TRAIN_FILE))
+    if config_path is None:
+        raise ConfigError("give a training file, or --resume RUN_DIR")
+    config = load_train_config(config_path, overrides)
+    scene = load_scene(config, config_path)
+    target = Path(out) if out is not None else Path("runs") / config.name
+    check_output_dir(target)
+    if (target / TRAIN_FILE).exists():
+        raise ConfigError(f"--out {target}: holds a training run already; continue it with --resume {target}, "
+                          "or choose another folder")
+    return Prepared(config, scene, target, False, str(config_path))
+
+
+def describe_run(p: Prepared) -> str:
+    """One line: what will run, and where it writes."""
+    from mysim_jax.mappo.config import describe
+
+    what = f"builtin:{p.config.env.builtin}" if p.scene is None else p.scene.name
+    return f"{p.config.name} on {what}: {describe(p.config)}; writing {p.out}/" + (" (resuming)" if p.resume else "")
+
+
+def _write_run_files(p: Prepared) -> None:
+    from mysim_jax.config import dump_config
+
+    p.out.mkdir(parents=True, exist_ok=True)
+    data = p.config.model_dump(mode="json")
+    if p.scene is not None:
+        (p.out / SCENE_FILE).write_text(dump_config(p.scene))
+        data["env"] = {"scene": SCENE_FILE, "set": []}
+    text = yaml.safe_dump(data, sort_keys=False)
+    # the run folder is valid by construction; check it anyway before relying on it
+    train_config_from_dict(yaml.safe_load(text), str(p.out / TRAIN_FILE))
+    (p.out / TRAIN_FILE).write_text(text)
+
+
+def make_environment(p: Prepared):
+    """``(env, env_params)`` of the run."""
+    if p.scene is None:
+        from mysim_jax.mappo.toy import ReachEnv
+
+        env = ReachEnv()
+        return env, env.default_params()
+    import jax
+
+    if p.scene.sim.precision == "float64":
+        jax.config.update("jax_enable_x64", True)
+    from mysim_jax.tasks.capture import make_env
+
+    return make_env(p.scene)
+
+
+def _read_rows(path: Path, upto: int) -> list[dict]:
+    if not path.exists():
+        return []
+    with path.open() as f:
+        rows = [r for r in csv.DictReader(f) if r.get("iteration", "").isdigit() and int(r["iteration"]) <= upto]
+    return rows
+
+
+def _write_rows(path: Path, rows: list[dict]) -> None:
+    tmp = path.with_suffix(".csv.tmp")
+    with tmp.open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=CSV_FIELDS)
+        w.writeheader()
+        w.writerows(rows)
+    tmp.replace(path)
+
+
+def plot_curves(rows: list[dict], path: Path, title: str) -> Path | None:
+    """Learning curves of ``metrics.csv`` rows: return, success rate, losses, entropy."""
+    if not rows:
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    x = np.array([float(r["env_steps"]) for r in rows])
+    panels = [("mean_return", "mean episode return"), ("success_rate", "success rate (episodes ended)"),
+              ("value_loss", "value loss"), ("policy_loss", "policy loss"), ("entropy", "policy entropy"),
+              ("approx_kl", "approx. KL")]
+    fig, axes = plt.subplots(2, 3, figsize=(13, 6.5))
+    for ax, (key, label) in zip(axes.ravel(), panels):
+        y = np.array([float(r[key]) for r in rows])
+        ax.plot(x, y, lw=1.2)
+        ax.set_title(label, fontsize=10)
+        ax.set_xlabel("team steps")
+        ax.grid(alpha=0.3)
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def evaluate_builtin(env, env_params, policy, episodes: int, seed: int) -> dict:
+    """Success rate of ``policy`` on the builtin environment (``episodes`` episodes)."""
+    import jax
+    import jax.numpy as jnp
+
+    def one_episode(key):
+        k0, k1 = jax.random.split(key)
+        obs, state = env.reset(k0, env_params)
+
+        def body(carry, k):
+            obs, state, finished, success = carry
+            a = policy(k, obs, state, env_params)
+            obs, state, _, _, _, info = env.step(k, state, a, env_params)
+            success = success | (info["success"] & ~finished)
+            return (obs, state, finished | info["done"], success), None
+
+        (_, _, _, success), _ = jax.lax.scan(body, (obs, state, jnp.bool_(False), jnp.bool_(False)),
+                                             jax.random.split(k1, env.max_steps))
+        return success
+
+    keys = jax.random.split(jax.random.PRNGKey(seed), episodes)
+    success = jax.device_get(jax.jit(jax.vmap(one_episode))(keys))
+    from mysim_jax.tasks.sweep import wilson_interval
+
+    k = int(success.sum())
+    lo, hi = wilson_interval(k, episodes)
+    return {"episodes": episodes, "success": {"count": k, "rate": k / episodes, "interval95": [lo, hi]}}
+
+
+def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=print) -> dict:
+    """Train (or resume) the run ``p`` to its end, evaluate, write everything. Returns
+    ``summary.json``'s dict."""
+    import jax
+    import numpy as np
+
+    from mysim_jax.mappo.checkpoint import Checkpoints, save_policy
+    from mysim_jax.mappo.trainer import Trainer, deterministic_policy
+
+    c = p.config
+    if not p.resume:
+        _write_run_files(p)
+    env, env_params = make_environment(p)
+    trainer = Trainer(c.algo, env, env_params)
+    ckpt = Checkpoints(p.out / "checkpoints", keep=c.run.keep_checkpoints)
+    key = jax.random.PRNGKey(c.run.seed)
+    t_compile = time.perf_counter()
+    state = trainer.init(key)
+    start_iteration = 0
+    previous_wall = 0.0
+    if p.resume:
+        last = ckpt.latest()
+        if last is not None:
+            state = ckpt.restore(last, state)
+            start_iteration = int(state.iteration)
+    rows = _read_rows(p.out / "metrics.csv", start_iteration)
+    if rows:
+        previous_wall = float(rows[-1]["wall_s"])
+    if p.resume:
+        log(f"resuming {p.out} at iteration {start_iteration} of {c.algo.num_iterations}")
+
+    from tensorboardX import SummaryWriter
+
+    writer = SummaryWriter(str(p.out / "tb"), purge_step=start_iteration + 1)
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=c.algo.num_iterations, initial=start_iteration, desc=f"training {c.name}", unit="it")
+    limit_s = None if c.run.time_limit_min is None else 60.0 * c.run.time_limit_min
+    t_start = time.perf_counter()
+    iteration_times = []
+    stopped_early = False
+    iteration = start_iteration
+    while iteration < c.algo.num_iterations:
+        t0 = time.perf_counter()
+        state, m = trainer.iteration(state)
+        m = {k: float(v) for k, v in jax.device_get(m).items()}
+        dt = time.perf_counter() - t0
+        iteration += 1
+        if iteration > start_iteration + 1:     # the first call of a process compiles
+            iteration_times.append(dt)
+        wall = previous_wall + time.perf_counter() - t_start
+        row = {"iteration": iteration, "env_steps": iteration * c.algo.batch_size, "wall_s": round(wall, 3),
+               "iteration_s": round(dt, 4), "lr": trainer.learning_rate(iteration - 1),
+               **{k: m[k] for k in CSV_FIELDS if k in m}}
+        rows.append(row)
+        for k, v in row.items():
+            if k != "iteration":
+                writer.add_scalar(f"train/{k}", float(v), iteration)
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix_str(f"return {m['mean_return']:.2f}, success {m['success_rate']:.0%}, "
+                                f"{c.algo.batch_size / dt:,.0f} env-steps/s")
+        last_iteration = iteration == c.algo.num_iterations
+        over_time = limit_s is not None and time.perf_counter() - t_start > limit_s
+        if iteration % c.run.checkpoint_every == 0 or last_iteration or over_time:
+            _write_rows(p.out / "metrics.csv", rows)
+            ckpt.save(iteration, state)
+            writer.flush()
+        if over_time and not last_iteration:
+            stopped_early = True
+            log(f"time limit of {c.run.time_limit_min:g} min reached after iteration {iteration}")
+            break
+    if bar is not None:
+        bar.close()
+    writer.close()
+    ckpt.close()
+    train_wall = time.perf_counter() - t_compile
+    _write_rows(p.out / "metrics.csv", rows)
+    plot_curves(rows, p.out / "curves.png", c.name)
+
+    n_agents, act = env.action_shape
+    meta = {"kind": "mappo", "obs_size": int(env.obs_size), "action_shape": [n_agents, act],
+            "hidden": list(c.algo.hidden), "activation": c.algo.activation, "normalize_obs": c.algo.normalize_obs,
+            "env": "builtin:" + c.env.builtin if c.env.builtin else SCENE_FILE, "iteration": iteration,
+            "train": c.name}
+    arrays = trainer.policy_arrays(state)
+    save_policy(p.out / "policy", arrays, meta)
+    policy = deterministic_policy(trainer.actor, arrays, c.algo.normalize_obs)
+
+    per_iteration = float(np.median(iteration_times)) if iteration_times else math.nan
+    summary = {
+        "name": c.name, "iterations": iteration, "planned_iterations": c.algo.num_iterations,
+        "stopped_by_time_limit": stopped_early, "env_steps": iteration * c.algo.batch_size,
+        "agent_steps": iteration * c.algo.batch_size * n_agents,
+        "training_wall_s_this_process": round(train_wall, 1),
+        "training_wall_s_total": float(rows[-1]["wall_s"]) if rows else 0.0,
+        "median_iteration_s": per_iteration,
+        "env_steps_per_s_with_update": c.algo.batch_size / per_iteration if iteration_times else math.nan,
+        "final_train_success_rate": float(rows[-1]["success_rate"]) if rows else math.nan,
+    }
+    if evaluate:
+        t_eval = time.perf_counter()
+        if p.scene is None:
+            summary["evaluation"] = evaluate_builtin(env, env_params, policy, c.run.eval_episodes, c.run.eval_seed)
+        else:
+            from mysim_jax.tasks.report import summary_line, write_evaluation
+
+            metrics = write_evaluation(p.out / "eval", p.scene, env, env_params, policy,
+                                       policy_name=str(p.out / "policy"), episodes=c.run.eval_episodes,
+                                       batch=c.run.eval_batch, seed=c.run.eval_seed,
+                                       config_path=str(p.out / SCENE_FILE), progress=progress, animate=False)
+            log(summary_line(p.scene.name, "trained (MAPPO)", metrics, p.out / "eval"))
+            summary["evaluation"] = {k: metrics[k] for k in ("episodes", "success", "failures", "timeout",
+                                                             "mean_return", "mean_length_steps", "wall_s")}
+        summary["evaluation_wall_s"] = round(time.perf_counter() - t_eval, 1)
+    (p.out / "summary.json").write_text(json.dumps(summary, indent=2))
+    return summary

@@ -1,0 +1,352 @@
+"""MAPPO in JAX: a policy shared by every agent, a centralised critic, PPO's update.
+
+    trainer = Trainer(config.algo, env, env_params)
+    state = trainer.init(key)
+    for _ in range(config.algo.num_iterations):
+        state, metrics = trainer.iteration(state)      # one jitted call
+
+or ``train = make_train(config.algo, env, env_params); state, history = train(key)``.
+
+**Networks** (flax): the actor maps one agent's observation (its one-hot id is part of
+it, so one network serves every UAV) to the mean of a diagonal Gaussian over its action;
+the log standard deviations are free parameters, one per action dimension. Sampled
+actions are clipped to ``[-1, 1]`` by the environment; the log-probabilities are those of
+the unclipped samples (as CleanRL and PureJaxRL do). The critic sees the environment's
+noise-free global state and the agent's one-hot id and returns that agent's value: MAPPO's
+centralised critic, one value per agent because rewards are per agent.
+
+**Iteration** (:meth:`Trainer.iteration`, one ``jax.jit``): a ``lax.scan`` of
+``num_steps`` policy steps of ``num_envs`` environments (the environment step batched with
+:func:`mysim_jax.batching.vmap`, batch axis last, in cache-sized blocks), then GAE, then
+``update_epochs`` passes over ``num_minibatches`` shuffled minibatches of team transitions
+with Adam on ``policy loss + vf_coef * value loss − ent_coef * entropy``, the gradient's
+global norm clipped to ``max_grad_norm``, the learning rate constant or decaying linearly to
+zero over the run. Observations and states are normalised by running statistics (updated
+after each iteration's update, so a rollout and its update use the same normalisation), and
+value targets by MAPPO's ValueNorm. An episode cut by the time limit is bootstrapped with the
+value of its last state (``info["final_global_state"]``).
+
+Everything the next iteration needs is in :class:`TrainerState` (environments included),
+so a checkpoint of it resumes a run exactly.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from flax import struct
+
+from mysim_jax import batching
+from mysim_jax.mappo.losses import (RunningStats, gae, gaussian_entropy, gaussian_log_prob, normalize_advantages,
+                                    policy_loss, value_loss)
+
+_ACTIVATIONS = {"tanh": nn.tanh, "relu": nn.relu}
+
+
+class Actor(nn.Module):
+    """One agent's observation ``(..., obs_size)`` -> Gaussian mean ``(..., action_dim)``
+    and log standard deviation ``(action_dim,)``."""
+
+    action_dim: int
+    hidden: tuple[int, ...]
+    activation: str = "tanh"
+    init_std: float = 0.3
+
+    @nn.compact
+    def __call__(self, obs):
+        act = _ACTIVATIONS[self.activation]
+        x = obs
+        for width in self.hidden:
+            x = act(nn.Dense(width, kernel_init=nn.initializers.orthogonal(np.sqrt(2.0)))(x))
+        mean = nn.Dense(self.action_dim, kernel_init=nn.initializers.orthogonal(0.01))(x)
+        log_std = self.param("log_std", nn.initializers.constant(np.log(self.init_std)), (self.action_dim,))
+        return mean, log_std
+
+
+class Critic(nn.Module):
+    """Global state with an agent's one-hot id ``(..., state_size + n_agents)`` -> that
+    agent's (normalised) value ``(...)``."""
+
+    hidden: tuple[int, ...]
+    activation: str = "tanh"
+
+    @nn.compact
+    def __call__(self, x):
+        act = _ACTIVATIONS[self.activation]
+        for width in self.hidden:
+            x = act(nn.Dense(width, kernel_init=nn.initializers.orthogonal(np.sqrt(2.0)))(x))
+        return nn.Dense(1, kernel_init=nn.initializers.orthogonal(1.0))(x)[..., 0]
+
+
+@struct.dataclass
+class TrainerState:
+    """Everything a training run carries from one iteration to the next."""
+
+    params: dict                 # {"actor": ..., "critic": ...}
+    opt_state: Any
+    obs_stats: RunningStats      # (obs_size,)
+    state_stats: RunningStats    # (state_size,)
+    ret_stats: RunningStats      # () value targets
+    env_state: Any               # (num_envs, ...) environment states
+    obs: jnp.ndarray             # (num_envs, n_agents, obs_size)
+    global_state: jnp.ndarray    # (num_envs, state_size)
+    key: jnp.ndarray
+    iteration: jnp.ndarray       # () int32, iterations done
+
+
+@struct.dataclass
+class Transition:
+    obs: jnp.ndarray          # (B, A, O) normalised as the actor saw it
+    critic_in: jnp.ndarray    # (B, A, S + A)
+    action: jnp.ndarray       # (B, A, act)
+    log_prob: jnp.ndarray     # (B, A)
+    value: jnp.ndarray        # (B, A) value (return units)
+    reward: jnp.ndarray       # (B, A) with the time-limit bootstrap added
+    done: jnp.ndarray         # (B,)
+    raw_obs: jnp.ndarray      # (B, A, O)
+    raw_state: jnp.ndarray    # (B, S)
+    success: jnp.ndarray      # (B,) episode ended in success at this step
+    episode_return: jnp.ndarray   # (B,) mean over agents of the ended episode's return
+    episode_length: jnp.ndarray   # (B,)
+    step_reward: jnp.ndarray      # (B,) mean over agents of the environment's reward
+
+
+def _step_info(info) -> dict:
+    keep = ("success", "done", "episode_return", "episode_length", "final_global_state", "global_state")
+    return {k: info[k] for k in keep}
+
+
+@dataclass(frozen=True)
+class Trainer:
+    """MAPPO on ``env`` (module docstring). ``config`` an :class:`~mysim_jax.mappo.config.AlgoConfig`."""
+
+    config: Any
+    env: Any
+    env_params: Any
+
+    def __post_init__(self):
+        n_agents, action_dim = self.env.action_shape
+        object.__setattr__(self, "actor", Actor(action_dim, tuple(self.config.hidden), self.config.activation,
+                                                self.config.init_std))
+        object.__setattr__(self, "critic", Critic(tuple(self.config.hidden), self.config.activation))
+        object.__setattr__(self, "tx", self._optimizer())
+        object.__setattr__(self, "iteration", jax.jit(self._iteration))
+        object.__setattr__(self, "_init", jax.jit(self._init_state))
+        one = jax.eval_shape(lambda k: self.env.reset(k, self.env_params)[1], jax.random.PRNGKey(0))
+        object.__setattr__(self, "_block", batching.chunk_for(one))
+
+    def __hash__(self):
+        return id(self)
+
+    # --- pieces ----------------------------------------------------------------------
+    def _optimizer(self):
+        c = self.config
+        lr = optax.linear_schedule(c.lr, 0.0, c.num_updates) if c.lr_schedule == "linear" else c.lr
+        return optax.chain(optax.clip_by_global_norm(c.max_grad_norm), optax.adam(lr, eps=1e-5))
+
+    def learning_rate(self, iteration) -> float:
+        c = self.config
+        if c.lr_schedule == "constant":
+            return c.lr
+        done = iteration * c.update_epochs * c.num_minibatches
+        return c.lr * max(0.0, 1.0 - done / c.num_updates)
+
+    @property
+    def n_agents(self) -> int:
+        return self.env.action_shape[0]
+
+    def critic_input(self, state_n):
+        """``(..., S)`` normalised global states -> ``(..., A, S + A)`` with every agent's id."""
+        a = self.n_agents
+        eye = jnp.eye(a, dtype=state_n.dtype)
+        tiled = jnp.broadcast_to(state_n[..., None, :], state_n.shape[:-1] + (a, state_n.shape[-1]))
+        ids = jnp.broadcast_to(eye, state_n.shape[:-1] + (a, a))
+        return jnp.concatenate([tiled, ids], axis=-1)
+
+    def _norm_obs(self, stats, x):
+        return stats.normalize(x) if self.config.normalize_obs else x
+
+    def _values(self, params, ret_stats, state_stats, states):
+        """Values in return units ``(..., A)`` of raw global states ``(..., S)``."""
+        v = self.critic.apply(params["critic"], self.critic_input(self._norm_obs(state_stats, states)))
+        return ret_stats.denormalize(v) if self.config.value_norm else v
+
+    def _env_step(self):
+        env, env_params = self.env, self.env_params
+
+        def one(key, state, action):
+            obs, state, reward, terminated, truncated, info = env.step(key, state, action, env_params)
+            return obs, state, reward, terminated, truncated, _step_info(info)
+
+        return batching.vmap(one, chunk=self._block)
+
+    # --- init ------------------------------------------------------------------------
+    def _init_state(self, key) -> TrainerState:
+        c, env = self.config, self.env
+        k_actor, k_critic, k_env, k_run = jax.random.split(key, 4)
+        obs, env_state = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(k_env, c.num_envs), self.env_params)
+        obs = obs.astype(jnp.float32)
+        gstate = jax.vmap(env.global_state)(env_state).astype(jnp.float32)
+        params = {"actor": self.actor.init(k_actor, obs[0, 0]),
+                  "critic": self.critic.init(k_critic, self.critic_input(gstate[0])[0])}
+        obs_stats = RunningStats.create((obs.shape[-1],)).update(obs)
+        state_stats = RunningStats.create((gstate.shape[-1],)).update(gstate)
+        return TrainerState(params=params, opt_state=self.tx.init(params), obs_stats=obs_stats,
+                            state_stats=state_stats, ret_stats=RunningStats.create(), env_state=env_state, obs=obs,
+                            global_state=gstate, key=k_run, iteration=jnp.int32(0))
+
+    def init(self, key) -> TrainerState:
+        """A fresh run from ``key``: networks, optimiser, ``num_envs`` reset environments."""
+        return self._init(key)
+
+    # --- one iteration -----------------------------------------------------------------
+    def _rollout(self, ts: TrainerState):
+        c = self.config
+        step_batch = self._env_step()
+        params = ts.params
+
+        def one(carry, _):
+            env_state, obs, gstate, key = carry
+            key, k_act, k_step = jax.random.split(key, 3)
+            obs_n = self._norm_obs(ts.obs_stats, obs)
+            mean, log_std = self.actor.apply(params["actor"], obs_n)
+            action = mean + jnp.exp(log_std) * jax.random.normal(k_act, mean.shape, mean.dtype)
+            log_prob = gaussian_log_prob(action, mean, log_std)
+            critic_in = self.critic_input(self._norm_obs(ts.state_stats, gstate))
+            value = self.critic.apply(params["critic"], critic_in)
+            if c.value_norm:
+                value = ts.ret_stats.denormalize(value)
+            keys = jax.random.split(k_step, c.num_envs)
+            obs2, env_state2, reward, _, truncated, info = step_batch(keys, env_state, action)
+            reward = reward.astype(jnp.float32)
+            final_value = self._values(params, ts.ret_stats, ts.state_stats,
+                                       info["final_global_state"].astype(jnp.float32))
+            boot = reward + c.gamma * final_value * truncated[:, None].astype(jnp.float32)
+            done = info["done"]
+            tr = Transition(obs=obs_n, critic_in=critic_in, action=action, log_prob=log_prob, value=value,
+                            reward=boot, done=done, raw_obs=obs, raw_state=gstate,
+                            success=info["success"] & done,
+                            episode_return=jnp.mean(info["episode_return"], axis=-1).astype(jnp.float32),
+                            episode_length=info["episode_length"], step_reward=jnp.mean(reward, axis=-1))
+            return (env_state2, obs2.astype(jnp.float32), info["global_state"].astype(jnp.float32), key), tr
+
+        carry = (ts.env_state, ts.obs, ts.global_state, ts.key)
+        (env_state, obs, gstate, key), traj = jax.lax.scan(one, carry, None, length=c.num_steps)
+        return env_state, obs, gstate, key, traj
+
+    def _loss(self, params, mb):
+        c = self.config
+        mean, log_std = self.actor.apply(params["actor"], mb["obs"])
+        log_prob = gaussian_log_prob(mb["action"], mean, log_std)
+        adv = normalize_advantages(mb["advantage"])
+        pl, clip_frac, kl = policy_loss(log_prob, mb["log_prob"], adv, c.clip_eps)
+        v = self.critic.apply(params["critic"], mb["critic_in"])
+        vl = value_loss(v, mb["old_value"], mb["target"], c.value_clip_eps)
+        entropy = jnp.mean(gaussian_entropy(log_std))
+        total = pl + c.vf_coef * vl - c.ent_coef * entropy
+        return total, {"policy_loss": pl, "value_loss": vl, "entropy": entropy, "clip_fraction": clip_frac,
+                       "approx_kl": kl}
+
+    def _iteration(self, ts: TrainerState):
+        c = self.config
+        env_state, obs, gstate, key, traj = self._rollout(ts)
+        last_value = self._values(ts.params, ts.ret_stats, ts.state_stats, gstate)
+        dones = jnp.broadcast_to(traj.done[..., None], traj.reward.shape)
+        adv, targets = gae(traj.reward, traj.value, dones, last_value, c.gamma, c.gae_lambda)
+        ret_stats = ts.ret_stats.update(targets) if c.value_norm else ts.ret_stats
+
+        def to_critic_units(x):
+            return (x - ret_stats.mean) / ret_stats.std if c.value_norm else x
+
+        n = c.batch_size
+        data = {
+            "obs": traj.obs, "critic_in": traj.critic_in, "action": traj.action, "log_prob": traj.log_prob,
+            "advantage": adv, "target": to_critic_units(targets), "old_value": to_critic_units(traj.value),
+        }
+        data = jax.tree.map(lambda x: x.reshape((n,) + x.shape[2:]), data)
+
+        def epoch(carry, k):
+            params, opt_state = carry
+            perm = jax.random.permutation(k, n)
+            shuffled = jax.tree.map(lambda x: x[perm].reshape((c.num_minibatches, c.minibatch_size) + x.shape[1:]),
+                                    data)
+
+            def minibatch(carry, mb):
+                params, opt_state = carry
+                (_, aux), grads = jax.value_and_grad(self._loss, has_aux=True)(params, mb)
+                updates, opt_state = self.tx.update(grads, opt_state, params)
+                aux["grad_norm"] = optax.tree.norm(grads)
+                return (optax.apply_updates(params, updates), opt_state), aux
+
+            return jax.lax.scan(minibatch, (params, opt_state), shuffled)
+
+        key, k_update = jax.random.split(key)
+        (params, opt_state), aux = jax.lax.scan(epoch, (ts.params, ts.opt_state),
+                                                jax.random.split(k_update, c.update_epochs))
+        obs_stats = ts.obs_stats.update(traj.raw_obs) if c.normalize_obs else ts.obs_stats
+        state_stats = ts.state_stats.update(traj.raw_state) if c.normalize_obs else ts.state_stats
+
+        ended = traj.done.astype(jnp.float32)
+        n_ended = jnp.sum(ended)
+        var_t = jnp.var(targets)
+        metrics = {k: jnp.mean(v) for k, v in aux.items()}
+        metrics.update({
+            "episodes": n_ended,
+            "mean_return": jnp.sum(traj.episode_return * ended) / jnp.maximum(n_ended, 1.0),
+            "success_rate": jnp.sum(traj.success.astype(jnp.float32)) / jnp.maximum(n_ended, 1.0),
+            "mean_length": jnp.sum(traj.episode_length * ended) / jnp.maximum(n_ended, 1.0),
+            "step_reward": jnp.mean(traj.step_reward),
+            "explained_variance": 1.0 - jnp.var(targets - traj.value) / jnp.maximum(var_t, 1e-8),
+            "action_std": jnp.mean(jnp.exp(params["actor"]["params"]["log_std"])),
+        })
+        new = TrainerState(params=params, opt_state=opt_state, obs_stats=obs_stats, state_stats=state_stats,
+                           ret_stats=ret_stats, env_state=env_state, obs=obs, global_state=gstate, key=key,
+                           iteration=ts.iteration + 1)
+        return new, metrics
+
+    # --- the trained policy ------------------------------------------------------------
+    def policy_arrays(self, ts: TrainerState) -> dict:
+        """What the deterministic policy needs: the actor's parameters and the observation
+        statistics."""
+        return {"actor": ts.params["actor"], "obs_mean": ts.obs_stats.mean, "obs_var": ts.obs_stats.var}
+
+
+def deterministic_policy(actor: Actor, arrays: dict, normalize_obs: bool = True) -> Callable:
+    """``policy(key, obs, state, params) -> actions`` of one environment: the Gaussian's
+    mean, clipped to ``[-1, 1]`` (the interface of :mod:`mysim_jax.tasks.evaluate`)."""
+    stats = RunningStats(mean=jnp.asarray(arrays["obs_mean"]), var=jnp.asarray(arrays["obs_var"]),
+                         count=jnp.asarray(1.0))
+
+    def policy(key, obs, state, params):
+        x = stats.normalize(obs.astype(jnp.float32)) if normalize_obs else obs.astype(jnp.float32)
+        mean, _ = actor.apply(arrays["actor"], x)
+        return jnp.clip(mean, -1.0, 1.0).astype(obs.dtype)
+
+    return policy
+
+
+def make_train(config, env, env_params):
+    """``train(key, callback=None) -> (state, history)``: ``config.num_iterations`` jitted
+    iterations from ``key``; ``callback(state, metrics)`` after each (metrics as floats);
+    ``history`` the list of every iteration's metrics."""
+    trainer = Trainer(config, env, env_params)
+
+    def train(key, callback=None):
+        ts = trainer.init(key)
+        history = []
+        for _ in range(config.num_iterations):
+            ts, m = trainer.iteration(ts)
+            m = {k: float(v) for k, v in jax.device_get(m).items()}
+            history.append(m)
+            if callback is not None:
+                callback(ts, m)
+        return ts, history
+
+    train.trainer = trainer
+    return train

@@ -1,0 +1,93 @@
+"""The evaluation report of a capture team: what ``scripts/evaluate.py`` writes, and what
+``scripts/train.py`` writes for its trained policy at the end of a run.
+
+:func:`write_evaluation` runs the episodes (:func:`~mysim_jax.tasks.evaluate.run_episodes`),
+replays slot 0's first episode, and writes into ``out`` (through
+:func:`~mysim_jax.io.output.staged_output`: all files or none):
+
+* ``metrics.json`` — rates with 95 % Wilson intervals, mean terms, return and length,
+  wall time; the config, policy, episodes, batch, seed; the recorded episode's outcome;
+* ``episodes.csv`` — one row per episode;
+* ``outcomes.png``, ``reward_terms.png``, ``lengths.png``, ``returns.png``;
+* ``config.yaml``, ``trajectory.csv``, ``episode_steps.csv``, ``episode_rewards.png`` and
+  the ``capture_*.png`` plots (and ``capture.gif`` with ``animate``) of the replayed episode.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import jax
+import numpy as np
+
+
+def write_evaluation(out: Path, config, env, params, policy, *, policy_name: str, episodes: int, batch: int,
+                     seed: int, config_path: str, overrides=(), env_note: str | None = None,
+                     progress: bool = True, animate: bool = True, extra: dict | None = None) -> dict:
+    """Evaluate ``policy`` on ``episodes`` episodes and write the report into ``out``.
+    Returns the ``metrics.json`` dict."""
+    from mysim_jax.config import dump_config
+    from mysim_jax.io.capture_plots import capture_report
+    from mysim_jax.io.eval_plots import episode_columns, evaluation_plots, outcome_labels, plot_episode_rewards
+    from mysim_jax.io.output import staged_output
+    from mysim_jax.io.trajectory import write_trajectory_csv
+    from mysim_jax.tasks.episode import record_columns, record_episode, step_columns
+    from mysim_jax.tasks.evaluate import run_episodes
+
+    key = jax.random.PRNGKey(seed)
+    batch = min(batch, episodes)
+    stats = run_episodes(env, params, policy, episodes, batch, key, progress=progress)
+    # slot 0's first episode, replayed with its key (run_episodes seeds slot b with fold_in(key, b))
+    record = record_episode(env, params, policy, jax.random.fold_in(key, 0))
+
+    summary = stats.summary()
+    first = int(np.flatnonzero(stats.slot == 0)[0])
+    with staged_output(out) as tmp:
+        (tmp / "config.yaml").write_text(dump_config(config))
+        write_trajectory_csv(tmp / "episodes.csv", episode_columns(stats, env.policy_dt))
+        plots = [p.name for p in evaluation_plots(stats, tmp, env.policy_dt, config.name)]
+        columns = record_columns(env, record)
+        write_trajectory_csv(tmp / "trajectory.csv", columns)
+        steps = step_columns(env, record)
+        write_trajectory_csv(tmp / "episode_steps.csv", steps)
+        plots.append(plot_episode_rewards(steps, tmp / "episode_rewards.png", config.name).name)
+        capture = capture_report(columns, env.scene, record.sim_params, config, tmp, animate=animate)
+        plots += capture["plots"]
+        metrics = {
+            "scene": config.name,
+            "config": str(config_path),
+            "overrides": list(overrides),
+            "env_block": "defaults" if env_note else "file",
+            "policy": policy_name,
+            "episodes": episodes,
+            "batch": batch,
+            "seed": seed,
+            "policy_dt": env.policy_dt,
+            "max_steps": env.max_steps,
+            **summary,
+            "recorded_episode": {
+                "slot": 0, "index_in_slot": 0, "outcome": record.outcome, "length_steps": record.length,
+                "length_s": float(record.trajectory.time[-1]), "mean_return": float(record.returns.mean()),
+                # the same episode in the batched run: identical draws, but after a contact the
+                # two compiled runs can drift apart and end differently
+                "evaluated_outcome": str(outcome_labels(stats)[first]),
+                "evaluated_length_steps": int(stats.length[first]),
+                "capture": capture,
+            },
+            "plots": plots,
+            **(extra or {}),
+        }
+        (tmp / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    return metrics
+
+
+def summary_line(name: str, policy_name: str, metrics: dict, out) -> str:
+    """One line for the terminal: success with its interval, timeouts, failures, return."""
+    s = metrics["success"]
+    failures = ", ".join(f"{k.replace('_', ' ')} {v['rate']:.0%}" for k, v in metrics["failures"].items()
+                         if v["count"])
+    return (f"{name}: {metrics['episodes']} episodes of policy '{policy_name}' in {metrics['wall_s']:.1f} s "
+            f"(compile included): success {s['rate']:.1%} (95 % {s['interval95'][0]:.1%}-{s['interval95'][1]:.1%}), "
+            f"timeout {metrics['timeout']['rate']:.1%}" + (f", failures: {failures}" if failures else "")
+            + f"; mean return {metrics['mean_return']:.3g}; wrote {out}/ ({len(metrics['plots'])} plots)")

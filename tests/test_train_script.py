@@ -1,0 +1,171 @@
+"""scripts/train.py: outputs, bad input, and a run killed with SIGKILL then resumed.
+
+Runs on the builtin reach task (mysim_jax/mappo/toy.py), which compiles and trains in
+seconds; the capture environment's path through the same code is tested once, tiny.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SCRIPT = ROOT / "scripts" / "train.py"
+
+REACH = """\
+name: reach_test
+env: {builtin: reach}
+algo: {num_envs: 16, num_steps: 8, total_env_steps: %d, lr: 3.0e-3, init_std: 0.5, num_minibatches: 2}
+run: {checkpoint_every: %d, eval_episodes: 200, seed: 1}
+"""
+
+
+def _run(args, **kw):
+    return subprocess.run([sys.executable, str(SCRIPT), *args, "--no-progress"], capture_output=True, text=True,
+                          cwd=ROOT, **kw)
+
+
+def _rows(path: Path) -> list[dict]:
+    with path.open() as f:
+        return list(csv.DictReader(f))
+
+
+TIMING = {"wall_s", "iteration_s"}
+
+
+def test_outputs_and_learning(tmp_path):
+    cfg = tmp_path / "reach.yaml"
+    cfg.write_text(REACH % (16 * 8 * 40, 10))
+    out = tmp_path / "run"
+    res = _run([str(cfg), "--out", str(out)])
+    assert res.returncode == 0, res.stderr
+    for name in ("train.yaml", "metrics.csv", "curves.png", "summary.json", "policy/policy.json",
+                 "policy/policy.msgpack"):
+        assert (out / name).is_file(), name
+    assert any((out / "tb").iterdir())
+    assert sorted(p.name for p in (out / "checkpoints").iterdir() if p.name.isdigit()) == ["30", "40"]
+    rows = _rows(out / "metrics.csv")
+    assert [int(r["iteration"]) for r in rows] == list(range(1, 41))
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["iterations"] == 40 and summary["env_steps"] == 40 * 128
+    # learning: the last iterations' episodes end in success far more often than the first
+    assert summary["evaluation"]["success"]["rate"] > 0.8
+    assert float(rows[1]["success_rate"]) < 0.3
+    # the run folder is complete: it resumes to nothing left to do
+    res = _run(["--resume", str(out), "--no-eval"])
+    assert res.returncode == 0, res.stderr
+    assert len(_rows(out / "metrics.csv")) == 40
+
+
+def test_sigkill_then_resume_equals_an_uninterrupted_run(tmp_path):
+    """Killed with SIGKILL once a checkpoint past iteration 20 exists, resumed: the policy
+    and every iteration's metrics equal the uninterrupted run's exactly (bit for bit;
+    tolerance 0), timing columns aside."""
+    iterations, every = 120, 10
+    cfg = tmp_path / "reach.yaml"
+    cfg.write_text(REACH % (16 * 8 * iterations, every))
+    whole, killed = tmp_path / "whole", tmp_path / "killed"
+    assert _run([str(cfg), "--out", str(whole), "--no-eval"]).returncode == 0
+
+    proc = subprocess.Popen([sys.executable, str(SCRIPT), str(cfg), "--out", str(killed), "--no-eval",
+                             "--no-progress"], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 300
+    while time.time() < deadline and proc.poll() is None:
+        steps = [int(p.name) for p in (killed / "checkpoints").glob("*") if p.name.isdigit()] \
+            if (killed / "checkpoints").exists() else []
+        if steps and max(steps) >= 20:
+            break
+        time.sleep(0.01)
+    assert proc.poll() is None, "the run ended before it could be killed"
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    done_at_kill = len(_rows(killed / "metrics.csv"))
+    assert done_at_kill < iterations
+
+    res = _run(["--resume", str(killed), "--no-eval"])
+    assert res.returncode == 0, res.stderr
+    assert "resuming" in res.stdout
+    assert (killed / "policy" / "policy.msgpack").read_bytes() == (whole / "policy" / "policy.msgpack").read_bytes()
+    a, b = _rows(whole / "metrics.csv"), _rows(killed / "metrics.csv")
+    assert len(a) == len(b) == iterations
+    for ra, rb in zip(a, b):
+        assert {k: v for k, v in ra.items() if k not in TIMING} == {k: v for k, v in rb.items() if k not in TIMING}
+
+
+@pytest.mark.parametrize("text, sets, message", [
+    ("name: t\nenv: {builtin: reach}\nalgo: {num_envs: 10, num_steps: 3, num_minibatches: 4}\n", [],
+     "num_minibatches"),
+    ("name: t\nenv: {builtin: reach}\n", ["algo.lr=0"], "algo.lr"),
+    ("name: t\nenv: {builtin: reach}\nalgo: {lr: -0.001}\n", [], "algo.lr"),
+    ("name: t\nenv: {builtin: reach}\nalgo: {learnign_rate: 0.001}\n", [], "learnign_rate"),
+    ("name: t\nenv: {scene: missing.yaml}\n", [], "env.scene: no such file"),
+    ("name: t\nenv: {scene: ../configs/rope_net.yaml}\n", [], "not a capture environment"),
+    ("name: t\nenv: {builtin: reach}\nrun: {checkpoint_every: 0}\n", [], "run.checkpoint_every"),
+    ("name: t\nenv: [1, 2]\n", [], "env"),
+    ("name: t\nenv: {builtin: reach\n", [], "t.yaml"),
+])
+def test_bad_configs_exit_2_before_compiling_and_write_nothing(tmp_path, text, sets, message):
+    if "../configs" in text:
+        text = text.replace("../configs", str(ROOT / "configs"))
+    cfg = tmp_path / "t.yaml"
+    cfg.write_text(text)
+    out = tmp_path / "out"
+    res = _run([str(cfg), "--out", str(out), *[a for s in sets for a in ("--set", s)]])
+    assert res.returncode == 2
+    assert message in res.stderr
+    assert "Traceback" not in res.stderr
+    assert not out.exists()
+
+
+def test_an_existing_run_is_not_overwritten(tmp_path):
+    cfg = tmp_path / "reach.yaml"
+    cfg.write_text(REACH % (16 * 8 * 2, 1))
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "train.yaml").write_text("name: x\n")
+    res = _run([str(cfg), "--out", str(out)])
+    assert res.returncode == 2 and "--resume" in res.stderr
+    res = _run(["--resume", str(tmp_path / "nothing")])
+    assert res.returncode == 2 and "not a training run folder" in res.stderr
+
+
+def test_capture_environment_end_to_end_tiny(tmp_path):
+    """The default training file's path on the capture environment, tiny: one iteration of
+    4 environments x 2 steps, evaluated on 4 episodes with the report of evaluate.py; then
+    the saved policy is loaded by scripts/evaluate.py --policy RUN/policy."""
+    out = tmp_path / "run"
+    sets = ["algo.num_envs=4", "algo.num_steps=2", "algo.total_env_steps=8", "algo.num_minibatches=2",
+            "run.eval_episodes=4", "run.eval_batch=4"]
+    res = _run(["configs/train_capture_falling.yaml", "--out", str(out), *[a for s in sets for a in ("--set", s)]])
+    assert res.returncode == 0, res.stderr
+    metrics = json.loads((out / "eval" / "metrics.json").read_text())
+    assert metrics["episodes"] == 4 and metrics["policy"].endswith("policy")
+    for name in ("episodes.csv", "outcomes.png", "trajectory.csv", "config.yaml"):
+        assert (out / "eval" / name).is_file(), name
+    # the run folder is self-contained: its scene is the resolved one (velocity setpoints)
+    assert "setpoint_mode: velocity" in (out / "scene.yaml").read_text()
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["evaluation"]["success"]["rate"] == metrics["success"]["rate"]
+
+
+def test_policy_folders_are_checked(tmp_path):
+    from mysim_jax.tasks.policies import PolicyError, check_policy_spec, policy_maker
+
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(PolicyError, match="without policy.json"):
+        check_policy_spec(str(empty))
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / "policy.json").write_text("{not json")
+    (bad / "policy.msgpack").write_bytes(b"\x00")
+    with pytest.raises(PolicyError, match="cannot read the saved policy"):
+        policy_maker(str(bad))
