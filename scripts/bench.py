@@ -1879,12 +1879,64 @@ def section_g(cfg, results) -> list[str]:
         f"{m.compile_s['env']:.1f} |",
         "",
         f"Training runs at **{rate['iteration'] / rate['env']:.0%}** of the environment's own steps/s; the update "
-        f"takes {update_s:.2f} s of an iteration ({update_s / median(m.times['iteration']):.0%}), the networks in "
-        f"the rollout {median(m.times['rollout']) - median(m.times['env']):.2f} s.",
+        f"takes {update_s:.2f} s of an iteration ({update_s / median(m.times['iteration']):.0%}). "
+        + (f"The networks add {median(m.times['rollout']) - median(m.times['env']):.2f} s to the rollout."
+           if median(m.times["rollout"]) >= median(m.times["env"]) else
+           f"The rollout (policy, critic and environment) took {median(m.times['env']) - median(m.times['rollout']):.2f} s "
+           "less than the environment alone with zero actions: the networks cost less than the difference the "
+           "actions make to the environment's own cost (contact and line work depend on where the team flies)."),
         "",
         contention_note("g", 2 if cfg.quick else 3),
         "",
     ]
+    return lines + training_runs_lines()
+
+
+TRAIN_RUNS = ROOT / "docs" / "train"
+
+
+def training_runs_lines() -> list[str]:
+    """The training runs kept in docs/train/<run>/ (copied from scripts/train.py run folders:
+    summary.json, train.yaml, metrics.csv, curves.png, eval/metrics.json): one table row
+    each, and their learning curves."""
+    import json
+
+    runs = sorted(p for p in TRAIN_RUNS.glob("*") if (p / "summary.json").is_file())
+    if not runs:
+        return []
+    lines = [
+        "### Training runs",
+        "",
+        "Each run is `python scripts/train.py configs/<file>.yaml` on this machine, its folder's "
+        "`summary.json`, `metrics.csv`, `curves.png` and `eval/metrics.json` kept in `docs/train/<run>/`. "
+        "Training success is the share of episodes ended in the iteration that succeeded (exploration noise on); "
+        "evaluation is the deterministic policy on `run.eval_episodes` fresh episodes (`eval_seed`), as "
+        "`scripts/evaluate.py` reports it.",
+        "",
+        "| run | training file | team steps | training [min] | env-steps/s (update incl.) | evaluation [min] | "
+        "success (95 % interval) | how the others ended |",
+        "|---|---|---:|---:|---:|---:|---|---|",
+    ]
+    for run in runs:
+        s = json.loads((run / "summary.json").read_text())
+        ev = s.get("evaluation", {})
+        fails = ", ".join(f"{v['count']} {k}" for k, v in ev.get("failures", {}).items() if v["count"])
+        if ev.get("timeout", {}).get("count"):
+            fails = (fails + ", " if fails else "") + f"{ev['timeout']['count']} timeouts"
+        succ = ev.get("success")
+        succ_text = (f"**{succ['rate']:.1%}** ({succ['interval95'][0]:.1%}–{succ['interval95'][1]:.1%}) of "
+                     f"{ev['episodes']}" if succ else "—")
+        stopped = " (time limit)" if s.get("stopped_by_time_limit") else ""
+        lines.append(f"| `{run.name}` | `{s.get('config', 'configs/' + s['name'] + '.yaml')}` | {s['env_steps']:,}{stopped} | "
+                     f"{s['training_wall_s_total'] / 60:.1f} | {s['env_steps_per_s_with_update']:,.0f} | "
+                     f"{s.get('evaluation_wall_s', float('nan')) / 60:.1f} | {succ_text} | {fails or '—'} |")
+    lines.append("")
+    for run in runs:
+        if (run / "curves.png").is_file():
+            lines += [f"![{run.name}](docs/train/{run.name}/curves.png)", ""]
+    notes = [run / "NOTE.md" for run in runs if (run / "NOTE.md").is_file()]
+    for note in notes:
+        lines += [f"**{note.parent.name}**: " + note.read_text().strip(), ""]
     return lines
 
 

@@ -354,14 +354,13 @@ def test_an_env_needs_a_net_and_a_target():
 
 
 @pytest.mark.slow
-def test_scripted_team_catches_and_random_team_does_not():
-    """Two episodes each on configs/capture_env_falling.yaml (the 1000-episode rates are
-    in BENCHMARKS.md): the scripted team holds the target, the random team fails."""
-    from mysim_jax.tasks.evaluate import random_policy, run_episodes, scripted_policy
+def test_random_team_does_not_catch():
+    """Two episodes on configs/capture_env_falling.yaml (the 1000-episode rates are in
+    README, "The capture environment"): the random team fails. That the scripted team
+    holds the target is asserted by the recorded episode of the next test."""
+    from mysim_jax.tasks.evaluate import random_policy, run_episodes
 
     env, params = make_env(load_config("configs/capture_env_falling.yaml"))
-    scripted = run_episodes(env, params, scripted_policy(env), 2, 2, jax.random.PRNGKey(0), progress=False)
-    assert scripted.success.all(), scripted.summary()
     random = run_episodes(env, params, random_policy(env), 2, 2, jax.random.PRNGKey(0), progress=False)
     assert not random.success.any()
     assert (np.stack(list(random.failures.values())).any(axis=0) | random.timeout).all()

@@ -19,7 +19,7 @@ from mysim_jax.config_base import ConfigError
 from mysim_jax.mappo.config import AlgoConfig, train_config_from_dict
 from mysim_jax.mappo.losses import RunningStats, gae, gaussian_log_prob, policy_loss, value_loss
 from mysim_jax.mappo.toy import ReachEnv
-from mysim_jax.mappo.trainer import Trainer, make_train
+from mysim_jax.mappo.trainer import make_train
 
 
 def test_gae_matches_a_hand_calculation():
@@ -105,40 +105,25 @@ def test_running_stats_equal_the_pooled_moments():
 SMALL = dict(num_envs=32, num_steps=16, lr=3e-3, init_std=0.5)
 
 
-def test_learning_happens_on_the_reach_task():
-    """40 iterations (20,480 team steps, a few seconds): the mean episode return and the
-    success rate rise from the first iterations to the last (measured: return about -22 to
-    -5, success 0 to ~1 with these settings)."""
+def test_learning_happens_on_the_reach_task_and_the_same_seed_gives_the_same_curve():
+    """40 iterations (20,480 team steps, a few seconds): the mean step reward rises by more
+    than 0.25 from the first iterations to the last, and the success rate from below 30 %
+    to above 90 %. The same seed gives the same curve exactly; another seed another."""
     env = ReachEnv()
     cfg = AlgoConfig(total_env_steps=32 * 16 * 40, **SMALL)
-    _, hist = make_train(cfg, env, env.default_params())(jax.random.PRNGKey(0))
+    train = make_train(cfg, env, env.default_params())
+    state, hist = train(jax.random.PRNGKey(0))
     early = hist[2:6]
     late = hist[-5:]
     assert np.mean([h["step_reward"] for h in late]) > np.mean([h["step_reward"] for h in early]) + 0.25
     assert np.mean([h["success_rate"] for h in late]) > 0.9
     assert np.mean([h["success_rate"] for h in early]) < 0.3
-
-
-def test_same_seed_same_curve_other_seed_other_curve():
-    env = ReachEnv()
-    cfg = AlgoConfig(total_env_steps=32 * 16 * 4, **SMALL)
-    train = make_train(cfg, env, env.default_params())
-    _, a = train(jax.random.PRNGKey(3))
-    _, b = train(jax.random.PRNGKey(3))
-    _, c = train(jax.random.PRNGKey(4))
-    assert a == b
-    assert a != c
-
-
-def test_iteration_count_and_shapes():
-    env = ReachEnv(n_agents=3)
-    cfg = AlgoConfig(num_envs=8, num_steps=4, total_env_steps=8 * 4 * 2, num_minibatches=2)
-    trainer = Trainer(cfg, env, env.default_params())
-    ts = trainer.init(jax.random.PRNGKey(0))
-    assert ts.obs.shape == (8, 3, env.obs_size)
-    ts, m = trainer.iteration(ts)
-    assert int(ts.iteration) == 1
-    assert all(np.isfinite(float(v)) for v in m.values())
+    assert int(state.iteration) == 40
+    assert state.obs.shape == (32, 2, env.obs_size)
+    _, again = train(jax.random.PRNGKey(0))
+    assert again == hist
+    _, other = train(jax.random.PRNGKey(1))
+    assert other != hist
 
 
 def _raw(**algo):
@@ -187,3 +172,20 @@ def test_the_shipped_training_files_load():
     for path in files:
         cfg = load_train_config(path)
         assert cfg.algo.num_iterations >= 1, path.name
+
+
+def test_residual_policy_adds_the_base_team_and_needs_one():
+    """A residual policy's action is the base team's plus the actor's mean (clipped); the
+    builtin task has no scripted team, so residual training on it is a config error."""
+    from mysim_jax.mappo.trainer import Actor, deterministic_policy
+
+    actor = Actor(action_dim=2, hidden=(8,))
+    obs = jnp.ones((2, 5))
+    params = actor.init(jax.random.PRNGKey(0), obs[0])
+    arrays = {"actor": params, "obs_mean": jnp.zeros(5), "obs_var": jnp.ones(5)}
+    base = jnp.array([[0.5, -0.2], [0.95, -1.0]])
+    plain = deterministic_policy(actor, arrays)(None, obs, None, None)
+    residual = deterministic_policy(actor, arrays, base=lambda state, p: base)(None, obs, None, None)
+    np.testing.assert_allclose(np.asarray(residual), np.clip(np.asarray(plain) + np.asarray(base), -1, 1), atol=1e-6)
+    with pytest.raises(ConfigError, match="algo.residual"):
+        train_config_from_dict({"name": "t", "env": {"builtin": "reach"}, "algo": {"residual": True}}, "t.yaml")

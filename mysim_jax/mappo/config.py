@@ -86,6 +86,7 @@ class AlgoConfig(StrictModel):
     init_std: PosFloat = 0.3               # the policy's initial action standard deviation
     normalize_obs: bool = True             # running mean / std of observations and states
     value_norm: bool = True                # running mean / std of the value targets
+    residual: bool = False                 # act = the scripted team's action + the policy's
 
     @model_validator(mode="after")
     def _sizes(self):
@@ -139,6 +140,12 @@ class TrainConfig(StrictModel):
     env: EnvSection
     algo: AlgoConfig = AlgoConfig()
     run: RunConfig = RunConfig()
+
+    @model_validator(mode="after")
+    def _residual_needs_a_team(self):
+        if self.algo.residual and self.env.builtin is not None:
+            raise ValueError("algo.residual: the builtin environment has no scripted team to add a residual to")
+        return self
 
 
 def apply_overrides(raw: dict, overrides) -> dict:

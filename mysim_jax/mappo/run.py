@@ -283,15 +283,17 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
     n_agents, act = env.action_shape
     meta = {"kind": "mappo", "obs_size": int(env.obs_size), "action_shape": [n_agents, act],
             "hidden": list(c.algo.hidden), "activation": c.algo.activation, "normalize_obs": c.algo.normalize_obs,
+            "residual": c.algo.residual,
             "env": "builtin:" + c.env.builtin if c.env.builtin else SCENE_FILE, "iteration": iteration,
             "train": c.name}
     arrays = trainer.policy_arrays(state)
     save_policy(p.out / "policy", arrays, meta)
-    policy = deterministic_policy(trainer.actor, arrays, c.algo.normalize_obs)
+    base = env.scripted_actions if c.algo.residual else None
+    policy = deterministic_policy(trainer.actor, arrays, c.algo.normalize_obs, base)
 
     per_iteration = float(np.median(iteration_times)) if iteration_times else math.nan
     summary = {
-        "name": c.name, "iterations": iteration, "planned_iterations": c.algo.num_iterations,
+        "name": c.name, "config": p.source, "iterations": iteration, "planned_iterations": c.algo.num_iterations,
         "stopped_by_time_limit": stopped_early, "env_steps": iteration * c.algo.batch_size,
         "agent_steps": iteration * c.algo.batch_size * n_agents,
         "training_wall_s_this_process": round(train_wall, 1),

@@ -13,7 +13,10 @@ the log standard deviations are free parameters, one per action dimension. Sampl
 actions are clipped to ``[-1, 1]`` by the environment; the log-probabilities are those of
 the unclipped samples (as CleanRL and PureJaxRL do). The critic sees the environment's
 noise-free global state and the agent's one-hot id and returns that agent's value: MAPPO's
-centralised critic, one value per agent because rewards are per agent.
+centralised critic, one value per agent because rewards are per agent. With
+``residual``, the environment receives the scripted team's action plus the policy's
+(residual policy learning: the untrained policy flies the scripted intercept, and training
+learns corrections to it); the log-probabilities are those of the residual.
 
 **Iteration** (:meth:`Trainer.iteration`, one ``jax.jit``): a ``lax.scan`` of
 ``num_steps`` policy steps of ``num_envs`` environments (the environment step batched with
@@ -180,7 +183,11 @@ class Trainer:
     def _env_step(self):
         env, env_params = self.env, self.env_params
 
+        residual = self.config.residual
+
         def one(key, state, action):
+            if residual:
+                action = action + env.scripted_actions(state, env_params)
             obs, state, reward, terminated, truncated, info = env.step(key, state, action, env_params)
             return obs, state, reward, terminated, truncated, _step_info(info)
 
@@ -317,15 +324,19 @@ class Trainer:
         return {"actor": ts.params["actor"], "obs_mean": ts.obs_stats.mean, "obs_var": ts.obs_stats.var}
 
 
-def deterministic_policy(actor: Actor, arrays: dict, normalize_obs: bool = True) -> Callable:
+def deterministic_policy(actor: Actor, arrays: dict, normalize_obs: bool = True, base: Callable | None = None
+                         ) -> Callable:
     """``policy(key, obs, state, params) -> actions`` of one environment: the Gaussian's
-    mean, clipped to ``[-1, 1]`` (the interface of :mod:`mysim_jax.tasks.evaluate`)."""
+    mean, clipped to ``[-1, 1]`` (the interface of :mod:`mysim_jax.tasks.evaluate`).
+    ``base(state, params)``: actions the mean is added to (a residual policy's team)."""
     stats = RunningStats(mean=jnp.asarray(arrays["obs_mean"]), var=jnp.asarray(arrays["obs_var"]),
                          count=jnp.asarray(1.0))
 
     def policy(key, obs, state, params):
         x = stats.normalize(obs.astype(jnp.float32)) if normalize_obs else obs.astype(jnp.float32)
         mean, _ = actor.apply(arrays["actor"], x)
+        if base is not None:
+            mean = mean + base(state, params)
         return jnp.clip(mean, -1.0, 1.0).astype(obs.dtype)
 
     return policy

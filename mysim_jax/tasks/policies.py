@@ -110,7 +110,8 @@ def _trained_policy_maker(path: Path, flag: str):
                               f"{tuple(meta['action_shape'])}; this environment has {env.obs_size} and "
                               f"{tuple(env.action_shape)} (another number of UAVs?)")
         actor = Actor(int(meta["action_shape"][1]), tuple(meta["hidden"]), meta["activation"])
-        return deterministic_policy(actor, arrays, bool(meta["normalize_obs"]))
+        base = env.scripted_actions if meta.get("residual") else None
+        return deterministic_policy(actor, arrays, bool(meta["normalize_obs"]), base)
 
     return make_policy
 
