@@ -674,16 +674,17 @@ def tolerance_highlights(case: AccuracyCase, rows: list[AccuracyRow]) -> list[st
 
 def accuracy_cases(quick: bool) -> list[AccuracyCase]:
     """The scenes of part (d). Issue #3 adds contact scenes here."""
+    rope_net = AccuracyCase(
+        name="rope_net",
+        config=ROPE_NET,
+        quantity_label="payload z [m]",
+        quantity=point_coordinate("payload", 2),
+        t_end=2.0,
+        methods=default_methods(quick),
+        order_note=True,
+    )
     return [
-        AccuracyCase(
-            name="rope_net",
-            config=ROPE_NET,
-            quantity_label="payload z [m]",
-            quantity=point_coordinate("payload", 2),
-            t_end=2.0,
-            methods=default_methods(quick),
-            order_note=True,
-        ),
+        rope_net,
         AccuracyCase(
             name="rope_net_slack",
             config=ROPE_NET_SLACK,
@@ -702,12 +703,10 @@ def accuracy_cases(quick: bool) -> list[AccuracyCase]:
                    "every switch the force has a kink (spring) and a jump (the damper, 50 N s/m, switches on "
                    "at once).",),
         ),
-        AccuracyCase(
+        dataclasses.replace(
+            rope_net,
             name="rope_net_stiff",
-            config=ROPE_NET,
-            quantity_label="payload z [m]",
-            quantity=point_coordinate("payload", 2),
-            t_end=2.0,
+            order_note=False,
             overrides=STIFF_ROPES,
             reference=("sim.integrator=tsit5", "sim.rtol=1e-10", "sim.atol=1e-12", "sim.precision=float64",
                        "sim.max_steps=3000000"),
@@ -1927,8 +1926,10 @@ def training_runs_lines() -> list[str]:
         succ_text = (f"**{succ['rate']:.1%}** ({succ['interval95'][0]:.1%}–{succ['interval95'][1]:.1%}) of "
                      f"{ev['episodes']}" if succ else "—")
         stopped = " (time limit)" if s.get("stopped_by_time_limit") else ""
+        rate = s.get("env_steps_per_s_with_update")
+        rate_text = "—" if rate is None else f"{rate:,.0f}"
         lines.append(f"| `{run.name}` | `{s.get('config', 'configs/' + s['name'] + '.yaml')}` | {s['env_steps']:,}{stopped} | "
-                     f"{s['training_wall_s_total'] / 60:.1f} | {s['env_steps_per_s_with_update']:,.0f} | "
+                     f"{s['training_wall_s_total'] / 60:.1f} | {rate_text} | "
                      f"{s.get('evaluation_wall_s', float('nan')) / 60:.1f} | {succ_text} | {fails or '—'} |")
     lines.append("")
     for run in runs:

@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import csv
 import json
-import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -291,7 +290,8 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
     base = env.scripted_actions if c.algo.residual else None
     policy = deterministic_policy(trainer.actor, arrays, c.algo.normalize_obs, base)
 
-    per_iteration = float(np.median(iteration_times)) if iteration_times else math.nan
+    # None (JSON null) when no iteration after the first ran in this process (it compiles)
+    per_iteration = float(np.median(iteration_times)) if iteration_times else None
     summary = {
         "name": c.name, "config": p.source, "iterations": iteration, "planned_iterations": c.algo.num_iterations,
         "stopped_by_time_limit": stopped_early, "env_steps": iteration * c.algo.batch_size,
@@ -299,8 +299,8 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
         "training_wall_s_this_process": round(train_wall, 1),
         "training_wall_s_total": float(rows[-1]["wall_s"]) if rows else 0.0,
         "median_iteration_s": per_iteration,
-        "env_steps_per_s_with_update": c.algo.batch_size / per_iteration if iteration_times else math.nan,
-        "final_train_success_rate": float(rows[-1]["success_rate"]) if rows else math.nan,
+        "env_steps_per_s_with_update": c.algo.batch_size / per_iteration if per_iteration else None,
+        "final_train_success_rate": float(rows[-1]["success_rate"]) if rows else None,
     }
     if evaluate:
         t_eval = time.perf_counter()

@@ -125,7 +125,7 @@ def _step_info(info) -> dict:
     return {k: info[k] for k in keep}
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)        # hashed and compared by identity (it holds arrays)
 class Trainer:
     """MAPPO on ``env`` (module docstring). ``config`` an :class:`~mysim_jax.mappo.config.AlgoConfig`."""
 
@@ -144,21 +144,22 @@ class Trainer:
         one = jax.eval_shape(lambda k: self.env.reset(k, self.env_params)[1], jax.random.PRNGKey(0))
         object.__setattr__(self, "_block", batching.chunk_for(one))
 
-    def __hash__(self):
-        return id(self)
-
     # --- pieces ----------------------------------------------------------------------
+    def _schedule(self):
+        """The learning rate as a function of the number of gradient steps taken."""
+        c = self.config
+        if c.lr_schedule == "linear":
+            return optax.linear_schedule(c.lr, 0.0, c.num_updates)
+        return optax.constant_schedule(c.lr)
+
     def _optimizer(self):
         c = self.config
-        lr = optax.linear_schedule(c.lr, 0.0, c.num_updates) if c.lr_schedule == "linear" else c.lr
-        return optax.chain(optax.clip_by_global_norm(c.max_grad_norm), optax.adam(lr, eps=1e-5))
+        return optax.chain(optax.clip_by_global_norm(c.max_grad_norm), optax.adam(self._schedule(), eps=1e-5))
 
     def learning_rate(self, iteration) -> float:
+        """The learning rate of the first update of iteration ``iteration`` (0-based)."""
         c = self.config
-        if c.lr_schedule == "constant":
-            return c.lr
-        done = iteration * c.update_epochs * c.num_minibatches
-        return c.lr * max(0.0, 1.0 - done / c.num_updates)
+        return float(self._schedule()(iteration * c.update_epochs * c.num_minibatches))
 
     @property
     def n_agents(self) -> int:
