@@ -1991,7 +1991,8 @@ def main(argv=None) -> int:
         out = ROOT / "docs" / "bench" / "partial" / "BENCHMARKS.md"
     else:
         out = ROOT / "BENCHMARKS.md"
-    plots_dir = ROOT / "docs" / "bench" / ("partial" if partial and args.out is None and not args.update else "")
+    # a partial run (--quick, --only, --cases) never overwrites the plots BENCHMARKS.md links to
+    plots_dir = ROOT / "docs" / "bench" / ("partial" if partial and not args.update else "")
     plots_dir.mkdir(parents=True, exist_ok=True)
     out.parent.mkdir(parents=True, exist_ok=True)
     cfg = BenchConfig(
