@@ -1,0 +1,1 @@
+"""Perception stage: cameras, rendering, IMU, visual-inertial odometry. Runs after simulation, outside jit."""
