@@ -93,7 +93,7 @@ def test_strapdown_integration_of_the_true_signals_reproduces_the_flight(flight)
     through the 200 Hz samples, SciPy's DOP853) from the flight's initial state; the result
     must follow the simulator's positions, velocities and attitudes."""
     q_bi = Rotation.from_euler("xyz", [0.3, -0.2, 0.5])
-    config = ImuConfig(**{**NOISE_FREE.model_dump(), "orientation": tuple(q_bi.as_quat(scalar_first=True))})
+    config = ImuConfig(**{**NOISE_FREE.model_dump(), "orientation": tuple(np.roll(q_bi.as_quat(), 1))})
     data = simulate_imu(flight, "uav0", config)
     rows = slice(0, None, 5)                                    # 1 kHz trajectory, 200 Hz IMU
     np.testing.assert_array_equal(data.t, flight["time"][rows])
@@ -106,7 +106,7 @@ def test_strapdown_integration_of_the_true_signals_reproduces_the_flight(flight)
         omega = np.array([[0.0, -wz, wy], [wz, 0.0, -wx], [-wy, wx, 0.0]])
         return np.concatenate([(r @ omega).ravel(), r @ accel(t) + gravity, y[9:12]])
 
-    attitude = Rotation.from_quat(stacked(flight, "uav0", ("qw", "qx", "qy", "qz"), rows), scalar_first=True) * q_bi
+    attitude = Rotation.from_quat(stacked(flight, "uav0", ("qx", "qy", "qz", "qw"), rows)) * q_bi   # SciPy: scalar last
     pos, vel = stacked(flight, "uav0", "xyz", rows), stacked(flight, "uav0", ("vx", "vy", "vz"), rows)
     y0 = np.concatenate([attitude[0].as_matrix().ravel(), vel[0], pos[0]])
     sol = solve_ivp(rhs, (data.t[0], data.t[-1]), y0, method="DOP853", rtol=1e-11, atol=1e-12, t_eval=data.t)
