@@ -183,7 +183,8 @@ def test_allan_deviation_of_a_moving_run(flight):
 def test_allan_deviation_shapes_and_taus():
     x = np.random.default_rng(0).standard_normal((1000, 2))
     used, adev = allan_deviation(x, 100.0, [0.001, 0.01, 0.0149, 0.02, 1.0, 4.99, 5.0, 100.0])
-    np.testing.assert_allclose(used, [0.01, 0.02, 1.0, 4.99])   # below one sample, past half the record, repeats dropped
+    # dropped: below one sample, past half the record, repeats (0.0149 s rounds to 1 sample)
+    np.testing.assert_allclose(used, [0.01, 0.02, 1.0, 4.99])
     assert adev.shape == (4, 2)
     used1, adev1 = allan_deviation(x[:, 1], 100.0, used)
     np.testing.assert_array_equal(used1, used)
@@ -257,7 +258,8 @@ GOOD = body_columns(20, 200.0)
 BAD_INPUTS = {
     "unknown body": (GOOD, "uav9", r"no body 'uav9' in the trajectory; its bodies are: b"),
     "point mass": ({**GOOD, "knot_x": GOOD["b_x"]}, "knot", r"'knot' is a point mass.*bodies are: b"),
-    "no accelerations": (_without(GOOD, "b_ax", "b_ay", "b_az"), "b", r"no column b_ax, b_ay, b_az.*scripts/simulate.py"),
+    "no accelerations": (_without(GOOD, "b_ax", "b_ay", "b_az"), "b",
+                         r"no column b_ax, b_ay, b_az.*scripts/simulate.py"),
     "no body rates": (_without(GOOD, "b_wz"), "b", r"no column b_wz.*scripts/simulate.py"),
     "no time": (_without(GOOD, "time"), "b", r"no column time"),
     "one row": ({k: v[:1] for k, v in GOOD.items()}, "b", r"1 row\(s\); the IMU needs at least 2"),
