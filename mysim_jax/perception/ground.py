@@ -84,10 +84,19 @@ class GroundTexture:
         shape = np.broadcast_shapes(x.shape, y.shape, np.shape(footprint))
         x, y = np.broadcast_to(x, shape), np.broadcast_to(y, shape)
         origin = np.array([np.mean(x), np.mean(y)]) if x.size else np.zeros(2)
-        x2 = (x - origin[0]).astype(np.float32).reshape(-1, 1)
-        y2 = (y - origin[1]).astype(np.float32).reshape(-1, 1)
-        log_fp = np.log2(np.maximum(np.broadcast_to(np.asarray(footprint, dtype=np.float32), shape), 1e-9)).reshape(-1, 1)
-        return self._sample(x2, y2, origin, log_fp).reshape(shape)
+        # lay the points out as a 2-D block of at most 4096 columns (remap takes < 32767 rows)
+        n = x.size
+        cols = max(min(n, 4096), 1)
+        rows = -(-n // cols)
+
+        def block(values, fill=0.0):
+            out = np.full(rows * cols, fill, dtype=np.float32)
+            out[:n] = values.reshape(-1)
+            return out.reshape(rows, cols)
+
+        fp = np.maximum(np.broadcast_to(np.asarray(footprint, dtype=np.float32), shape), 1e-9)
+        albedo = self._sample(block(x - origin[0]), block(y - origin[1]), origin, np.log2(block(fp, 1.0)))
+        return albedo.reshape(-1)[:n].reshape(shape)
 
     def _sample(self, x: np.ndarray, y: np.ndarray, origin: np.ndarray, log_fp: np.ndarray,
                 mask: np.ndarray | None = None) -> np.ndarray:

@@ -42,7 +42,7 @@ Boxes are in the image's pixel coordinates (centre of the top-left pixel at (0, 
 edge of the leftmost pixel (its index - 0.5), ``u_max`` the right edge of the rightmost.
 
 Speed: the cost is the ground (a dozen full-image operations) plus the candidate pixels of
-the objects (an object's screen area, a line's length); BENCHMARKS.md (rendering) has the
+the objects (an object's screen area, a line's length); BENCHMARKS.md, section (h), has the
 frame rates.
 """
 
