@@ -1970,7 +1970,7 @@ def section_h(cfg, results) -> list[str]:
         "",
         f"`Renderer.render` (mysim_jax/perception/render.py) on `{CAPTURE_FALLING.relative_to(ROOT)}` with a "
         f"camera `cam0` on uav0 (yawed to the net, pitched 35° down), simulated 1.6 s ({sim_s:.0f} s, compile "
-        f"included). Views at t = {onboard.t:.2f} s (the row where cam0 sees the most of the target): "
+        f"included). Views at t = {onboard.t:.2f} s (the row where cam0 sees the most of the target, all of it in the image): "
         "**onboard** (cam0), **observer** (a free camera 8 m from the net: four UAVs, net, tethers, target) and "
         "**ground** (the observer turned away: ground and sky only). One call = inputs checked, ground, objects, "
         f"compositing, target boxes; median of the counted rounds, timed round-robin "

@@ -5,8 +5,8 @@ yawed towards the net's centre and pitched 35 deg down), simulated with its scri
 for ``t_end`` seconds. Three views, each rendered at every image size of the same camera
 (the paper's 50 mm lens on a 36 mm sensor):
 
-* ``onboard`` — ``cam0`` at the output row where it sees the most of the target (the net
-  across the image, the target in it, the ground behind);
+* ``onboard`` — ``cam0`` at the output row where it sees the most of the target with all of
+  the target inside the image (the net across the image, the target in it, the ground behind);
 * ``observer`` — a free camera (:func:`~mysim_jax.perception.render.look_at`) 8 m from the
   net, looking at it: all four UAVs, the net, the tethers and the target in view;
 * ``ground`` — the same free camera turned away from the team: ground and sky only.
@@ -61,8 +61,13 @@ def views(config, columns) -> dict[str, tuple[object, int]]:
 
     t = columns["time"]
     probe = Renderer(config, intrinsics(width=160, height=90))
-    seen = [f.target.visible_px for f in probe.render_many(columns, "cam0", progress=False)]
-    row = int(np.argmax(seen))
+    seen, whole = [], []
+    for f in probe.render_many(columns, "cam0", progress=False):
+        box = f.target.full_box
+        seen.append(f.target.visible_px)
+        whole.append(box is not None and box[0] > 0 and box[1] > 0 and box[2] < 159 and box[3] < 89)
+    seen = np.asarray(seen)
+    row = int(np.argmax(np.where(whole, seen, -1))) if any(whole) else int(np.argmax(seen))
     return {"onboard": ("cam0", row),
             "observer": (look_at(OBSERVER_EYE, NET_CENTRE, t), row),
             "ground": (look_at(OBSERVER_EYE, AWAY, t), row)}

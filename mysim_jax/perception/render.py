@@ -535,7 +535,6 @@ class Renderer:
 
     def _render(self, columns, name, poses, row) -> Frame:
         intr = self.intr
-        W, H = intr.width, intr.height
         R, p = self._pose(columns, name, poses, row)
         ground = view_ground(intr, R, p, self.texture, self.ground_z)
         image, back_depth = self._background(ground, R)
