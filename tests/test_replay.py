@@ -14,7 +14,6 @@ import os
 import re
 from pathlib import Path
 
-import jax
 import numpy as np
 import pytest
 

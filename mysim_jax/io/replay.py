@@ -261,8 +261,11 @@ def _describe(columns, config, rows, trail) -> _Scene:
         net = _polyline_array(_net_polylines(config.net, nodes))
         scene.layers.append(_Layer("net", net, dict(mode="lines", line=dict(color=NET_COLOR, width=2))))
         scene.extent.append(net)
-    net_edges = (f"{config.net.name}_h", f"{config.net.name}_v") if config.net is not None else ()
-    lines = _rope_polylines([r for r in full.ropes if not r.name.startswith(net_edges)], nodes)
+    net_edges = set()
+    if config.net is not None:
+        g, name = config.net.knots, config.net.name
+        net_edges = {f"{name}_{kind}{i}_{j}" for kind in "hv" for i in range(g) for j in range(g)}
+    lines = _rope_polylines([r for r in full.ropes if r.name not in net_edges], nodes)
     lines += [np.stack([nodes(s.start), nodes(s.end)], axis=1) for s in full.springs]
     if lines:
         label = "tethers" if config.net is not None and not config.ropes and not config.springs else "ropes"
@@ -290,8 +293,8 @@ def _describe(columns, config, rows, trail) -> _Scene:
         if all(f"{q.body}_ref_{a}" in columns for a in "xyz"):
             ref = np.stack([columns[f"{q.body}_ref_{a}"] for a in "xyz"], axis=-1)
             scene.static.append(dict(type="scatter3d", name=f"{q.body} reference", x=_typed(ref[:, 0]),
-                                     y=_typed(ref[:, 1]), z=_typed(ref[:, 2]), mode="lines", line=dict(color=color, width=2, dash="dash"),
-                                     opacity=0.6, hoverinfo="skip"))
+                                     y=_typed(ref[:, 1]), z=_typed(ref[:, 2]), mode="lines",
+                                     line=dict(color=color, width=2, dash="dash"), opacity=0.6, hoverinfo="skip"))
             scene.extent.append(ref)
 
     # cameras: a diamond and the optical axis
@@ -408,9 +411,9 @@ def replay_figure(columns, config, title: str | None = None, max_frames: int = 2
     data += scene.static
     if scene.ground:
         (x0, x1), (y0, y1) = ranges[0], ranges[1]
-        data.append(dict(type="surface", name="ground (z = 0)", x=[float(x0), float(x1)], y=[float(y0), float(y1)], z=[[0.0, 0.0], [0.0, 0.0]],
-                         colorscale=[[0, GROUND_COLOR], [1, GROUND_COLOR]], showscale=False, opacity=0.8,
-                         hoverinfo="skip", showlegend=True))
+        data.append(dict(type="surface", name="ground (z = 0)", x=[float(x0), float(x1)], y=[float(y0), float(y1)],
+                         z=[[0.0, 0.0], [0.0, 0.0]], colorscale=[[0, GROUND_COLOR], [1, GROUND_COLOR]],
+                         showscale=False, opacity=0.8, hoverinfo="skip", showlegend=True))
 
     frames = [dict(name=str(k), data=[_layer_data(layer, k) for layer in scene.layers], traces=dynamic)
               for k in range(len(rows))]
