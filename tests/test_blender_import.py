@@ -14,7 +14,6 @@ import pytest
 from mysim_jax.config import expand_capture, load_config
 from mysim_jax.io import blender_import as bi
 from mysim_jax.io.trajectory import write_trajectory_csv
-from mysim_jax.npgeom import rotate
 
 from conftest import CONFIGS, ROOT
 from test_replay import synthetic_columns
