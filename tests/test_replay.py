@@ -148,6 +148,8 @@ def test_every_scene_kind_replays(name):
     spans = ranges[:, 1] - ranges[:, 0]
     ratio = np.array([scene["aspectratio"][a] for a in "xyz"])
     np.testing.assert_allclose(ratio, spans / spans.max(), rtol=1e-12)
+    if has_ground:        # the ground is the floor of the view, with a small margin under it
+        assert -max(0.05 * spans.max(), 0.1) - 1e-9 <= ranges[2, 0] <= 0.0
     for frame in frames:
         for data in frame["data"]:
             xyz = _xyz(data)

@@ -8,30 +8,32 @@ plotly.js is embedded in the file, so it opens offline in any browser.
 What is drawn is read from the config, so every kind of scene replays:
 
 * quadrotors: the rotor cross (arms at the config's arm lengths and angles, a dot per
-  rotor) and a heading line along the body +x axis, so attitude shows; a trail; the
-  reference path (dashed) when the columns carry ``NAME_ref_x/y/z``. A vehicle that
-  would be a speck in a large scene is drawn enlarged (its legend entry says by how
-  much), so that its cross spans at least ``GLYPH_FRACTION`` of the scene; its position
-  is exact;
-* cameras on quadrotors: a diamond and a short line along the camera's optical axis
-  (the camera body's +x axis);
+  rotor) and a heading line along the body +x axis, so attitude shows; the reference
+  path (dashed) when the columns carry ``NAME_ref_x/y/z``. A vehicle that would be a
+  speck in a large scene is drawn enlarged (its legend entry says by how much), so that
+  its cross spans at least ``GLYPH_FRACTION`` of the scene; its position is exact;
+* cameras on quadrotors: a diamond and a line along the camera's optical axis (the
+  camera body's +x axis), enlarged the same way;
 * the net as the polylines of its rows and columns through every knot and line mass;
   tethers, ropes and springs as polylines between their end nodes (a point, a body, a
   marker on a body, or an anchor) through their masses;
-* the target as a sphere of its radius, with a trail;
+* the target as a sphere of its radius;
 * free point masses (the rope net's payload, the collision ball) and other rigid bodies
-  (with their body axes), with trails; anchors as fixed crosses;
+  (with their body axes); anchors as fixed crosses;
+* a trail behind every quadrotor, the target, free points and other bodies: their path
+  over the last ``trail`` seconds;
 * the ground plane z = 0, in scenes that have one: scenes with quadrotors, a target, or a
   contact pair with ``ground``. Other scenes (the rope net hangs below its anchors at
   z = 0) are drawn without it.
 
 The run is downsampled to at most ``max_frames`` evenly spaced output rows (the last
-row always included), which keeps files to a few megabytes: plotly.js itself is about
-4.5 MB, and every frame stores the moving geometry once, as float32. The axis ranges are
-fixed over the whole run and the three axes have the same scale (1 m is 1 m in every
-direction), so the view never jumps; an axis along which nothing moves is widened to a
-fraction of the largest span so a flat scene is still seen at an angle. Positions are in
-metres, time in seconds.
+row always included). Every frame stores the moving geometry once, as float32 binary
+(base64): the embedded plotly.js is a few megabytes, and the frames of a capture scene
+with its whole net at the default ``max_frames`` add a few more. The axis ranges are fixed
+over the whole run and the three axes have the same scale (1 m is 1 m in every
+direction), so the view never jumps; an axis along which little moves is widened to at
+least ``MIN_SPAN_FRACTION`` of the largest span, so a flat scene is still seen at an
+angle. Positions are in metres, time in seconds.
 """
 
 from __future__ import annotations
@@ -368,8 +370,9 @@ def _axis_ranges(scene: _Scene) -> np.ndarray:
     span = hi - lo
     widen = np.maximum(MIN_SPAN_FRACTION * span.max() - span, 0.0)
     lo, hi = lo - widen / 2, hi + widen / 2
-    if scene.ground:     # keep the ground at the bottom of the box rather than in the middle of nothing
-        shift = min(lo[2] + pad, 0.0) - lo[2] if lo[2] < -pad and pts[:, 2].min() >= 0.0 else 0.0
+    if scene.ground and pts[:, 2].min() >= 0.0 and lo[2] < -pad:
+        # widening put empty space under the ground: move it above the scene instead
+        shift = -pad - lo[2]
         lo[2], hi[2] = lo[2] + shift, hi[2] + shift
     return np.stack([lo, hi], axis=1)
 
