@@ -74,6 +74,7 @@ ARM_LENGTH = 0.096          # m, the paper's quadrotor (Table UAV_model)
 CAMERA_LENS = 50.0          # mm (paper Table camera)
 CAMERA_SENSOR = (36.0, 24.0)  # mm
 CAMERA_RESOLUTION = (1920, 1080)
+GROUND_COLORS = ((0.55, 0.65, 0.5), (0.42, 0.5, 0.38))
 GROUND_SIZE = 200.0         # m, side of the ground plane (at least): scene cameras see it to the horizon
 CAMERA_CLIP_START = 0.05    # m: a scene camera sees nothing nearer, so not the inside of its own body
 ATTACH_SPACINGS = 1.5       # a chain end joins a node within this many mass spacings
@@ -318,6 +319,21 @@ def _material(name, color, emission=0.0):
     return mat
 
 
+def _checker_material(name, size):
+    """Two-tone 1 m squares on a plane of side ``size`` (a ground a camera can see move)."""
+    mat = _material(name, GROUND_COLORS[0])
+    nodes, links = mat.node_tree.nodes, mat.node_tree.links
+    bsdf = nodes.get("Principled BSDF")
+    if bsdf is not None:
+        checker, coords = nodes.new("ShaderNodeTexChecker"), nodes.new("ShaderNodeTexCoord")
+        checker.inputs["Scale"].default_value = size
+        checker.inputs["Color1"].default_value = (*GROUND_COLORS[0], 1.0)
+        checker.inputs["Color2"].default_value = (*GROUND_COLORS[1], 1.0)
+        links.new(coords.outputs["Generated"], checker.inputs["Vector"])
+        links.new(checker.outputs["Color"], bsdf.inputs["Base Color"])
+    return mat
+
+
 def _mesh_object(name, build, materials, collection):
     """An object ``name`` with a mesh made by ``build(bm)`` (bmesh)."""
     import bmesh
@@ -537,7 +553,7 @@ def _overview(positions, collection, ground):
         plane.name = "ground"
         plane.scale = (size, size, 1.0)
         plane.location = (float(center[0]), float(center[1]), 0.0)
-        plane.data.materials.append(_material("ground", (0.55, 0.65, 0.5)))
+        plane.data.materials.append(_checker_material("ground", size))
         for c in plane.users_collection:
             c.objects.unlink(plane)
         collection.objects.link(plane)
