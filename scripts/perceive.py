@@ -56,7 +56,7 @@ def main(argv=None) -> int:
     try:
         out = check_output_dir(args.out)
         job = prepare_perception(args.run_dir, camera=args.camera, body=args.body, size=args.size,
-                                 camera_rate=args.camera_rate)
+                                 camera_rate=args.camera_rate, seed=args.seed)
     except (OutputError, PerceptionError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
@@ -65,7 +65,7 @@ def main(argv=None) -> int:
 
     t0 = time.perf_counter()
     with staged_output(out) as tmp:
-        metrics = run_perception(job, tmp, seed=args.seed, progress=not args.no_progress, video=not args.no_video)
+        metrics = run_perception(job, tmp, progress=not args.no_progress, video=not args.no_video)
     wall = time.perf_counter() - t0
     s = metrics["summary"]
     print(f"{metrics['scene']}: {metrics['body']} from {metrics['camera']} + IMU, {metrics['frames']} images "
