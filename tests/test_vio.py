@@ -35,12 +35,13 @@ def _euler_rotation(roll, pitch, yaw):
     ], -2)
 
 
-def synthetic_flight(duration: float, rate: float = 200.0, body: str = "uav0", camera: str = "cam_fixed") -> dict:
+def synthetic_flight(duration: float, rate: float = 200.0, body: str = "uav0", camera: str = "cam_fixed",
+                     camera_quat=CAMERA_QUAT) -> dict:
     """Trajectory columns (as scripts/simulate.py writes them) of an analytic flight.
 
     Figure-eight x = 1.5 sin wt, y = 0.75 sin 2wt, z = 3 + 0.2 sin wt (w = 2 pi / 6 s),
     roll 0.1 sin 1.3t, pitch 0.12 sin(1.1t + 0.5), yaw 0.5 sin 0.8t (rad); the camera body
-    rides at CAMERA_OFFSET turned by CAMERA_QUAT.
+    rides at CAMERA_OFFSET turned by ``camera_quat`` (camera -> body).
     """
     t = np.arange(int(round(duration * rate)) + 1) / rate
     w = 2 * np.pi / 6.0
@@ -65,13 +66,31 @@ def synthetic_flight(duration: float, rate: float = 200.0, body: str = "uav0", c
     for key, arr in (("v", v), ("a", a), ("w", omega)):
         for k, axis in enumerate("xyz"):
             cols[f"{body}_{key}{axis}"] = arr[:, k]
-    R_cam = R @ quat_to_matrix(CAMERA_QUAT)
+    R_cam = R @ quat_to_matrix(np.asarray(camera_quat, dtype=float))
     p_cam = p + R @ CAMERA_OFFSET
     q_cam = matrix_to_quat(R_cam)
     for k, axis in enumerate("xyz"):
         cols[f"{camera}_{axis}"] = p_cam[:, k]
     for k, axis in enumerate("wxyz"):
         cols[f"{camera}_q{axis}"] = q_cam[:, k]
+    return cols
+
+
+def write_synthetic_run(run_dir, duration: float, camera_quat=CAMERA_QUAT) -> dict:
+    """A run folder as scripts/simulate.py writes it (config.yaml, trajectory.csv) holding
+    the analytic flight; the config is configs/uav_vio_flight.yaml with the camera's quat."""
+    from mysim_jax.config import dump_config, load_config
+    from mysim_jax.io.trajectory import write_trajectory_csv
+
+    from conftest import CONFIGS
+
+    quat = "[" + ",".join(f"{x:.12g}" for x in camera_quat) + "]"
+    config = load_config(CONFIGS / "uav_vio_flight.yaml",
+                         [f"sim.t_end={duration}", f"quadrotors.0.cameras.0.quat={quat}"])
+    cols = synthetic_flight(duration, rate=1.0 / config.sim.output_dt, camera_quat=camera_quat)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / "config.yaml").write_text(dump_config(config))
+    write_trajectory_csv(run_dir / "trajectory.csv", cols)
     return cols
 
 
