@@ -74,7 +74,8 @@ def main(argv=None) -> int:
     for name, key in (("VIO", "vio"), ("dead reckoning", "dead_reckoning")):
         e = metrics["errors"][key]
         rpe = ("" if e["rpe_translation_rmse_m"] is None else
-               f", RPE over {e['rpe_delta_m']:g} m {e['rpe_translation_rmse_m']:.4g} m / {e['rpe_rotation_rmse_deg']:.3g} deg")
+               f", RPE over {e['rpe_delta_m']:g} m {e['rpe_translation_rmse_m']:.4g} m / "
+               f"{e['rpe_rotation_rmse_deg']:.3g} deg")
         print(f"  {name}: ATE {e['ate_aligned_rmse_m']:.4g} m aligned (SE(3)), {e['ate_rmse_m']:.4g} m not aligned"
               f"{rpe}")
     if s["vio_ate_percent_of_distance"] is not None:

@@ -147,7 +147,8 @@ def test_synthetic_flight_is_consistent():
     np.testing.assert_allclose((v[2:] - v[:-2]) / (2 * dt), a[1:-1], atol=1e-5)
     R = quat_to_matrix(q)
     rel = np.einsum("nji,njk->nik", R[:-2], R[2:])          # R_{k-1}^T R_{k+1} = exp(2 dt w)
-    w_fd = np.stack([rel[:, 2, 1] - rel[:, 1, 2], rel[:, 0, 2] - rel[:, 2, 0], rel[:, 1, 0] - rel[:, 0, 1]], -1) / (4 * dt)
+    w_fd = np.stack([rel[:, 2, 1] - rel[:, 1, 2], rel[:, 0, 2] - rel[:, 2, 0],
+                     rel[:, 1, 0] - rel[:, 0, 1]], -1) / (4 * dt)
     w = np.stack([cols[f"uav0_w{k}"] for k in "xyz"], -1)
     np.testing.assert_allclose(w_fd, w[1:-1], atol=1e-5)
 

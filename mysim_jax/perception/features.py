@@ -11,7 +11,10 @@ Per grayscale image (``FeatureTracker.track``):
 3. **Outlier rejection**: RANSAC on the essential matrix between the previous and this
    image (``cv2.findEssentialMat`` on calibrated coordinates, threshold ``ransac_px``).
    When the features barely moved (median flow under ``min_flow_for_ransac_px``) the
-   epipolar geometry is undetermined and every tracked feature is kept.
+   epipolar geometry is undetermined and every tracked feature is kept. Views of a plane
+   (the ground alone) fit a family of essential matrices, so a wrong match that happens
+   to lie near one of them can pass; the back end's robust loss and reprojection check
+   catch those.
 4. **Replenish**: new Shi-Tomasi corners (``cv2.goodFeaturesToTrack``) at least
    ``min_distance`` pixels from every surviving feature, up to ``max_features``, each
    with a new track id.

@@ -179,10 +179,10 @@ def plot_estimates(reference: Trajectory, estimates: dict[str, Trajectory], out_
     if diagnostics is not None:
         d = diagnostics
         fig, ax = plt.subplots(figsize=(9, 3.5))
-        ax.plot(d.t, d.n_features, label="features", lw=1)
-        ax.plot(d.t, d.n_inliers, label="tracked inliers", lw=1)
-        ax.plot(d.t, d.n_landmarks, label="landmarks observed (keyframes)", lw=1)
         kf = d.keyframe.astype(bool)
+        ax.plot(d.t, d.n_features, label="features", lw=1)
+        ax.plot(d.t[1:], d.n_inliers[1:], label="tracked inliers", lw=1)
+        ax.plot(d.t[kf], d.n_landmarks[kf], label="landmarks observed (keyframes)", lw=1)
         ax.plot(d.t[kf], np.zeros(kf.sum()), "|", color="k", ms=6, label="keyframes")
         ax.set_xlabel("time (s)")
         ax.set_ylabel("count")

@@ -31,10 +31,11 @@ and IMU bias ``B(k)``, plus landmarks ``L(j)`` (world points, m):
   ``imu_noise_scale``), and a ``BetweenFactorConstantBias`` ``B(k-1) -> B(k)`` with the
   bias random walk over the interval (``sigma = walk * sqrt(dt)``, scaled by
   ``bias_walk_scale``). This is the model of gtsam's ``CombinedImuFactor`` without its
-  cross-covariance of bias and preintegration noise; the combined factor's 15 x 15
-  covariance holds bias blocks ~1e-14 next to pose blocks ~1e-9 with the paper's IMU, and
-  iSAM2's Cholesky then declares the system indeterminate, while the separate factors
-  stay well conditioned;
+  cross-covariance of bias and preintegration noise. With the paper's very stable IMU
+  the combined factor's 15 x 15 covariance mixes bias blocks ~1e-14 with pose blocks
+  ~1e-9, and iSAM2's Cholesky declares the window indeterminate even with the bias walk
+  inflated 10x; the separate factors are better conditioned (see
+  :class:`VioConfig` for the limit that remains);
 * ``GenericProjectionFactorCal3_S2`` per landmark and keyframe that sees it, with the
   camera's pose on the body as ``body_P_sensor``, pixel noise ``pixel_sigma`` under a
   Huber loss. A track becomes a landmark once ``min_observations`` keyframes in the
@@ -48,8 +49,8 @@ and IMU bias ``B(k)``, plus landmarks ``L(j)`` (world points, m):
   bias (zero, with ``initial_bias_sigma_*``).
 
 Dead reckoning (the baseline): the same IMU samples, integrated the same way from the same
-initial state and zero bias, with no camera: one preintegration from the first image to
-each later one (``PreintegratedImuMeasurements.predict``, a NavState prediction).
+initial state and zero bias, with no camera: the NavState is predicted from each image's
+time to the next (``PreintegratedImuMeasurements.predict``) over the whole run.
 
 Frames: world z-up (gravity -z); the IMU measures at the body origin in body axes
 (angular rate rad/s, specific force m/s^2); camera pixels follow
@@ -170,16 +171,22 @@ class VioConfig:
 
     def __post_init__(self):
         positive = ("pixel_sigma", "huber_k", "keyframe_parallax_px", "keyframe_max_interval", "lag",
-                    "min_triangulation_deg", "max_reprojection_px", "min_depth", "imu_noise_scale", "bias_walk_scale",
-                    "initial_velocity_sigma", "initial_bias_sigma_accel", "initial_bias_sigma_gyro",
-                    "relinearize_threshold")
-        bad = [k for k in positive if not getattr(self, k) > 0]
+                    "min_triangulation_deg", "max_reprojection_px", "min_depth", "imu_noise_scale",
+                    "bias_walk_scale", "initial_velocity_sigma", "initial_bias_sigma_accel",
+                    "initial_bias_sigma_gyro", "relinearize_threshold")
+        bad = [f"{k} (must be positive)" for k in positive if not getattr(self, k) > 0]
+        if min(self.initial_pose_sigma) <= 0:
+            bad.append("initial_pose_sigma (must be positive)")
         if self.min_observations < 2:
-            bad.append("min_observations (>= 2)")
+            bad.append("min_observations (at least 2)")
+        if self.keyframe_min_shared < 0 or self.extra_iterations < 0:
+            bad.append("keyframe_min_shared and extra_iterations (not negative)")
         if self.lag <= self.keyframe_max_interval:
             bad.append("lag (must exceed keyframe_max_interval)")
+        if self.factorization not in ("CHOLESKY", "QR"):
+            bad.append("factorization (CHOLESKY or QR)")
         if bad:
-            raise PerceptionError(f"VioConfig: invalid {', '.join(bad)}; these must be positive")
+            raise PerceptionError(f"VioConfig: invalid {'; '.join(bad)}")
 
 
 @dataclass(frozen=True)
@@ -531,7 +538,8 @@ class VioEstimator:
             rs, ps = c.initial_pose_sigma
             graph.add(gtsam.PriorFactorPose3(_X(0), pose, gtsam.noiseModel.Diagonal.Sigmas(
                 np.r_[np.full(3, rs), np.full(3, ps)])))
-            graph.add(gtsam.PriorFactorVector(_V(0), vel, gtsam.noiseModel.Isotropic.Sigma(3, c.initial_velocity_sigma)))
+            graph.add(gtsam.PriorFactorVector(_V(0), vel,
+                                              gtsam.noiseModel.Isotropic.Sigma(3, c.initial_velocity_sigma)))
             graph.add(gtsam.PriorFactorConstantBias(_B(0), self.bias, gtsam.noiseModel.Diagonal.Sigmas(
                 np.r_[np.full(3, c.initial_bias_sigma_accel), np.full(3, c.initial_bias_sigma_gyro)])))
         else:
@@ -773,8 +781,9 @@ def prepare_perception(run_dir: str | os.PathLike, camera: str | None = None, bo
     if camera is None:
         options = [n for n, (b, c) in cameras.items() if c.mount == "fixed" and (body is None or b == body)]
         if not options:
+            listed = ", ".join(f"{n} ({c.mount}, on {b})" for n, (b, c) in cameras.items())
             raise PerceptionError(f"no fixed camera on {'body ' + repr(body) if body else 'any quadrotor'} "
-                                  f"(cameras: {', '.join(f'{n} ({c.mount}, on {b})' for n, (b, c) in cameras.items())})")
+                                  f"(cameras: {listed})")
         camera = options[0]
     if camera not in cameras:
         raise PerceptionError(f"camera '{camera}' is not in the run (cameras: "
@@ -877,11 +886,14 @@ def draw_features(image: np.ndarray, features, text: str = "") -> np.ndarray:
 
     out = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
     n_old = len(features.ids) - features.n_new
+    radius = max(2, image.shape[1] // 200)
     for i, (u, v) in enumerate(features.uv):
         colour = (0, 200, 0) if i < n_old else (0, 0, 255)
-        cv2.circle(out, (int(round(u)), int(round(v))), 3, colour, 1, lineType=cv2.LINE_AA)
+        cv2.circle(out, (int(round(u)), int(round(v))), radius, colour, 1, lineType=cv2.LINE_AA)
     if text:
-        cv2.putText(out, text, (8, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 0), 1, cv2.LINE_AA)
+        scale = image.shape[1] / 1280
+        cv2.putText(out, text, (int(8 * scale + 2), int(24 * scale + 6)), cv2.FONT_HERSHEY_SIMPLEX, scale,
+                    (255, 255, 0), 1, cv2.LINE_AA)
     return out
 
 
@@ -954,7 +966,8 @@ def run_perception(job: PerceptionJob, out_dir: str | os.PathLike, config: VioCo
     cols = diag.as_columns()
     np.savetxt(out / "vio_frames.csv", np.column_stack([cols[k].astype(float) for k in cols]), delimiter=",",
                header=",".join(cols), comments="", fmt="%.6g")
-    errors = {"vio": trajectory_errors(truth, vio, rpe_delta_m), "dead_reckoning": trajectory_errors(truth, dr, rpe_delta_m)}
+    errors = {"vio": trajectory_errors(truth, vio, rpe_delta_m),
+              "dead_reckoning": trajectory_errors(truth, dr, rpe_delta_m)}
     plots = plot_estimates(truth, {"VIO": vio, "dead reckoning": dr}, out,
                            title=f"{job.config.name}: {job.body} from {job.camera} + IMU", diagnostics=diag)
     distance = errors["vio"]["distance_m"]
