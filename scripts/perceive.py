@@ -5,14 +5,17 @@
     python scripts/perceive.py runs/vio_flight --out runs/vio_flight/perception
 
 Reads RUN_DIR (``trajectory.csv`` and ``config.yaml`` of scripts/simulate.py), renders the
-camera's images of the textured ground at ``--camera-rate`` Hz and ``--size`` pixels,
+camera's images at ``--camera-rate`` Hz and ``--size`` pixels,
 simulates the UAV's IMU (paper Table IMU_simulator), runs VIO and IMU-only dead reckoning
 (mysim_jax/perception/vio.py; the initial state is the true one at the first image) and
 writes into OUT: ``trajectory_vio.tum``, ``trajectory_dead_reckoning.tum``,
 ``trajectory_true.tum`` (t x y z qx qy qz qw), ``metrics.json`` (ATE with and without SE(3)
 alignment, RPE, distance flown, from evo), ``vio_frames.csv`` (features, inliers,
 keyframes per image), plots (``estimation_paths.png``, ``estimation_error.png``,
-``vio_features.png``), a few images with their features and ``features.mp4``.
+``vio_features.png``), a few images with their features, ``features.mp4`` and
+``replay.html`` (the run in 3D with a time slider, as scripts/simulate.py writes it).
+The images are the full renderer's (mysim_jax/perception/render.py): the textured ground
+and every other UAV, the net, the tethers and the target in view.
 
 ``--camera`` picks a fixed camera (default: the first one, on ``--body`` if given). Bad
 input (a missing folder or column, an unknown body or camera, a zero image size, a camera
@@ -46,6 +49,7 @@ def main(argv=None) -> int:
     parser.add_argument("--seed", type=int, default=0, help="seed of the IMU noise, the ground texture and the "
                         "image noise (default 0)")
     parser.add_argument("--no-video", action="store_true", help="do not write features.mp4")
+    parser.add_argument("--no-replay", action="store_true", help="do not write replay.html (the run in 3D)")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     args = parser.parse_args(argv)
 
@@ -66,6 +70,11 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     with staged_output(out) as tmp:
         metrics = run_perception(job, tmp, progress=not args.no_progress, video=not args.no_video)
+        if not args.no_replay:
+            from mysim_jax.io.replay import write_replay_html
+
+            write_replay_html(job.columns, job.config, tmp / "replay.html",
+                              title=f"{job.config.name} (perceived: {job.body} from {job.camera})")
     wall = time.perf_counter() - t0
     s = metrics["summary"]
     print(f"{metrics['scene']}: {metrics['body']} from {metrics['camera']} + IMU, {metrics['frames']} images "

@@ -880,6 +880,27 @@ def render_ground_images(job: PerceptionJob, texture=None, noise_sigma: float = 
         yield float(poses.t[row]), np.clip(np.rint(grey), 0, 255).astype(np.uint8)
 
 
+def render_scene_images(job: PerceptionJob, noise_sigma: float = 1.0,
+                        seed: int = 0) -> Iterator[tuple[float, np.ndarray]]:
+    """(t s, (H, W) uint8 image) of the job's camera at its image rows, as the full renderer
+    (:class:`mysim_jax.perception.render.Renderer`) draws it: the textured ground (the same
+    :class:`~mysim_jax.perception.ground.GroundTexture` of ``seed``) under sun and haze, and
+    every other UAV, the net, the tethers and the target that come into view (moving
+    objects whose features the front end has to reject), in grey levels 0-255 (OpenCV's
+    RGB -> grey weights), plus white pixel noise of ``noise_sigma`` grey levels (seeded)."""
+    import cv2
+
+    from mysim_jax.perception.ground import GroundTexture
+    from mysim_jax.perception.render import Renderer
+
+    renderer = Renderer(job.config, job.camera_model.intr, texture=GroundTexture(seed=seed))
+    rng = np.random.default_rng(seed)
+    for frame in renderer.render_many(job.columns, job.camera, [int(r) for r in job.rows], progress=False):
+        grey = cv2.cvtColor(frame.image, cv2.COLOR_RGB2GRAY).astype(np.float64)
+        grey += rng.normal(0.0, noise_sigma, grey.shape)
+        yield float(frame.t), np.clip(np.rint(grey), 0, 255).astype(np.uint8)
+
+
 def draw_features(image: np.ndarray, features, text: str = "") -> np.ndarray:
     """(H, W, 3) BGR copy of a grey image with its features: tracked ones green, new ones red."""
     import cv2
@@ -934,7 +955,7 @@ def run_perception(job: PerceptionJob, out_dir: str | os.PathLike, config: VioCo
     snap_at = set(np.linspace(0, len(job.rows) - 1, n_snapshots).round().astype(int).tolist()) if n_snapshots else set()
     ts, Rs, ps = [], [], []
     snapshots = []
-    frames = render_ground_images(job, seed=seed)
+    frames = render_scene_images(job, seed=seed)
     for i, (t, image) in enumerate(tqdm(frames, total=len(job.rows), desc="render + VIO", unit="img",
                                         disable=not progress)):
         R, p, _ = est.add_image(t, image)
