@@ -29,6 +29,10 @@ Sections (``--only`` takes their letters):
      memory per env; and where a policy step's time goes (control periods, physics
      stages, the environment's own work) at batch 256.
   f  profile: where the time of one batched step goes, by timing stage variants.
+  g  training throughput (MAPPO).
+  h  rendering: frames per second of the camera renderer (mysim_jax/bench/render.py) at
+     1920 x 1080 and 640 x 360, for an onboard and an observer view of a capture run and
+     a ground-only view; writes an example frame to docs/bench/render_example.png.
 
 Timing method: every timed quantity is the median of repeats; variants that are compared
 with each other are timed round-robin (one call of each in turn, repeated) so that a busy
@@ -70,7 +74,7 @@ COLLISION_HEAVY = ROOT / "configs" / "collision_heavy.yaml"
 ROPE_NET_SLACK = ROOT / "configs" / "rope_net_slack.yaml"
 CAPTURE_FALLING = ROOT / "configs" / "capture_falling.yaml"
 CAPTURE_ENV = ROOT / "configs" / "capture_env_falling.yaml"
-SECTIONS = ("a", "b", "c", "d", "e", "f", "g")
+SECTIONS = ("a", "b", "c", "d", "e", "f", "g", "h")
 TRAIN_CAPTURE = ROOT / "configs" / "train_capture_falling.yaml"
 
 # The throughput setting of the performance targets.
@@ -1598,6 +1602,10 @@ def summary_lines(results) -> list[str]:
         out.append(f"- Training (g), MAPPO on the capture environment: **{g['iteration']:,.0f} team env-steps/s "
                    f"including the update**, against {g['env']:,.0f} for the environment alone "
                    f"({g['iteration'] / g['env']:.0%}).")
+    if "h" in results:
+        h = results["h"]
+        rates = lambda size: ", ".join(f"{k.split()[0]} {v:.1f}" for k, v in h.items() if k.endswith(size))
+        out.append(f"- Rendering (h), frames/s: 640 × 360: {rates('640x360')}; 1920 × 1080: {rates('1920x1080')}.")
     if "f" in results and "floor" in results["f"]:
         f = results["f"]
         out.append(f"- Profile (f), B = {HEADLINE_BATCH}: library (batch last) {f['library']:,.0f} env-steps/s; "
@@ -1941,6 +1949,47 @@ def training_runs_lines() -> list[str]:
     return lines
 
 
+def section_h(cfg, results) -> list[str]:
+    """Rendering speed (mysim_jax/bench/render.py): a capture run seen by an onboard and an
+    observer camera, and ground only, at 1920 x 1080 and 640 x 360."""
+    import cv2
+
+    from mysim_jax.bench.render import capture_run, example_image, measure
+
+    t0 = time.perf_counter()
+    config, columns = capture_run(t_end=1.6)
+    sim_s = time.perf_counter() - t0
+    wait_for_quiet(cfg.max_wait_s, "h")
+    rows, frames = measure(config, columns, repeats=3 if cfg.quick else 7, section="h")
+    results["h"] = {f"{r.view} {r.width}x{r.height}": r.fps for r in rows}
+    picture = cfg.plots_dir / "render_example.png"
+    cv2.imwrite(str(picture), cv2.cvtColor(example_image(frames), cv2.COLOR_RGB2BGR))
+    onboard = frames["onboard"]
+    lines = [
+        "## (h) Rendering (camera images)",
+        "",
+        f"`Renderer.render` (mysim_jax/perception/render.py) on `{CAPTURE_FALLING.relative_to(ROOT)}` with a "
+        f"camera `cam0` on uav0 (yawed to the net, pitched 35° down), simulated 1.6 s ({sim_s:.0f} s, compile "
+        f"included). Views at t = {onboard.t:.2f} s (the row where cam0 sees the most of the target, all of it in the image): "
+        "**onboard** (cam0), **observer** (a free camera 8 m from the net: four UAVs, net, tethers, target) and "
+        "**ground** (the observer turned away: ground and sky only). One call = inputs checked, ground, objects, "
+        f"compositing, target boxes; median of the counted rounds, timed round-robin "
+        f"(mysim_jax/bench/render.py). {contention_note('h', 3 if cfg.quick else 7)}",
+        "",
+        "| view | image | ms per frame | frames/s | object pixels | target pixels | spread |",
+        "|---|---|---:|---:|---:|---:|---:|",
+    ]
+    for r in rows:
+        lines.append(f"| {r.view} | {r.width} × {r.height} | {1e3 * median(r.times):.0f} | {r.fps:.1f} | "
+                     f"{r.object_px:,} | {r.target_px:,} | {spread(r.times)} |")
+    small = [r for r in rows if (r.width, r.height) == (640, 360)]
+    slowest = min(small, key=lambda r: r.fps)
+    lines += ["", f"A 30 s flight at 20 Hz (600 frames) at 640 × 360 takes ~{600 / slowest.fps / 60:.1f} min "
+              f"at the slowest view's rate ({slowest.view}).", "",
+              f"![rendered frames](docs/bench/{picture.name})", ""]
+    return lines
+
+
 @dataclass
 class BenchConfig:
     quick: bool
@@ -2015,7 +2064,7 @@ def main(argv=None) -> int:
     results: dict[str, Any] = {}
     body: list[str] = []
     runners = {"a": section_a, "b": section_b, "c": section_c, "d": section_d, "e": section_e, "f": section_f,
-               "g": section_g}
+               "g": section_g, "h": section_h}
     order = [s for s in SECTIONS if s in sections]
     for s in tqdm(order, desc="bench sections", unit="section"):
         t0 = time.perf_counter()

@@ -11,7 +11,9 @@ scene's ``output.plot`` list. Scenes with controlled quadrotors also get the ref
 columns ``NAME_ref_x/y/z/yaw`` and motor columns ``NAME_rotor1..4`` in the CSV, the
 reference drawn on the position plot, ``NAME_path.png`` (reference against actual path)
 and the RMS / max tracking errors under ``tracking`` in ``metrics.json``. ``--gains``
-applies a gains file written by ``scripts/tune_pid.py``.
+applies a gains file written by ``scripts/tune_pid.py``. ``replay.html`` is an
+interactive 3D replay of the run (time slider, play / pause; one self-contained file
+that opens offline in a browser; mysim_jax/io/replay.py); ``--no-replay`` skips it.
 
 Every input (config file, overrides, gains file, the OUT folder) is checked before
 anything is compiled; a problem is a one-line error naming the file or field, exit code
@@ -37,6 +39,8 @@ def main(argv=None) -> int:
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="override a config value, e.g. --set sim.dt=5e-4 (repeatable)")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    parser.add_argument("--no-replay", action="store_true", help="do not write replay.html (the interactive 3D "
+                        "replay of the run)")
     parser.add_argument("--gains", metavar="FILE", help="controller gains for the quadrotors (YAML, e.g. the "
                         "gains.yaml of scripts/tune_pid.py); --set overrides still apply on top")
     args = parser.parse_args(argv)
@@ -65,6 +69,7 @@ def main(argv=None) -> int:
     from mysim_jax.control.tracking import motor_columns, reference_columns, tracking_metrics
     from mysim_jax.io.output import staged_output
     from mysim_jax.io.plots import plot_kinematics, plot_path
+    from mysim_jax.io.replay import write_replay_html
     from mysim_jax.io.trajectory import trajectory_columns, write_trajectory_csv
     from mysim_jax.sim import simulate
 
@@ -117,6 +122,8 @@ def main(argv=None) -> int:
             capture = capture_report(columns, scene, params, config, tmp)
             metrics["capture"] = capture
             plots += capture["plots"]
+        if not args.no_replay and len(traj.time):
+            write_replay_html(columns, config, tmp / "replay.html")
         if not traj.ok:
             metrics["failure"] = traj.failure
         if tracking:
@@ -128,7 +135,8 @@ def main(argv=None) -> int:
               f"{out}/ (metrics.json status: failed)", file=sys.stderr)
         return 3
     print(f"{run.name}: simulated {reached:g} s with {scene.integrator} ({scene.precision}) "
-          f"in {wall:.2f} s (compile included); wrote {out}/trajectory.csv and {len(plots)} plots")
+          f"in {wall:.2f} s (compile included); wrote {out}/trajectory.csv"
+          + ("" if args.no_replay else f", {out}/replay.html (open it in a browser)") + f" and {len(plots)} plots")
     if "capture" in metrics:
         c = metrics["capture"]
         verdict = (f"caught: held in the net from t = {c['held_from_s']:g} s to the end" if c["caught"]

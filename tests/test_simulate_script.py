@@ -37,6 +37,18 @@ def test_rope_net_outputs(tmp_path):
     assert resolved["sim"]["t_end"] == 0.1 and resolved["sim"]["integrator"] == "rk4"
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["n_outputs"] == 101
+    # the interactive replay, by default: one self-contained HTML file of the run
+    replay = (out / "replay.html").read_text()
+    assert "Plotly.newPlot" in replay and "Plotly.addFrames" in replay and "rope_net" in replay
+    assert f"{out}/replay.html" in res.stdout
+
+
+def test_no_replay(tmp_path):
+    out = tmp_path / "rope"
+    res = _run(CONFIGS / "rope_net.yaml", "--out", out, "--set", "sim.t_end=0.002", "--no-progress", "--no-replay")
+    assert res.returncode == 0, res.stderr
+    assert (out / "trajectory.csv").exists() and not (out / "replay.html").exists()
+    assert "replay.html" not in res.stdout
 
 
 def test_bad_input_exits_with_a_clear_message(tmp_path):

@@ -141,7 +141,11 @@ def _write_rows(path: Path, rows: list[dict]) -> None:
 
 
 def plot_curves(rows: list[dict], path: Path, title: str) -> Path | None:
-    """Learning curves of ``metrics.csv`` rows: return, success rate, losses, entropy."""
+    """Learning curves of ``metrics.csv`` rows: return, success rate, episode length, losses, entropy.
+
+    Return, success and length are per episode: iterations in which no episode ended leave a
+    gap rather than a zero.
+    """
     if not rows:
         return None
     import matplotlib
@@ -152,12 +156,16 @@ def plot_curves(rows: list[dict], path: Path, title: str) -> Path | None:
 
     x = np.array([float(r["env_steps"]) for r in rows])
     panels = [("mean_return", "mean episode return"), ("success_rate", "success rate (episodes ended)"),
-              ("value_loss", "value loss"), ("policy_loss", "policy loss"), ("entropy", "policy entropy"),
-              ("approx_kl", "approx. KL")]
+              ("mean_length", "mean episode length [team steps]"), ("value_loss", "value loss"),
+              ("policy_loss", "policy loss"), ("entropy", "policy entropy")]
+    per_episode = {"mean_return", "success_rate", "mean_length"}
+    ended = np.array([float(r.get("episodes", 1.0)) > 0 for r in rows])
     fig, axes = plt.subplots(2, 3, figsize=(13, 6.5))
     for ax, (key, label) in zip(axes.ravel(), panels):
         y = np.array([float(r[key]) for r in rows])
-        ax.plot(x, y, lw=1.2)
+        if key in per_episode:
+            y = np.where(ended, y, np.nan)
+        ax.plot(x, y, lw=1.2, marker="." if key in per_episode else None, ms=2)
         ax.set_title(label, fontsize=10)
         ax.set_xlabel("team steps")
         ax.grid(alpha=0.3)
