@@ -167,7 +167,7 @@ class VioConfig:
     initial_bias_sigma_gyro: float = 0.01     # rad/s
     relinearize_threshold: float = 0.01
     factorization: str = "CHOLESKY"           # iSAM2's: CHOLESKY or QR
-    extra_iterations: int = 1                 # smoother updates without new factors after each keyframe
+    extra_iterations: int = 0                 # smoother updates without new factors after each keyframe
 
     def __post_init__(self):
         positive = ("pixel_sigma", "huber_k", "keyframe_parallax_px", "keyframe_max_interval", "lag",
