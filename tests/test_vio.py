@@ -304,8 +304,8 @@ def short_vio(texture):
 
 def test_vio_beats_dead_reckoning(short_vio):
     """Over 4 s (6.2 m) with unknown IMU biases, VIO stays on the flight while dead
-    reckoning drifts. Measured ATE: VIO 5.4 mm (2.6 mm SE(3)-aligned), dead reckoning
-    0.16 m; RPE over 1 m: 6.4 mm against 61 mm; 39 of 81 images were keyframes."""
+    reckoning drifts. Measured ATE: VIO 5.3 mm (2.4 mm SE(3)-aligned), dead reckoning
+    0.16 m; RPE over 1 m: 6.1 mm against 61 mm; 39 of 81 images were keyframes."""
     result, dr, truth = short_vio
     vio_err = trajectory_errors(truth, result.trajectory, rpe_delta_m=1.0)
     dr_err = trajectory_errors(truth, dr, rpe_delta_m=1.0)
