@@ -34,17 +34,7 @@ def _xyz(columns, name):
 def net_lines(columns, config):
     """Polylines ``[(n_out, n_i, 3), ...]`` of every net edge and tether, through its masses."""
     net = config.net
-    g = net.knots
-    lines = []
-    for i in range(g):
-        for j in range(g):
-            for kind, end in (("h", (i, j + 1)), ("v", (i + 1, j))):
-                if end[0] >= g or end[1] >= g:
-                    continue
-                rope = f"{net.name}_{kind}{i}_{j}"
-                names = [net.knot_name(i, j)] + [f"{rope}_{m}" for m in range(net.masses_per_edge)]
-                names.append(net.knot_name(*end))
-                lines.append(np.stack([_xyz(columns, n) for n in names], axis=1))
+    lines = [np.stack([_xyz(columns, n) for n in names], axis=1) for names in net.edge_chains()]
     if net.tethers is not None:
         for n, (uav, knot) in enumerate(zip(net.tethers.uavs, net.tether_knots())):
             names = [net.knot_name(*knot)] + [f"{net.name}_t{n}_{m}" for m in range(net.tethers.n_masses)] + [uav]

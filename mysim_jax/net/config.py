@@ -114,6 +114,22 @@ class NetConfig(StrictModel):
     def knot_name(self, i: int, j: int) -> str:
         return f"{self.name}_k{i}_{j}"
 
+    def edge_chains(self) -> list[list[str]]:
+        """Point names along every edge of the net, knot to knot through its lumped masses:
+        ``[knot (i, j), masses..., knot (i, j + 1) or (i + 1, j)]``, row edges (``h``) and
+        column edges (``v``) in row-major order of their first knot."""
+        g = self.knots
+        chains = []
+        for i in range(g):
+            for j in range(g):
+                for kind, end in (("h", (i, j + 1)), ("v", (i + 1, j))):
+                    if end[0] >= g or end[1] >= g:
+                        continue
+                    rope = f"{self.name}_{kind}{i}_{j}"
+                    chains.append([self.knot_name(i, j)] + [f"{rope}_{m}" for m in range(self.masses_per_edge)]
+                                  + [self.knot_name(*end)])
+        return chains
+
     def corner_knots(self) -> list[tuple[int, int]]:
         g = self.knots - 1
         return [(0, 0), (0, g), (g, g), (g, 0)]

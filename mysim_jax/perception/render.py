@@ -386,19 +386,11 @@ class Renderer:
 
             net_id = len(names)
             names.append(net.name)
-            g = net.knots
-            for i in range(g):
-                for j in range(g):
-                    for kind, end in (("h", (i, j + 1)), ("v", (i + 1, j))):
-                        if end[0] >= g or end[1] >= g:
-                            continue
-                        rope = f"{net.name}_{kind}{i}_{j}"
-                        chain = [net.knot_name(i, j)] + [f"{rope}_{m}" for m in range(net.masses_per_edge)]
-                        chain.append(net.knot_name(*end))
-                        ids = [point(n) for n in chain]
-                        segments += [(a, b, net_id) for a, b in zip(ids[:-1], ids[1:])]
-                        radius += [net.line.diameter / 2] * (len(ids) - 1)
-                        colours += [NET] * (len(ids) - 1)
+            for chain in net.edge_chains():
+                ids = [point(n) for n in chain]
+                segments += [(a, b, net_id) for a, b in zip(ids[:-1], ids[1:])]
+                radius += [net.line.diameter / 2] * (len(ids) - 1)
+                colours += [NET] * (len(ids) - 1)
             if net.tethers is not None:
                 t = net.tethers
                 for k, (uav, knot) in enumerate(zip(t.uavs, net.tether_knots())):

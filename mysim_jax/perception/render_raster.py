@@ -132,16 +132,21 @@ def _sphere_boxes(intr: Intrinsics, centre: np.ndarray, radius: np.ndarray, marg
     return out
 
 
+def _enumerate(counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For ``counts[k]`` items of each group k: every item's group and its index within it."""
+    total = int(counts.sum())
+    owner = np.repeat(np.arange(len(counts)), counts)
+    local = np.arange(total, dtype=np.int64) - np.repeat(np.cumsum(counts) - counts, counts)
+    return owner, local
+
+
 def _box_pixels(boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Pixels (u, v) inside boxes [u0, u1) x [v0, v1), and the box each belongs to."""
     wu = np.maximum(boxes[:, 1] - boxes[:, 0], 0)
     wv = np.maximum(boxes[:, 3] - boxes[:, 2], 0)
-    counts = wu * wv
-    total = int(counts.sum())
-    owner = np.repeat(np.arange(len(boxes)), counts)
-    if total == 0:
+    owner, local = _enumerate(wu * wv)
+    if owner.size == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64), owner
-    local = np.arange(total, dtype=np.int64) - np.repeat(np.cumsum(counts) - counts, counts)
     wu_o = wu[owner]
     u = boxes[owner, 0] + local % wu_o
     v = boxes[owner, 2] + local // wu_o
@@ -173,12 +178,9 @@ def _band_pixels(intr: Intrinsics, p0: np.ndarray, p1: np.ndarray,
     extent = half * np.sqrt(1.0 + slope * slope)             # minor half extent at one major step
     n_minor = (np.floor(2 * extent) + 1).astype(np.int64)    # whole pixels in [centre - extent, centre + extent]
     n_major = np.maximum(stop - start, 0)
-    counts = n_major * n_minor
-    total = int(counts.sum())
-    owner = np.repeat(np.arange(len(p0)), counts)
-    if total == 0:
+    owner, local = _enumerate(n_major * n_minor)
+    if owner.size == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64), owner
-    local = np.arange(total, dtype=np.int64) - np.repeat(np.cumsum(counts) - counts, counts)
     m = n_minor[owner]
     a = start[owner] + local // m
     a_on = np.clip(a, lo_a[owner], hi_a[owner])
