@@ -48,6 +48,18 @@ and IMU bias ``B(k)``, plus landmarks ``L(j)`` (world points, m):
 * priors on the first keyframe's pose and velocity (the true initial state, tight) and
   bias (zero, with ``initial_bias_sigma_*``).
 
+Robustness to a non-static world (other UAVs, the net and tethers move through the view):
+a landmark must lie between ``min_depth`` and ``max_depth`` in front of every camera that
+saw it; a landmark's new observation is first checked against its projection at the
+IMU-predicted pose (``gate_px``) and its track is dropped if it is off (features on moving
+objects drift away from their landmark). **Failure recovery**: if the smoother's update
+still raises (iSAM2 finds the window indeterminate), the smoother is re-initialised at the
+keyframe, at the IMU's prediction from the last good estimate, with priors on pose,
+velocity (``reset_pose_sigma``, ``reset_velocity_sigma``) and the last bias estimate,
+and without landmarks (as VINS-Mono's failure detection restarts its estimator); resets
+are counted (``VioEstimator.n_resets``, ``FrameDiagnostics.reset``, ``backend_resets``
+in metrics.json).
+
 Dead reckoning (the baseline): the same IMU samples, integrated the same way from the same
 initial state and zero bias, with no camera: the NavState is predicted from each image's
 time to the next (``PreintegratedImuMeasurements.predict``) over the whole run.
@@ -161,6 +173,9 @@ class VioConfig:
     min_depth: float = 0.1                    # m, a landmark closer to (or behind) a camera is rejected
     gate_px: float = 8.0                      # px, a landmark's new observation farther than this from its
                                               # projection at the IMU-predicted pose is an outlier (track dropped)
+    shock_accel_jump: float = 30.0            # m/s^2 between consecutive IMU samples: a shock (impact, tether jerk)
+    shock_gyro_jump: float = 2.0              # rad/s between consecutive IMU samples: a shock
+    shock_noise_scale: float = 1000.0         # IMU noise densities x this over a keyframe interval with a shock
     max_depth: float = 200.0                  # m, a landmark farther from a camera is rejected (ill-conditioned)
     reset_pose_sigma: tuple[float, float] = (1e-3, 1e-2)       # rad, m: priors of a smoother re-initialised
     reset_velocity_sigma: float = 0.05        # m/s        after a failed update (see VioEstimator)
@@ -176,7 +191,7 @@ class VioConfig:
 
     def __post_init__(self):
         positive = ("pixel_sigma", "huber_k", "keyframe_parallax_px", "keyframe_max_interval", "lag",
-                    "min_triangulation_deg", "max_reprojection_px", "min_depth", "max_depth", "gate_px", "reset_velocity_sigma", "imu_noise_scale",
+                    "min_triangulation_deg", "max_reprojection_px", "min_depth", "max_depth", "gate_px", "shock_accel_jump", "shock_gyro_jump", "shock_noise_scale", "reset_velocity_sigma", "imu_noise_scale",
                     "bias_walk_scale", "initial_velocity_sigma", "initial_bias_sigma_accel",
                     "initial_bias_sigma_gyro", "relinearize_threshold")
         bad = [f"{k} (must be positive)" for k in positive if not getattr(self, k) > 0]
@@ -445,6 +460,14 @@ class VioEstimator:
         self.body_P_cam = gtsam.Pose3(gtsam.Rot3(np.asarray(camera.body_R_cam, float)),
                                       np.asarray(camera.body_t_cam, float))
         self.params = _preintegration_params(noise, config.imu_noise_scale, gravity)
+        self.shock_params = _preintegration_params(noise, config.imu_noise_scale * config.shock_noise_scale, gravity)
+        # IMU shocks (impacts, tether jerks): a 200 Hz IMU aliases them and their integration is
+        # unreliable; the keyframe interval that holds one gets a loose ImuFactor
+        jump_a = np.linalg.norm(np.diff(self.integ.accel, axis=0), axis=1)
+        jump_w = np.linalg.norm(np.diff(self.integ.gyro, axis=0), axis=1)
+        shock = (jump_a > config.shock_accel_jump) | (jump_w > config.shock_gyro_jump)
+        self.shock_t = self.integ.t[1:][shock]        # times of the samples after a jump
+        self.n_shocks = 0                             # keyframe intervals with a shock
         self.bias_walk = config.bias_walk_scale * np.r_[np.full(3, noise.accel_random_walk),
                                                         np.full(3, noise.gyro_random_walk)]
         isam = gtsam.ISAM2Params()
@@ -542,6 +565,7 @@ class VioEstimator:
 
         c = self.config
         k = len(self.kf_t)
+        shock = False
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
         stamps = {}
@@ -558,6 +582,11 @@ class VioEstimator:
         else:
             pred = self.pim.predict(self.nav, self.bias)
             pose, vel = pred.pose(), pred.velocity()
+            shock = bool(np.any((self.shock_t > self.kf_t[-1] - 0.01) & (self.shock_t <= t + 0.01)))
+            if shock:
+                self.n_shocks += 1
+                self.pim = gtsam.PreintegratedImuMeasurements(self.shock_params, self.bias)
+                self.integ.integrate(self.pim, self.kf_t[-1], t)
             graph.add(gtsam.ImuFactor(_X(k - 1), _V(k - 1), _X(k), _V(k), _B(k - 1), self.pim))
             dt = t - self.kf_t[-1]
             graph.add(gtsam.BetweenFactorConstantBias(_B(k - 1), _B(k), gtsam.imuBias.ConstantBias(),
@@ -585,10 +614,13 @@ class VioEstimator:
                 continue
             track.obs.append((k, uv))
             if track.landmark is not None and self._in_window(self.landmark_last_t[track.landmark], t):
+                if shock:                          # the IMU-predicted pose is not reliable
+                    Xc = None
                 # outlier gate: the landmark seen from the IMU-predicted pose must be in front
                 # and near the feature (features on moving objects drift away from it)
-                Xc = R_pred.T @ (self.landmark_pos[track.landmark] - p_pred)
-                if (not c.min_depth <= Xc[2] <= c.max_depth
+                else:
+                    Xc = R_pred.T @ (self.landmark_pos[track.landmark] - p_pred)
+                if Xc is not None and (not c.min_depth <= Xc[2] <= c.max_depth
                         or np.linalg.norm((self.camera.intr.K @ (Xc / Xc[2]))[:2] - uv) > c.gate_px):
                     track.rejected = True
                     track.obs.pop()
@@ -1069,6 +1101,7 @@ def run_perception(job: PerceptionJob, out_dir: str | os.PathLike, config: VioCo
         "keyframes": int(diag.keyframe.sum()),
         "landmarks": int(est.n_landmarks),
         "backend_resets": int(est.n_resets),
+        "imu_shock_intervals": int(est.n_shocks),
         "mean_features": float(diag.n_features.mean()),
         "mean_tracked_inliers": float(diag.n_inliers[1:].mean()) if len(diag.t) > 1 else 0.0,
         "errors": errors,
