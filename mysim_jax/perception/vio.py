@@ -52,7 +52,11 @@ Robustness to a non-static world (other UAVs, the net and tethers move through t
 a landmark must lie between ``min_depth`` and ``max_depth`` in front of every camera that
 saw it; a landmark's new observation is first checked against its projection at the
 IMU-predicted pose (``gate_px``) and its track is dropped if it is off (features on moving
-objects drift away from their landmark). **Failure recovery**: if the smoother's update
+objects drift away from their landmark). IMU shocks (a tether jerking taut, an impact:
+hundreds of m/s^2 for a few milliseconds, which a 200 Hz IMU aliases) are detected as jumps
+between consecutive samples (``shock_accel_jump``, ``shock_gyro_jump``); the ImuFactor of the
+keyframe interval holding one has its noise densities scaled by ``shock_noise_scale`` (the
+camera then sets that keyframe's pose) and its observations skip the gate. **Failure recovery**: if the smoother's update
 still raises (iSAM2 finds the window indeterminate), the smoother is re-initialised at the
 keyframe, at the IMU's prediction from the last good estimate, with priors on pose,
 velocity (``reset_pose_sigma``, ``reset_velocity_sigma``) and the last bias estimate,
