@@ -80,6 +80,8 @@ def main(argv=None) -> int:
     print(f"{metrics['scene']}: {metrics['body']} from {metrics['camera']} + IMU, {metrics['frames']} images "
           f"({metrics['keyframes']} keyframes) in {wall:.1f} s; wrote {out}/")
     print(f"  distance flown {s['distance_m']:.2f} m")
+    if metrics.get("backend_resets"):
+        print(f"  the VIO back end failed and was re-initialised {metrics['backend_resets']} time(s)")
     for name, key in (("VIO", "vio"), ("dead reckoning", "dead_reckoning")):
         e = metrics["errors"][key]
         rpe = ("" if e["rpe_translation_rmse_m"] is None else

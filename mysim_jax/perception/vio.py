@@ -48,6 +48,22 @@ and IMU bias ``B(k)``, plus landmarks ``L(j)`` (world points, m):
 * priors on the first keyframe's pose and velocity (the true initial state, tight) and
   bias (zero, with ``initial_bias_sigma_*``).
 
+Robustness to a non-static world (other UAVs, the net and tethers move through the view):
+a landmark must lie between ``min_depth`` and ``max_depth`` in front of every camera that
+saw it; a landmark's new observation is first checked against its projection at the
+IMU-predicted pose (``gate_px``) and its track is dropped if it is off (features on moving
+objects drift away from their landmark). IMU shocks (a tether jerking taut, an impact:
+hundreds of m/s^2 for a few milliseconds, which a 200 Hz IMU aliases) are detected as jumps
+between consecutive samples (``shock_accel_jump``, ``shock_gyro_jump``); the ImuFactor of the
+keyframe interval holding one has its noise densities scaled by ``shock_noise_scale`` (the
+camera then sets that keyframe's pose) and its observations skip the gate. **Failure recovery**: if the smoother's update
+still raises (iSAM2 finds the window indeterminate), the smoother is re-initialised at the
+keyframe, at the IMU's prediction from the last good estimate, with priors on pose,
+velocity (``reset_pose_sigma``, ``reset_velocity_sigma``) and the last bias estimate,
+and without landmarks (as VINS-Mono's failure detection restarts its estimator); resets
+are counted (``VioEstimator.n_resets``, ``FrameDiagnostics.reset``, ``backend_resets``
+in metrics.json).
+
 Dead reckoning (the baseline): the same IMU samples, integrated the same way from the same
 initial state and zero bias, with no camera: the NavState is predicted from each image's
 time to the next (``PreintegratedImuMeasurements.predict``) over the whole run.
@@ -159,6 +175,14 @@ class VioConfig:
     min_triangulation_deg: float = 1.0        # deg, spread of its rays
     max_reprojection_px: float = 3.0          # px
     min_depth: float = 0.1                    # m, a landmark closer to (or behind) a camera is rejected
+    gate_px: float = 8.0                      # px, a landmark's new observation farther than this from its
+                                              # projection at the IMU-predicted pose is an outlier (track dropped)
+    shock_accel_jump: float = 30.0            # m/s^2 between consecutive IMU samples: a shock (impact, tether jerk)
+    shock_gyro_jump: float = 2.0              # rad/s between consecutive IMU samples: a shock
+    shock_noise_scale: float = 1000.0         # IMU noise densities x this over a keyframe interval with a shock
+    max_depth: float = 200.0                  # m, a landmark farther from a camera is rejected (ill-conditioned)
+    reset_pose_sigma: tuple[float, float] = (1e-3, 1e-2)       # rad, m: priors of a smoother re-initialised
+    reset_velocity_sigma: float = 0.05        # m/s        after a failed update (see VioEstimator)
     imu_noise_scale: float = 1.0              # the estimator's IMU noise densities = this x the sensor's
     bias_walk_scale: float = 30.0             # the estimator's bias random walks = this x the sensor's (see below)
     initial_pose_sigma: tuple[float, float] = (1e-4, 1e-4)     # rad, m
@@ -171,12 +195,14 @@ class VioConfig:
 
     def __post_init__(self):
         positive = ("pixel_sigma", "huber_k", "keyframe_parallax_px", "keyframe_max_interval", "lag",
-                    "min_triangulation_deg", "max_reprojection_px", "min_depth", "imu_noise_scale",
+                    "min_triangulation_deg", "max_reprojection_px", "min_depth", "max_depth", "gate_px", "shock_accel_jump", "shock_gyro_jump", "shock_noise_scale", "reset_velocity_sigma", "imu_noise_scale",
                     "bias_walk_scale", "initial_velocity_sigma", "initial_bias_sigma_accel",
                     "initial_bias_sigma_gyro", "relinearize_threshold")
         bad = [f"{k} (must be positive)" for k in positive if not getattr(self, k) > 0]
-        if min(self.initial_pose_sigma) <= 0:
-            bad.append("initial_pose_sigma (must be positive)")
+        if min(self.initial_pose_sigma) <= 0 or min(self.reset_pose_sigma) <= 0:
+            bad.append("initial_pose_sigma and reset_pose_sigma (must be positive)")
+        if self.max_depth <= self.min_depth:
+            bad.append("max_depth (must exceed min_depth)")
         if self.min_observations < 2:
             bad.append("min_observations (at least 2)")
         if self.keyframe_min_shared < 0 or self.extra_iterations < 0:
@@ -202,6 +228,7 @@ class FrameDiagnostics:
     n_landmarks: np.ndarray     # (F,) landmarks observed in the image (keyframes; 0 otherwise)
     n_new_landmarks: np.ndarray  # (F,) landmarks triangulated at the image
     update_s: np.ndarray        # (F,) s, wall time of the back-end update
+    reset: np.ndarray           # (F,) bool, the back end failed at the image and was re-initialised
 
     def as_columns(self) -> dict[str, np.ndarray]:
         return {name: np.asarray(getattr(self, name)) for name in self.__dataclass_fields__}
@@ -437,6 +464,14 @@ class VioEstimator:
         self.body_P_cam = gtsam.Pose3(gtsam.Rot3(np.asarray(camera.body_R_cam, float)),
                                       np.asarray(camera.body_t_cam, float))
         self.params = _preintegration_params(noise, config.imu_noise_scale, gravity)
+        self.shock_params = _preintegration_params(noise, config.imu_noise_scale * config.shock_noise_scale, gravity)
+        # IMU shocks (impacts, tether jerks): a 200 Hz IMU aliases them and their integration is
+        # unreliable; the keyframe interval that holds one gets a loose ImuFactor
+        jump_a = np.linalg.norm(np.diff(self.integ.accel, axis=0), axis=1)
+        jump_w = np.linalg.norm(np.diff(self.integ.gyro, axis=0), axis=1)
+        shock = (jump_a > config.shock_accel_jump) | (jump_w > config.shock_gyro_jump)
+        self.shock_t = self.integ.t[1:][shock]        # times of the samples after a jump
+        self.n_shocks = 0                             # keyframe intervals with a shock
         self.bias_walk = config.bias_walk_scale * np.r_[np.full(3, noise.accel_random_walk),
                                                         np.full(3, noise.gyro_random_walk)]
         isam = gtsam.ISAM2Params()
@@ -451,6 +486,7 @@ class VioEstimator:
         self.tracks: dict[int, _Track] = {}
         self.n_landmarks = 0
         self.landmark_last_t: dict[int, float] = {}
+        self.landmark_pos: dict[int, np.ndarray] = {}  # landmark -> world point, latest estimate
         self.kf_t: list[float] = []                   # keyframe times
         self.kf_cam: dict[int, tuple[np.ndarray, np.ndarray]] = {}   # keyframe -> camera (R, p) estimate
         self.kf_ids: np.ndarray | None = None         # track ids and pixels of the last keyframe
@@ -461,6 +497,9 @@ class VioEstimator:
         self.last_t: float | None = None
         self.features = None                          # FrameFeatures of the last image
         self._diag: list[tuple] = []
+        self.n_resets = 0                             # back-end failures recovered from (see _reset)
+        self._reset_now = False
+        self._isam_params = isam
 
     # camera pose of a body NavState / Pose3
     def _camera_pose(self, pose) -> tuple[np.ndarray, np.ndarray]:
@@ -507,7 +546,8 @@ class VioEstimator:
         else:
             state = self.pim.predict(self.nav, self.bias)
         self._diag.append((t, len(ff.ids), ff.n_tracked, ff.n_inliers, ff.n_new, keyframe, n_obs, n_new_lm,
-                           update_s))
+                           update_s, self._reset_now))
+        self._reset_now = False
         return state.attitude().matrix(), np.asarray(state.position()), np.asarray(state.velocity())
 
     def _is_keyframe(self, t: float, ff) -> bool:
@@ -529,6 +569,7 @@ class VioEstimator:
 
         c = self.config
         k = len(self.kf_t)
+        shock = False
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
         stamps = {}
@@ -545,6 +586,11 @@ class VioEstimator:
         else:
             pred = self.pim.predict(self.nav, self.bias)
             pose, vel = pred.pose(), pred.velocity()
+            shock = bool(np.any((self.shock_t > self.kf_t[-1] - 0.01) & (self.shock_t <= t + 0.01)))
+            if shock:
+                self.n_shocks += 1
+                self.pim = gtsam.PreintegratedImuMeasurements(self.shock_params, self.bias)
+                self.integ.integrate(self.pim, self.kf_t[-1], t)
             graph.add(gtsam.ImuFactor(_X(k - 1), _V(k - 1), _X(k), _V(k), _B(k - 1), self.pim))
             dt = t - self.kf_t[-1]
             graph.add(gtsam.BetweenFactorConstantBias(_B(k - 1), _B(k), gtsam.imuBias.ConstantBias(),
@@ -556,6 +602,7 @@ class VioEstimator:
             stamps[key] = t
         self.kf_t.append(t)
         self.kf_cam[k] = self._camera_pose(pose)
+        R_pred, p_pred = self.kf_cam[k]
         for old in [j for j in self.kf_cam if not self._in_window(self.kf_t[j], t)]:
             del self.kf_cam[old]
 
@@ -571,6 +618,17 @@ class VioEstimator:
                 continue
             track.obs.append((k, uv))
             if track.landmark is not None and self._in_window(self.landmark_last_t[track.landmark], t):
+                if shock:                          # the IMU-predicted pose is not reliable
+                    Xc = None
+                # outlier gate: the landmark seen from the IMU-predicted pose must be in front
+                # and near the feature (features on moving objects drift away from it)
+                else:
+                    Xc = R_pred.T @ (self.landmark_pos[track.landmark] - p_pred)
+                if Xc is not None and (not c.min_depth <= Xc[2] <= c.max_depth
+                        or np.linalg.norm((self.camera.intr.K @ (Xc / Xc[2]))[:2] - uv) > c.gate_px):
+                    track.rejected = True
+                    track.obs.pop()
+                    continue
                 graph.add(gtsam.GenericProjectionFactorCal3_S2(uv, self.pixel_noise, _X(k), _L(track.landmark),
                                                                self.K, self.body_P_cam))
                 self.landmark_last_t[track.landmark] = t
@@ -599,10 +657,20 @@ class VioEstimator:
             n_new += 1
             n_obs += 1
         t0 = time.perf_counter()
-        self.smoother.update(graph, values, stamps)
-        for _ in range(c.extra_iterations):
-            self.smoother.update()
-        est = self.smoother.calculateEstimate()
+        try:
+            self.smoother.update(graph, values, stamps)
+            for _ in range(c.extra_iterations):
+                self.smoother.update()
+            est = self.smoother.calculateEstimate()
+            if not np.all(np.isfinite(est.atPose3(_X(k)).translation())):
+                raise RuntimeError("non-finite estimate")
+        except RuntimeError:
+            # failure recovery (as VINS-Mono's failure detection): the window cannot be solved
+            # (e.g. iSAM2 finds it indeterminate); restart the smoother at this keyframe from
+            # the IMU's prediction from the last good estimate, with priors, and no landmarks
+            est = self._reset(k, t, pose, vel)
+            n_obs = n_new = 0
+            observed = []
         update_s = time.perf_counter() - t0
         pose = est.atPose3(_X(k))
         self.nav = gtsam.NavState(pose.rotation(), pose.translation(), est.atVector(_V(k)))
@@ -616,12 +684,42 @@ class VioEstimator:
         by_id = dict(zip(ff.ids.tolist(), ff.uv))
         for tid, j in observed:
             point = est.atPoint3(_L(j))
+            self.landmark_pos[j] = point
             Rc, pc = self.kf_cam[k]
             depth = (point - pc) @ Rc[:, 2]
             if depth < c.min_depth or np.linalg.norm(cam.project(point) - by_id[tid]) > c.max_reprojection_px:
                 self.tracks[tid].rejected = True
         self.kf_ids, self.kf_uv = ff.ids, ff.uv
         return n_obs, n_new, update_s
+
+    def _reset(self, k: int, t: float, pose, vel):
+        """Re-initialise the smoother at keyframe ``k`` (time ``t``) with priors on the pose
+        ``pose``, velocity ``vel`` and the last bias estimate; forget every landmark."""
+        import gtsam
+
+        c = self.config
+        self.n_resets += 1
+        self._reset_now = True
+        self.smoother = gtsam.IncrementalFixedLagSmoother(c.lag, self._isam_params)
+        graph = gtsam.NonlinearFactorGraph()
+        values = gtsam.Values()
+        rs, ps = c.reset_pose_sigma
+        graph.add(gtsam.PriorFactorPose3(_X(k), pose, gtsam.noiseModel.Diagonal.Sigmas(
+            np.r_[np.full(3, rs), np.full(3, ps)])))
+        graph.add(gtsam.PriorFactorVector(_V(k), vel, gtsam.noiseModel.Isotropic.Sigma(3, c.reset_velocity_sigma)))
+        graph.add(gtsam.PriorFactorConstantBias(_B(k), self.bias, gtsam.noiseModel.Diagonal.Sigmas(
+            np.r_[np.full(3, c.initial_bias_sigma_accel), np.full(3, c.initial_bias_sigma_gyro)])))
+        values.insert(_X(k), pose)
+        values.insert(_V(k), vel)
+        values.insert(_B(k), self.bias)
+        self.smoother.update(graph, values, {_X(k): t, _V(k): t, _B(k): t})
+        self.kf_cam = {k: self._camera_pose(pose)}
+        for track in self.tracks.values():
+            track.landmark = None
+            track.obs = [(j, z) for j, z in track.obs if j == k]
+        self.landmark_last_t.clear()
+        self.landmark_pos.clear()
+        return self.smoother.calculateEstimate()
 
     def _triangulate(self, obs: list) -> np.ndarray | None:
         c = self.config
@@ -636,7 +734,7 @@ class VioEstimator:
         X = triangulate(Rs, ps, rays)
         for R, p, (_, z) in zip(Rs, ps, obs):
             Xc = R.T @ (X - p)
-            if Xc[2] < c.min_depth:
+            if not c.min_depth <= Xc[2] <= c.max_depth:
                 return None
             uv = self.camera.intr.K @ (Xc / Xc[2])
             if np.linalg.norm(uv[:2] - z) > c.max_reprojection_px:
@@ -649,9 +747,9 @@ class VioEstimator:
 
     def diagnostics(self) -> FrameDiagnostics:
         """Per-image diagnostics of every image so far."""
-        cols = list(zip(*self._diag)) if self._diag else [[]] * 9
+        cols = list(zip(*self._diag)) if self._diag else [[]] * 10
         names = list(FrameDiagnostics.__dataclass_fields__)
-        dtypes = [float, int, int, int, int, bool, int, int, float]
+        dtypes = [float, int, int, int, int, bool, int, int, float, bool]
         return FrameDiagnostics(**{n: np.asarray(col, dtype=d) for n, col, d in zip(names, cols, dtypes)})
 
 
@@ -1006,6 +1104,8 @@ def run_perception(job: PerceptionJob, out_dir: str | os.PathLike, config: VioCo
         "frames": len(vio.t),
         "keyframes": int(diag.keyframe.sum()),
         "landmarks": int(est.n_landmarks),
+        "backend_resets": int(est.n_resets),
+        "imu_shock_intervals": int(est.n_shocks),
         "mean_features": float(diag.n_features.mean()),
         "mean_tracked_inliers": float(diag.n_inliers[1:].mean()) if len(diag.t) > 1 else 0.0,
         "errors": errors,
