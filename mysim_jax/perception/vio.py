@@ -53,7 +53,8 @@ a landmark must lie between ``min_depth`` and ``max_depth`` in front of every ca
 saw it; a landmark's new observation is first checked against its projection at the
 IMU-predicted pose (``gate_px``) and its track is dropped if it is off (features on moving
 objects drift away from their landmark). IMU shocks (a tether jerking taut, an impact:
-hundreds of m/s^2 for a few milliseconds, which a 200 Hz IMU aliases) are detected as jumps
+hundreds of m/s^2 for a few milliseconds, which a point-sampled IMU aliases and which even an
+anti-aliased one integrates with its attitude and timing errors) are detected as jumps
 between consecutive samples (``shock_accel_jump``, ``shock_gyro_jump``); the ImuFactor of the
 keyframe interval holding one has its noise densities scaled by ``shock_noise_scale`` (the
 camera then sets that keyframe's pose) and its observations skip the gate. **Failure recovery**: if the smoother's update
@@ -465,8 +466,8 @@ class VioEstimator:
                                       np.asarray(camera.body_t_cam, float))
         self.params = _preintegration_params(noise, config.imu_noise_scale, gravity)
         self.shock_params = _preintegration_params(noise, config.imu_noise_scale * config.shock_noise_scale, gravity)
-        # IMU shocks (impacts, tether jerks): a 200 Hz IMU aliases them and their integration is
-        # unreliable; the keyframe interval that holds one gets a loose ImuFactor
+        # IMU shocks (impacts, tether jerks): their integration is unreliable (aliased by a
+        # point-sampled IMU); the keyframe interval that holds one gets a loose ImuFactor
         jump_a = np.linalg.norm(np.diff(self.integ.accel, axis=0), axis=1)
         jump_w = np.linalg.norm(np.diff(self.integ.gyro, axis=0), axis=1)
         shock = (jump_a > config.shock_accel_jump) | (jump_w > config.shock_gyro_jump)
