@@ -10,7 +10,8 @@ simulates the UAV's IMU (paper Table IMU_simulator), runs VIO and IMU-only dead 
 (mysim_jax/perception/vio.py; the initial state is the true one at the first image) and
 writes into OUT: ``trajectory_vio.tum``, ``trajectory_dead_reckoning.tum``,
 ``trajectory_true.tum`` (t x y z qx qy qz qw), ``metrics.json`` (ATE with and without SE(3)
-alignment, RPE, distance flown, from evo), ``vio_frames.csv`` (features, inliers,
+alignment, RPE, distance flown, from evo; and a Gauss-Markov fit of the unaligned position and
+velocity errors, ``error_model``), ``velocity_vio.csv``, ``vio_frames.csv`` (features, inliers,
 keyframes per image), plots (``estimation_paths.png``, ``estimation_error.png``,
 ``vio_features.png``), a few images with their features, ``features.mp4`` and
 ``replay.html`` (the run in 3D with a time slider, as scripts/simulate.py writes it).

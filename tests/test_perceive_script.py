@@ -68,6 +68,13 @@ def test_perceive_end_to_end(run_dir, tmp_path):
     assert "ground truth" in metrics["initial_state"]
     frames = np.loadtxt(out / "vio_frames.csv", delimiter=",", skiprows=1)
     assert frames.shape[0] == 41 and frames[:, 5].sum() == metrics["keyframes"]
+    # the error model is fitted to the files' errors
+    vel = np.loadtxt(out / "velocity_vio.csv", delimiter=",", skiprows=1)
+    np.testing.assert_allclose(vel[:, 4:], np.stack([cols[f"uav0_v{k}"][::10] for k in "xyz"], axis=1), atol=1e-8)
+    model = metrics["error_model"]
+    assert model["position_m"]["pooled"]["sigma"] == pytest.approx(np.sqrt(np.mean((vio.p - true.p) ** 2)), rel=1e-5)
+    assert model["velocity_m_s"]["pooled"]["sigma"] == pytest.approx(np.sqrt(np.mean((vel[:, 1:4] - vel[:, 4:]) ** 2)),
+                                                                     rel=1e-5)
 
 
 def _expect_bad(capsys, out, *args, message):

@@ -408,3 +408,26 @@ def test_vio_recovers_from_a_failed_update(texture):
     assert est.n_resets == 1 and d.reset.sum() == 1 and d.keyframe[np.flatnonzero(d.reset)[0]]
     assert max(errors) < 0.05
     assert d.n_landmarks[np.flatnonzero(d.reset)[0] + 1:].max() > 0      # landmarks again after the reset
+
+
+def test_gauss_markov_fit_recovers_a_simulated_process():
+    """An Ornstein-Uhlenbeck error (sigma 0.1 m, correlation time 2 s, 20 Hz) is fitted back
+    within its sampling scatter (measured: sigma 0.4 %, tau 0.6 % off for 40,000 samples); a
+    white error has a correlation time of 0."""
+    from mysim_jax.perception.metrics import gauss_markov_fit
+
+    rng = np.random.default_rng(0)
+    dt, tau, sigma, n = 0.05, 2.0, 0.1, 40_000
+    rho = np.exp(-dt / tau)
+    e = np.empty((n, 3))
+    e[0] = sigma * rng.standard_normal(3)
+    steps = sigma * np.sqrt(1 - rho ** 2) * rng.standard_normal((n, 3))
+    for i in range(1, n):
+        e[i] = rho * e[i - 1] + steps[i]
+    fit = gauss_markov_fit(np.arange(n) * dt, e)
+    assert fit["dt_s"] == pytest.approx(dt)
+    assert fit["pooled"]["sigma"] == pytest.approx(sigma, rel=0.05)
+    assert fit["pooled"]["correlation_time_s"] == pytest.approx(tau, rel=0.1)
+    assert len(fit["axes"]) == 3
+    white = gauss_markov_fit(np.arange(n) * dt, rng.standard_normal((n, 2)))
+    assert white["pooled"]["correlation_time_s"] < dt          # rho ~ 0 either side

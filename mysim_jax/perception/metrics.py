@@ -104,6 +104,34 @@ def trajectory_errors(reference: Trajectory, estimate: Trajectory, rpe_delta_m: 
     return out
 
 
+def gauss_markov_fit(t: np.ndarray, error: np.ndarray) -> dict:
+    """Fit a first-order Gauss-Markov (Ornstein-Uhlenbeck) process to an estimate's error.
+
+    ``t`` ``(F,)`` s, uniformly spaced; ``error`` ``(F, k)`` estimate minus truth (e.g. a
+    position error in m). Per axis: ``sigma`` = the RMS of the error (about zero: a constant
+    offset is error too) and the lag-one autocorrelation ``rho = Σ e_i e_(i+1) / Σ e_i²``,
+    whose process ``e' = rho e + sigma √(1 - rho²) ξ`` has the correlation time
+    ``tau = -Δt / ln rho`` (0 for rho <= 0: white; ``inf`` for rho >= 1). ``pooled`` holds
+    the same over all axes together (isotropic sigma = √(mean sigma²)). A simulator can then
+    replay errors with these statistics (:class:`mysim_jax.tasks.env_config.PerceptionConfig`).
+    """
+    t = np.asarray(t, dtype=float)
+    e = np.asarray(error, dtype=float).reshape(len(t), -1)
+    if len(t) < 3:
+        raise ValueError(f"gauss_markov_fit: need at least 3 samples, got {len(t)}")
+    dt = float((t[-1] - t[0]) / (len(t) - 1))
+
+    def fit(x):                       # x: (F, m), the axes pooled
+        power = float(np.sum(x[:-1] * x[:-1]))
+        rho = float(np.sum(x[:-1] * x[1:]) / power) if power > 0 else 0.0
+        tau = 0.0 if rho <= 0 else (float("inf") if rho >= 1 else float(-dt / np.log(rho)))
+        return {"sigma": float(np.sqrt(np.mean(x * x))), "rho": rho, "correlation_time_s": tau}
+
+    axes = [fit(e[:, i:i + 1]) for i in range(e.shape[1])]
+    pooled = fit(e)
+    return {"dt_s": dt, "axes": axes, "pooled": pooled}
+
+
 # --- plots ---------------------------------------------------------------------------
 
 

@@ -1023,7 +1023,8 @@ def run_perception(job: PerceptionJob, out_dir: str | os.PathLike, config: VioCo
     """Render the images, run VIO and dead reckoning, write the results into ``out_dir``.
 
     Writes ``trajectory_vio.tum``, ``trajectory_dead_reckoning.tum``, ``trajectory_true.tum``
-    (body poses at the camera's images), ``vio_frames.csv`` (per-image diagnostics,
+    (body poses at the camera's images), ``velocity_vio.csv`` (estimated and true world
+    velocity at the images, m/s), ``vio_frames.csv`` (per-image diagnostics,
     :class:`FrameDiagnostics`), ``metrics.json``, the plots of
     :func:`mysim_jax.perception.metrics.plot_estimates`, ``n_snapshots`` images with their
     tracked features (``frame_<t>.png``) and, with ``video``, ``features.mp4`` (the image
@@ -1035,7 +1036,7 @@ def run_perception(job: PerceptionJob, out_dir: str | os.PathLike, config: VioCo
     import cv2
     from tqdm import tqdm
 
-    from mysim_jax.perception.metrics import plot_estimates, trajectory_errors, write_tum
+    from mysim_jax.perception.metrics import gauss_markov_fit, plot_estimates, trajectory_errors, write_tum
 
     out = Path(out_dir)
     seed = job.seed
@@ -1052,15 +1053,16 @@ def run_perception(job: PerceptionJob, out_dir: str | os.PathLike, config: VioCo
         if not writer.isOpened():
             writer = None
     snap_at = set(np.linspace(0, len(job.rows) - 1, n_snapshots).round().astype(int).tolist()) if n_snapshots else set()
-    ts, Rs, ps = [], [], []
+    ts, Rs, ps, vs = [], [], [], []
     snapshots = []
     frames = render_scene_images(job, seed=seed)
     for i, (t, image) in enumerate(tqdm(frames, total=len(job.rows), desc="render + VIO", unit="img",
                                         disable=not progress)):
-        R, p, _ = est.add_image(t, image)
+        R, p, v = est.add_image(t, image)
         ts.append(t)
         Rs.append(R)
         ps.append(p)
+        vs.append(v)
         if writer is not None or i in snap_at:
             d = est.last_frame()
             drawn = draw_features(image, est.features, f"t = {t:.2f} s  features {d['n_features']}  "
@@ -1086,8 +1088,15 @@ def run_perception(job: PerceptionJob, out_dir: str | os.PathLike, config: VioCo
     cols = diag.as_columns()
     np.savetxt(out / "vio_frames.csv", np.column_stack([cols[k].astype(float) for k in cols]), delimiter=",",
                header=",".join(cols), comments="", fmt="%.6g")
+    v_true = np.stack([np.asarray(job.columns[f"{job.body}_v{k}"], float)[job.rows] for k in "xyz"], axis=-1)
+    v_vio = np.asarray(vs)
+    np.savetxt(out / "velocity_vio.csv", np.column_stack([vio.t, v_vio, v_true]), delimiter=",",
+               header="t,vx,vy,vz,true_vx,true_vy,true_vz", comments="", fmt="%.9g")
     errors = {"vio": trajectory_errors(truth, vio, rpe_delta_m),
               "dead_reckoning": trajectory_errors(truth, dr, rpe_delta_m)}
+    # what a policy flying on these estimates sees: unaligned errors, as Gauss-Markov processes
+    error_model = {"position_m": gauss_markov_fit(vio.t, vio.p - truth.p),
+                   "velocity_m_s": gauss_markov_fit(vio.t, v_vio - v_true)}
     plots = plot_estimates(truth, {"VIO": vio, "dead reckoning": dr}, out,
                            title=f"{job.config.name}: {job.body} from {job.camera} + IMU", diagnostics=diag)
     distance = errors["vio"]["distance_m"]
@@ -1110,6 +1119,7 @@ def run_perception(job: PerceptionJob, out_dir: str | os.PathLike, config: VioCo
         "mean_features": float(diag.n_features.mean()),
         "mean_tracked_inliers": float(diag.n_inliers[1:].mean()) if len(diag.t) > 1 else 0.0,
         "errors": errors,
+        "error_model": error_model,
         "summary": {
             "distance_m": distance,
             "vio_ate_aligned_rmse_m": v_ate,
