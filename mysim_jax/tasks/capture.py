@@ -28,8 +28,11 @@ position, velocity, attitude quaternion and body rate; the target's position and
 relative to it; the net centre's (mean knot) position and velocity relative to it; every
 teammate's position and velocity relative to it; its one-hot id; the fraction of the
 episode left. Own and target measurements carry Gaussian noise (``env.noise``, standard
-deviations drawn per episode), independent per agent. ``info["global_state"]``
-``(state_size,)`` is the noise-free state for a centralised critic: every UAV's absolute
+deviations drawn per episode), independent per agent. With ``env.perception`` the team flies
+on estimates: the UAVs' positions and velocities and the target's carry correlated
+estimation errors (first-order Gauss-Markov, :class:`PerceptionErrors` in the state), in
+the observations and in what the scripted team sees (:meth:`CaptureEnv.estimates`).
+``info["global_state"]`` ``(state_size,)`` is the noise-free state for a centralised critic: every UAV's absolute
 state, the target's, the net centre's, the fraction left.
 
 **Rewards** ``(n_agents,)``: the weighted sum of the terms of
@@ -105,6 +108,17 @@ class EnvParams:
 
 
 @struct.dataclass
+class PerceptionErrors:
+    """The current estimation errors (estimate minus truth) when the team flies on
+    estimates (``env.perception``); each a first-order Gauss-Markov process per axis."""
+
+    uav_pos: jnp.ndarray          # (n_agents, 3) m, each UAV's own position estimate
+    uav_vel: jnp.ndarray          # (n_agents, 3) m/s
+    target_pos: jnp.ndarray       # (3,) m, the team's fused target estimate
+    target_vel: jnp.ndarray       # (3,) m/s
+
+
+@struct.dataclass
 class EnvState:
     """State of one environment."""
 
@@ -115,6 +129,7 @@ class EnvState:
     held_time: jnp.ndarray        # () s from the first held step of the current hold to the last
     touched: jnp.ndarray          # () bool, the target has touched the net this episode
     returns: jnp.ndarray          # (n_agents,) sum of rewards this episode
+    perception: PerceptionErrors | None = None   # None unless the team flies on estimates
 
 
 @dataclass(frozen=True)
@@ -142,6 +157,10 @@ class CaptureEnv:
     scales: object                       # RewardScales
     randomized_wind: bool
     scripted: object                     # the scripted team (ScriptedTeam)
+    # ((sigma, rho) of uav_pos, uav_vel, target_pos, target_vel): the Gauss-Markov errors
+    # of env.perception per policy step (rho = exp(-policy_dt / correlation_time)); ()
+    # when the team sees true states
+    perception: tuple = ()
 
     # --- sizes ------------------------------------------------------------------------
     @property
@@ -211,8 +230,10 @@ class CaptureEnv:
             "episode_length": steps,
             "done": done,
         }
+        errors = (self._step_errors(jax.random.fold_in(key, 2), state.perception, dtype) if self.perception
+                  else state.perception)
         after = EnvState(sim=sim, episode=state.episode, steps=steps, held=flags.held, held_time=held_time,
-                         touched=touched, returns=returns)
+                         touched=touched, returns=returns, perception=errors)
         key_reset, key_obs = jax.random.split(key)
         fresh = self._reset_state(key_reset, params)
         # the episode's last observation (before the reset), e.g. to bootstrap a value
@@ -274,9 +295,42 @@ class CaptureEnv:
         episode = self.draw_episode(k_episode, params.ranges)
         sim = spawn_target(self.scene, self.episode_params(params, episode), params.start, k_spawn)
         dtype = sim.phys.body_pos.dtype
+        errors = self._draw_errors(jax.random.fold_in(key, 5), dtype) if self.perception else None
         return EnvState(sim=sim, episode=episode, steps=jnp.zeros((), jnp.int32), held=jnp.zeros((), bool),
                         held_time=jnp.zeros((), dtype),
-                        touched=jnp.zeros((), bool), returns=jnp.zeros((self.n_agents,), dtype))
+                        touched=jnp.zeros((), bool), returns=jnp.zeros((self.n_agents,), dtype), perception=errors)
+
+    # --- flying on estimates (env.perception) -----------------------------------------
+    def _error_shapes(self):
+        n = self.n_agents
+        return {"uav_pos": (n, 3), "uav_vel": (n, 3), "target_pos": (3,), "target_vel": (3,)}
+
+    def _draw_errors(self, key, dtype) -> PerceptionErrors:
+        """Errors drawn from their stationary distributions (an episode's first)."""
+        keys = jax.random.split(key, 4)
+        return PerceptionErrors(**{name: sigma * jax.random.normal(k, shape, dtype) for k, (name, shape), (sigma, _)
+                                   in zip(keys, self._error_shapes().items(), self.perception)})
+
+    def _step_errors(self, key, errors: PerceptionErrors, dtype) -> PerceptionErrors:
+        """One policy period of every Gauss-Markov error: ``e' = rho e + sigma √(1 - rho²) ξ``."""
+        keys = jax.random.split(key, 4)
+        out = {}
+        for k, (name, shape), (sigma, rho) in zip(keys, self._error_shapes().items(), self.perception):
+            drive = sigma * float(np.sqrt(max(1.0 - rho * rho, 0.0)))
+            out[name] = (rho * getattr(errors, name) + drive * jax.random.normal(k, shape, dtype)).astype(dtype)
+        return PerceptionErrors(**out)
+
+    def estimates(self, state: EnvState):
+        """``(uav_pos (n, 3), uav_vel (n, 3), target_pos (3,), target_vel (3,))`` as the team
+        knows them: the true values, plus the estimation errors under ``env.perception``."""
+        phys = state.sim.phys
+        quads = np.asarray(self.quad_bodies, dtype=np.int32)
+        values = (phys.body_pos[quads], phys.body_vel[quads], phys.body_pos[self.target_body],
+                  phys.body_vel[self.target_body])
+        if state.perception is None:
+            return values
+        e = state.perception
+        return tuple(v + d for v, d in zip(values, (e.uav_pos, e.uav_vel, e.target_pos, e.target_vel)))
 
     def snapshot(self, sim: State, sim_params: Params) -> Snapshot:
         phys = sim.phys
@@ -310,16 +364,16 @@ class CaptureEnv:
         knots = np.asarray(self.knot_points, dtype=np.int32)
         sigma = state.episode.noise.astype(dtype)
         k = jax.random.split(key, 4)
-        pos = phys.body_pos[quads] + sigma[0] * jax.random.normal(k[0], (n, 3), dtype)
-        vel = phys.body_vel[quads] + sigma[1] * jax.random.normal(k[1], (n, 3), dtype)
-        tpos = phys.body_pos[self.target_body] + sigma[2] * jax.random.normal(k[2], (n, 3), dtype)
-        tvel = phys.body_vel[self.target_body] + sigma[3] * jax.random.normal(k[3], (n, 3), dtype)
+        est_pos, est_vel, est_tpos, est_tvel = self.estimates(state)
+        pos = est_pos + sigma[0] * jax.random.normal(k[0], (n, 3), dtype)
+        vel = est_vel + sigma[1] * jax.random.normal(k[1], (n, 3), dtype)
+        tpos = est_tpos + sigma[2] * jax.random.normal(k[2], (n, 3), dtype)
+        tvel = est_tvel + sigma[3] * jax.random.normal(k[3], (n, 3), dtype)
         c_net = jnp.mean(phys.point_pos[knots], axis=0)
         v_net = jnp.mean(phys.point_vel[knots], axis=0)
         # teammates j != i, relative to i, in a fixed order per agent
         others = np.asarray([[j for j in range(n) if j != i] for i in range(n)], dtype=np.int32).reshape(n, n - 1)
-        true_pos, true_vel = phys.body_pos[quads], phys.body_vel[quads]
-        mates = jnp.concatenate([true_pos[others] - pos[:, None, :], true_vel[others] - vel[:, None, :]], axis=-1)
+        mates = jnp.concatenate([est_pos[others] - pos[:, None, :], est_vel[others] - vel[:, None, :]], axis=-1)
         left = 1.0 - state.steps.astype(dtype) / self.max_steps
         obs = jnp.concatenate([
             pos, vel, phys.body_quat[quads], phys.body_angvel[quads],
@@ -347,13 +401,23 @@ class CaptureEnv:
 
     # --- baselines --------------------------------------------------------------------
     def scripted_actions(self, state: EnvState, params: EnvParams):
-        """The scripted intercept team's actions ``(n_agents, 3)`` (noise-free state;
-        :mod:`mysim_jax.tasks.scripted`), mapped into the action space."""
+        """The scripted intercept team's actions ``(n_agents, 3)``
+        (:mod:`mysim_jax.tasks.scripted`), mapped into the action space. The team sees the
+        true state, or under ``env.perception`` the estimates (:meth:`estimates`), without
+        the observation noise."""
         sim_params = self.episode_params(params, state.episode)
-        sp = self.scripted(self.scene, sim_params, state.sim)
+        sim = state.sim
+        if state.perception is not None:
+            quads = np.asarray(self.quad_bodies, dtype=np.int32)
+            pos, vel, tpos, tvel = self.estimates(state)
+            phys = sim.phys
+            phys = phys.replace(body_pos=phys.body_pos.at[quads].set(pos).at[self.target_body].set(tpos),
+                                body_vel=phys.body_vel.at[quads].set(vel).at[self.target_body].set(tvel))
+            sim = sim.replace(phys=phys)
+        sp = self.scripted(self.scene, sim_params, sim)
         cp = sim_params.controller
         if self.scene.quadrotor.setpoint_mode == "velocity":
-            p = state.sim.phys.body_pos[np.asarray(self.quad_bodies, dtype=np.int32)]
+            p = sim.phys.body_pos[np.asarray(self.quad_bodies, dtype=np.int32)]
             v = SCRIPTED_VELOCITY_GAIN * (sp.position - p)
             return jnp.clip(v / cp.max_speed[:, None], -1.0, 1.0)
         return jnp.clip(2.0 * (sp.position - cp.box_low) / (cp.box_high - cp.box_low) - 1.0, -1.0, 1.0)
@@ -430,12 +494,25 @@ def make_env(config) -> tuple[CaptureEnv, EnvParams]:
         tether_markers=tuple(tethers), line_nodes_a=tuple(a), line_nodes_b=tuple(b),
         slots=tuple(map(tuple, slots.tolist())), control_steps=control_steps, max_steps=max_steps,
         policy_dt=control_steps * config.sim.dt, success=env_cfg.success, failure=env_cfg.failure,
-        scales=env_cfg.reward_scales, randomized_wind=env_cfg.randomize.wind is not None, scripted=team)
+        scales=env_cfg.reward_scales, randomized_wind=env_cfg.randomize.wind is not None, scripted=team,
+        perception=_perception(env_cfg.perception, control_steps * config.sim.dt))
     weights = env_cfg.weights()
     env_params = EnvParams(sim=params, start=state,
                            weights=jnp.asarray([weights[k] for k in REWARD_TERMS], scene.dtype),
                            ranges=_ranges(config, scene.dtype))
     return env, env_params
+
+
+def _perception(config, policy_dt: float) -> tuple:
+    """``((sigma, rho), ...)`` of ``env.perception``'s four errors per policy step; ()."""
+    if config is None:
+        return ()
+    out = []
+    for name in ("uav_position", "uav_velocity", "target_position", "target_velocity"):
+        gm = getattr(config, name)
+        tau = gm.correlation_time
+        out.append((float(gm.sigma), float(np.exp(-policy_dt / tau)) if tau > 0 else 0.0))
+    return tuple(out)
 
 
 def _default_team():

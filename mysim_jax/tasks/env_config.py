@@ -11,6 +11,7 @@ is a complete block::
       success: {hold_time: 0.5, ...}
       failure: {max_tilt_deg: 80, ...}
       noise: {target_position: {low: 0, high: 0}, ...}   # observation noise sigma, drawn per episode
+      perception: {uav_position: {sigma: 0.05, correlation_time: 3.0}, ...}   # fly on estimates
       randomize: {target_mass: {low: 0.08, high: 0.12}, wind: {low: [..], high: [..]}, ...}
 
 The episode's time limit is the scene's ``sim.t_end``. Every randomised quantity is a
@@ -108,6 +109,31 @@ class NoiseConfig(StrictModel):
     target_velocity: Range = fixed(0.0)    # m/s
 
 
+class GaussMarkov(StrictModel):
+    """A first-order Gauss-Markov (Ornstein-Uhlenbeck) error, independent per axis:
+    stationary standard deviation ``sigma`` and correlation time ``correlation_time`` (0:
+    white, a new draw every policy step). It starts each episode from its stationary
+    distribution; :func:`mysim_jax.perception.metrics.gauss_markov_fit` fits both numbers
+    to a measured estimation error."""
+
+    sigma: NonNegFloat = 0.0               # the quantity's unit (m or m/s)
+    correlation_time: NonNegFloat = 0.0    # s
+
+
+class PerceptionConfig(StrictModel):
+    """The team flies on estimates instead of true states: each UAV's own position and
+    velocity as its visual-inertial odometry gives them (errors independent per UAV; the
+    teammates' positions are their own estimates, shared), and the target's position and
+    velocity as the team's fused localisation gives them (one estimate shared by every
+    UAV). Both the observations and the scripted team (a residual policy's base) use them;
+    attitudes, body rates and the net's centre stay true. ``noise`` is added on top."""
+
+    uav_position: GaussMarkov = GaussMarkov()       # m
+    uav_velocity: GaussMarkov = GaussMarkov()       # m/s
+    target_position: GaussMarkov = GaussMarkov()    # m
+    target_velocity: GaussMarkov = GaussMarkov()    # m/s
+
+
 class RandomizeConfig(StrictModel):
     """Per-episode draws beyond the target's spawn (which ``target.spawn`` ranges give).
     ``None`` keeps the scene's value. ``uav_mass_scale`` multiplies every UAV's mass and
@@ -138,6 +164,7 @@ class EnvConfig(StrictModel):
     success: SuccessConfig = SuccessConfig()
     failure: FailureConfig = FailureConfig()
     noise: NoiseConfig = NoiseConfig()
+    perception: PerceptionConfig | None = None     # None: the team sees true states
     randomize: RandomizeConfig = RandomizeConfig()
 
     @field_validator("rewards")

@@ -1,0 +1,106 @@
+"""The capture environment flying on estimates (``env.perception``): Gauss-Markov errors
+on the UAVs' and the target's positions and velocities, in the observations and in what the
+scripted team sees. Small scene as in test_capture_env.py (3 x 3 knots, 10 policy steps)."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from mysim_jax.config import ConfigError, load_config
+from mysim_jax.tasks.capture import make_env
+
+SMALL = ["env={}", "net.knots=3", "net.tethers.n_masses=1", "sim.t_end=0.4", "sim.precision=float32",
+         "output.plot=[target, uav0]"]
+PERCEPTION = ["env.perception={uav_position: {sigma: 0.05, correlation_time: 0.2}, "
+              "uav_velocity: {sigma: 0.02}, target_position: {sigma: 0.3, correlation_time: 0.1}, "
+              "target_velocity: {sigma: 0.4, correlation_time: 0.04}}"]
+
+
+@pytest.fixture(scope="module")
+def envs():
+    plain = make_env(load_config("configs/capture_falling.yaml", SMALL))
+    zero = make_env(load_config("configs/capture_falling.yaml", SMALL + ["env.perception={}"]))
+    noisy = make_env(load_config("configs/capture_falling.yaml", SMALL + PERCEPTION))
+    return plain, zero, noisy
+
+
+def test_zero_errors_see_exactly_the_true_states(envs):
+    (env, params), (env0, params0), _ = envs
+    assert env.perception == () and env0.perception == ((0.0, 0.0),) * 4
+    key = jax.random.PRNGKey(3)
+    (obs, state), (obs0, state0) = jax.jit(env.reset)(key, params), jax.jit(env0.reset)(key, params0)
+    assert state.perception is None and float(jnp.abs(state0.perception.uav_pos).max()) == 0.0
+    np.testing.assert_array_equal(np.asarray(obs), np.asarray(obs0))
+    np.testing.assert_array_equal(np.asarray(env.scripted_actions(state, params)),
+                                  np.asarray(env0.scripted_actions(state0, params0)))
+
+
+def test_observations_and_scripted_team_use_the_estimates(envs):
+    _, _, (env, params) = envs
+    assert env.perception[0] == (0.05, pytest.approx(np.exp(-0.04 / 0.2)))     # 25 Hz policy
+    assert env.perception[1] == (0.02, 0.0)                                   # white
+    obs, state = jax.jit(env.reset)(jax.random.PRNGKey(1), params)
+    phys, e = state.sim.phys, state.perception
+    quads = list(env.quad_bodies)
+    pos, tpos = np.asarray(phys.body_pos)[quads], np.asarray(phys.body_pos)[env.target_body]
+    vel, tvel = np.asarray(phys.body_vel)[quads], np.asarray(phys.body_vel)[env.target_body]
+    est = [np.asarray(x) for x in (e.uav_pos, e.uav_vel, e.target_pos, e.target_vel)]
+    assert est[0].shape == (4, 3) and est[2].shape == (3,) and np.abs(est[0]).max() > 0
+    np.testing.assert_allclose(obs[:, 0:3], pos + est[0], atol=1e-6)                       # own position
+    np.testing.assert_allclose(obs[:, 3:6], vel + est[1], atol=1e-6)
+    # the target estimate is shared: every UAV sees the same target point
+    np.testing.assert_allclose(obs[:, 13:16] + obs[:, 0:3], np.tile(tpos + est[2], (4, 1)), atol=1e-5)
+    np.testing.assert_allclose(obs[:, 16:19] + obs[:, 3:6], np.tile(tvel + est[3], (4, 1)), atol=1e-5)
+    # teammates at their own estimates
+    np.testing.assert_allclose(obs[0, 25:28], (pos[1] + est[0][1]) - (pos[0] + est[0][0]), atol=1e-5)
+    # the scripted team acts on the estimates: as if the world were where they say
+    shifted = state.replace(perception=None, sim=state.sim.replace(phys=phys.replace(
+        body_pos=phys.body_pos.at[jnp.asarray(quads)].add(e.uav_pos).at[env.target_body].add(e.target_pos),
+        body_vel=phys.body_vel.at[jnp.asarray(quads)].add(e.uav_vel).at[env.target_body].add(e.target_vel))))
+    np.testing.assert_allclose(env.scripted_actions(state, params), env.scripted_actions(shifted, params), atol=1e-6)
+    assert not np.allclose(env.scripted_actions(state, params), env.scripted_actions(state.replace(perception=None),
+                                                                                     params), atol=1e-4)
+    # a step advances the errors by one Gauss-Markov period and observes the new ones
+    key = jax.random.PRNGKey(2)
+    obs, after, *_ = jax.jit(env.step)(key, state, env.scripted_actions(state, params), params)
+    expected = env._step_errors(jax.random.fold_in(key, 2), state.perception, jnp.float32)
+    for name in ("uav_pos", "uav_vel", "target_pos", "target_vel"):
+        np.testing.assert_allclose(np.asarray(getattr(after.perception, name)), np.asarray(getattr(expected, name)),
+                                   rtol=0, atol=1e-7)                    # jit vs eager float32 round-off
+    np.testing.assert_allclose(obs[:, 0:3], np.asarray(after.sim.phys.body_pos)[quads] + np.asarray(expected.uav_pos),
+                               atol=1e-6)
+
+
+def test_errors_are_gauss_markov_with_the_configured_statistics(envs):
+    """The error processes alone, 20,000 episodes for 10 policy steps: their spread stays at
+    sigma (they start stationary) and their step-to-step correlation is exp(-dt / tau) (0
+    when white). Measured: sigma within 0.07 %, correlation within 0.003."""
+    _, _, (env, _) = envs
+
+    def episode(key):
+        def body(e, k):
+            e = env._step_errors(k, e, jnp.float32)
+            return e, e
+        first = env._draw_errors(key, jnp.float32)
+        return first, jax.lax.scan(body, first, jax.random.split(jax.random.fold_in(key, 1), 10))[1]
+
+    first, steps = jax.jit(jax.vmap(episode))(jax.random.split(jax.random.PRNGKey(0), 20_000))
+    for name, (sigma, rho) in zip(("uav_pos", "uav_vel", "target_pos", "target_vel"), env.perception):
+        e = np.concatenate([np.asarray(getattr(first, name))[:, None], np.asarray(getattr(steps, name))], axis=1)
+        e = e.reshape(e.shape[0], e.shape[1], -1)                # (episodes, 11 times, values)
+        assert e.std() == pytest.approx(sigma, rel=0.01), name
+        lag1 = np.sum(e[:, 1:] * e[:, :-1]) / np.sum(e[:, :-1] ** 2)
+        assert lag1 == pytest.approx(rho, abs=0.03), name
+
+
+@pytest.mark.parametrize("override, message", [
+    ("env.perception={uav_position: {sigma: -0.1}}", r"env.perception.uav_position.sigma"),
+    ("env.perception={target_position: {sigma: 0.1, correlation_tme: 1.0}}", r"correlation_tme"),
+    ("env.perception={uav_attitude: {sigma: 0.1}}", r"uav_attitude"),
+])
+def test_bad_perception_blocks_name_the_field(override, message):
+    with pytest.raises(ConfigError, match=message):
+        load_config("configs/capture_falling.yaml", SMALL + [override])
