@@ -50,6 +50,33 @@ def wilson_interval(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
     return max(0.0, centre - half), min(1.0, centre + half)
 
 
+def paired_difference_interval(a, b, z: float = 1.96) -> tuple[float, float, float]:
+    """``(d, low, high)``: the difference ``d = rate(a) - rate(b)`` of two success rates
+    measured on the same episodes (``a``, ``b``: ``(n,)`` bool, episode ``i`` of both runs
+    drawn alike) and its 95 % interval, Newcombe's hybrid score method for paired data
+    (Stat. Med. 17, 1998, method 10): the Wilson intervals ``[l1, u1]``, ``[l2, u2]`` of the
+    two rates combined with the phi correlation of the paired outcomes::
+
+        low  = d - √((p1 - l1)² - 2 φ (p1 - l1)(u2 - p2) + (u2 - p2)²)
+        high = d + √((u1 - p1)² - 2 φ (u1 - p1)(p2 - l2) + (p2 - l2)²)
+
+    Pairing narrows the interval when the outcomes agree episode by episode."""
+    a, b = np.asarray(a, bool), np.asarray(b, bool)
+    if a.shape != b.shape or a.ndim != 1 or len(a) < 1:
+        raise ValueError(f"paired_difference_interval: two (n,) outcome arrays of one length, got {a.shape}, {b.shape}")
+    n = len(a)
+    both, only_a, only_b, neither = (int(np.sum(x)) for x in (a & b, a & ~b, ~a & b, ~a & ~b))
+    p1, p2 = (both + only_a) / n, (both + only_b) / n
+    l1, u1 = wilson_interval(both + only_a, n, z)
+    l2, u2 = wilson_interval(both + only_b, n, z)
+    margins = (both + only_a) * (only_b + neither) * (both + only_b) * (only_a + neither)
+    phi = (both * neither - only_a * only_b) / math.sqrt(margins) if margins > 0 else 0.0
+    d = p1 - p2
+    low = d - math.sqrt(max((p1 - l1) ** 2 - 2 * phi * (p1 - l1) * (u2 - p2) + (u2 - p2) ** 2, 0.0))
+    high = d + math.sqrt(max((u1 - p1) ** 2 - 2 * phi * (u1 - p1) * (p2 - l2) + (p2 - l2) ** 2, 0.0))
+    return d, max(low, -1.0), min(high, 1.0)
+
+
 def capture_sweep(config, seeds) -> SweepResult:
     """Run ``config`` (a capture SceneConfig with ``net``, ``target`` and ``team``) once per seed."""
     import time
