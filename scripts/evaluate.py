@@ -28,6 +28,14 @@ episodes are not favoured). Writes into OUT:
   and ``capture.gif`` (skipped with ``--no-animation``), plus ``episode_steps.csv`` and
   ``episode_rewards.png`` (its per-step rewards).
 
+``--perception FILE`` evaluates the team flying on estimates instead of true states: FILE is
+an ``env.perception`` block (YAML: ``uav_position``, ``uav_velocity``, ``target_position``,
+``target_velocity``, each ``{sigma, correlation_time}``; mysim_jax/tasks/env_config.py),
+e.g. the one ``scripts/perception_gap.py fit`` writes from measured estimation errors.
+``metrics.json`` then records it under ``perception``. ``scripts/perception_gap.py compare``
+sets such a run against one on true states over the same episodes (``--batch`` equal to
+``--episodes``).
+
 Every input (config, overrides, OUT, policy, numbers) is checked before anything is
 compiled; a problem is a one-line error, exit code 2, and nothing is written. Outputs are
 written to a temporary folder and moved into OUT only when complete.
@@ -36,7 +44,29 @@ written to a temporary folder and moved into OUT only when complete.
 from __future__ import annotations
 
 import argparse
+import json
 import sys
+
+
+def _perception_block(path: str) -> dict:
+    """The mapping in ``path`` (ConfigError if the file is missing or not a YAML mapping)."""
+    from pathlib import Path
+
+    import yaml
+
+    from mysim_jax.config import ConfigError
+
+    file = Path(path)
+    if not file.is_file():
+        raise ConfigError(f"--perception {path}: no such file")
+    try:
+        block = yaml.safe_load(file.read_text())
+    except yaml.YAMLError as err:
+        raise ConfigError(f"--perception {path}: not valid YAML: {err}") from None
+    if not isinstance(block, dict):
+        raise ConfigError(f"--perception {path}: expected a mapping of uav_position, uav_velocity, target_position, "
+                          "target_velocity to {sigma, correlation_time}")
+    return block
 
 
 def _error(message: str) -> int:
@@ -54,6 +84,8 @@ def main(argv=None) -> int:
     parser.add_argument("--seed", type=int, default=0, help="PRNG seed of the whole evaluation (default 0)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="override a config value, e.g. --set env.policy_rate=10 (repeatable)")
+    parser.add_argument("--perception", metavar="FILE",
+                        help="fly on estimates: a YAML env.perception block (uav_position, ..., target_velocity)")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     parser.add_argument("--no-animation", action="store_true", help="do not write capture.gif (slow)")
     args = parser.parse_args(argv)
@@ -67,6 +99,10 @@ def main(argv=None) -> int:
     from mysim_jax.tasks.policies import PolicyError, check_policy_spec
 
     try:
+        perception = None
+        if args.perception is not None:
+            perception = _perception_block(args.perception)
+            args.overrides = [*args.overrides, "env.perception=" + json.dumps(perception)]
         config = load_config(args.config, args.overrides)
         missing = [b for b, v in (("net", config.net), ("target", config.target), ("quadrotors", config.quadrotors))
                    if not v]
@@ -110,7 +146,8 @@ def main(argv=None) -> int:
 
     metrics = write_evaluation(out, config, env, params, policy, policy_name=args.policy, episodes=args.episodes,
                                batch=args.batch, seed=args.seed, config_path=args.config, overrides=args.overrides,
-                               env_note=env_note, progress=not args.no_progress, animate=not args.no_animation)
+                               env_note=env_note, progress=not args.no_progress, animate=not args.no_animation,
+                               extra={"perception": perception})
     print(summary_line(config.name, args.policy, metrics, out))
     return 0
 

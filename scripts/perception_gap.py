@@ -1,0 +1,98 @@
+#!/usr/bin/env python
+"""The perception gap: capture success on true states minus on perceived states.
+
+    # 1. measured estimation errors -> an env.perception block
+    python scripts/perception_gap.py fit --uav runs/cap/vio_uav1/metrics.json runs/cap/vio_uav2/metrics.json \\
+        --target runs/cap/track/metrics.json --out configs/perception_capture.yaml
+    # 2. the same 1000 episodes on true and on perceived states (one episode per slot)
+    python scripts/evaluate.py SCENE --policy RUN/policy --episodes 1000 --batch 1000 --out gap/true
+    python scripts/evaluate.py SCENE --policy RUN/policy --episodes 1000 --batch 1000 \\
+        --perception configs/perception_capture.yaml --out gap/perceived
+    # 3. the gap, with intervals
+    python scripts/perception_gap.py compare gap/true gap/perceived [--out gap/gap.json]
+
+``fit`` reads the ``error_model`` blocks (Gauss-Markov fits of the unaligned position and
+velocity errors) of ``scripts/perceive.py`` VIO runs (``--uav``, one per UAV) and of its
+target localisation (``--target``: the ``error_model`` of the fused estimate) and writes
+the block (mysim_jax/tasks/perception_gap.py). ``compare`` checks that both evaluations
+ran the same episodes and prints and writes both success rates (95 % Wilson intervals)
+and their paired difference (Newcombe's interval). Bad input is a one-line error, exit 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+
+def _error(message: str) -> int:
+    print(f"error: {message}", file=sys.stderr)
+    return 2
+
+
+def _load_model(path: str, key: str = "error_model") -> dict:
+    from mysim_jax.tasks.perception_gap import GapError
+
+    file = Path(path)
+    if not file.is_file():
+        raise GapError(f"{path}: no such file")
+    try:
+        data = json.loads(file.read_text())
+    except json.JSONDecodeError as err:
+        raise GapError(f"{path}: not JSON: {err}") from None
+    model = data.get(key) if isinstance(data, dict) else None
+    if not isinstance(model, dict):
+        raise GapError(f"{path}: no '{key}' block (write it with scripts/perceive.py)")
+    return model
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="command", required=True)
+    fit = sub.add_parser("fit", help="measured errors -> an env.perception block (YAML)")
+    fit.add_argument("--uav", nargs="+", required=True, metavar="METRICS", help="perceive.py VIO metrics.json, per UAV")
+    fit.add_argument("--target", required=True, metavar="METRICS", help="perceive.py target localisation metrics.json")
+    fit.add_argument("--out", required=True, help="YAML file to write")
+    cmp_ = sub.add_parser("compare", help="the gap between two scripts/evaluate.py folders")
+    cmp_.add_argument("true_dir", help="evaluation on true states")
+    cmp_.add_argument("perceived_dir", help="the same episodes with --perception")
+    cmp_.add_argument("--out", help="also write the result as JSON here")
+    args = parser.parse_args(argv)
+
+    from mysim_jax.tasks.perception_gap import GapError, compare_evaluations, perception_block
+
+    try:
+        if args.command == "fit":
+            import yaml
+
+            from mysim_jax.tasks.env_config import PerceptionConfig
+
+            block = perception_block([_load_model(p) for p in args.uav], _load_model(args.target))
+            PerceptionConfig(**block)                      # the block evaluate.py will read
+            text = ("# env.perception: measured estimation errors as Gauss-Markov processes "
+                    "(scripts/perception_gap.py fit)\n"
+                    f"# from: {' '.join(args.uav)} and {args.target}\n" + yaml.safe_dump(block, sort_keys=False))
+            Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+            Path(args.out).write_text(text)
+            print(text, end="")
+            return 0
+        result = compare_evaluations(args.true_dir, args.perceived_dir)
+    except GapError as err:
+        return _error(str(err))
+    t, p, g = result["true_states"], result["perceived_states"], result["gap"]
+    print(f"{result['scene']}, {result['policy']}, {result['episodes']} episodes (seed {result['seed']}):\n"
+          f"  true states:      {100 * t['rate']:.1f} % ({100 * t['interval95'][0]:.1f}-{100 * t['interval95'][1]:.1f})\n"
+          f"  perceived states: {100 * p['rate']:.1f} % ({100 * p['interval95'][0]:.1f}-{100 * p['interval95'][1]:.1f})\n"
+          f"  gap: {g['points']:+.1f} points ({g['interval95_points'][0]:+.1f} to {g['interval95_points'][1]:+.1f}, "
+          f"paired); caught only on true states {g['caught_only_on_true']}, only on perceived "
+          f"{g['caught_only_on_perceived']}")
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(json.dumps(result, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
