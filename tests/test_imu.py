@@ -308,6 +308,7 @@ BAD_INPUTS = {
     "no accelerations": (_without(GOOD, "b_ax", "b_ay", "b_az"), "b",
                          r"no column b_ax, b_ay, b_az.*scripts/simulate.py"),
     "no body rates": (_without(GOOD, "b_wz"), "b", r"no column b_wz.*scripts/simulate.py"),
+    "no velocities": (_without(GOOD, "b_vx"), "b", r"no column b_vx.*'interval_mean', its velocity"),
     "no time": (_without(GOOD, "time"), "b", r"no column time"),
     "one row": ({k: v[:1] for k, v in GOOD.items()}, "b", r"1 row\(s\); the IMU needs at least 2"),
     "NaN": (_with(GOOD, "b_ay", 7, np.nan), "b", r"column b_ay is not finite at row 7 \(t = 0.035 s\)"),
