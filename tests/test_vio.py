@@ -431,3 +431,27 @@ def test_gauss_markov_fit_recovers_a_simulated_process():
     assert len(fit["axes"]) == 3
     white = gauss_markov_fit(np.arange(n) * dt, rng.standard_normal((n, 2)))
     assert white["pooled"]["correlation_time_s"] < dt          # rho ~ 0 either side
+
+
+def test_target_filter_tracks_a_falling_target():
+    """A target falling from rest (g) and drifting at 1 m/s, fixes at 20 Hz with 5 cm noise
+    per axis and a one-second gap: the filter follows its position and velocity without
+    the lag a constant-velocity model has under g. Measured (default jerk sigma 5 m/s³):
+    velocity RMS 0.22 m/s and position RMS 0.047 m after the first second, 0.93 m/s off
+    at the end of the gap."""
+    from mysim_jax.perception.target_filter import target_filter
+
+    rng = np.random.default_rng(0)
+    t = np.arange(0, 4, 0.05)
+    true_p = np.stack([1.0 * t, 0 * t, 10 - 0.5 * 9.81 * t ** 2], axis=1)
+    true_v = np.stack([np.ones_like(t), 0 * t, -9.81 * t], axis=1)
+    z = true_p + 0.05 * rng.standard_normal(true_p.shape)
+    gap = (t > 2.0) & (t < 3.0)
+    z[gap] = np.nan
+    p, v = target_filter(t, z, position_sigma=0.05)
+    settled = (t > 1.0) & ~gap
+    assert np.sqrt(np.mean(np.sum((v[settled] - true_v[settled]) ** 2, axis=1))) < 0.4
+    assert np.sqrt(np.mean(np.sum((p[settled] - true_p[settled]) ** 2, axis=1))) < 0.07
+    assert np.linalg.norm(v[gap][-1] - true_v[gap][-1]) < 2.0                 # predicted through the gap
+    with pytest.raises(ValueError, match="t must increase"):
+        target_filter(t[::-1], z)
