@@ -116,7 +116,7 @@ def test_closed_loop_search_centre_lose_recover(closed_loop):
     assert modes[0] == "search" and not detected[0]
     first = int(np.argmax(detected))
     assert detected.any() and t[first] < 1.4, "the search did not find the target"
-    # centred while tracking (measured: at most 2.6 px at 160 x 90 after 3 frames)
+    # centred while tracking (measured: at most 1.6 px at 160 x 90 from 3 frames after acquisition)
     settled = (np.arange(len(t)) >= first + 3) & (t < 1.6)
     assert settled.sum() >= 3 and err[settled].max() < 8.0, err[settled]
     # the forced loss: hold, then predict along the last bearing
@@ -126,7 +126,7 @@ def test_closed_loop_search_centre_lose_recover(closed_loop):
     # recovered: the target stayed in view and is detected on the first frame after the loss
     after = t >= 2.0
     assert detected[after].all() and rec.in_view()[after, 0].all()
-    assert err[after][2:].max() < 8.0
+    assert err[after][2:].max() < 8.0                       # measured: 2.1 px
     m = tracking_metrics(rec)
     assert m["gim0"]["frames"] == len(t) and 0 < m["all"]["in_view_fraction"] <= 1
 

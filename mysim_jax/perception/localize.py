@@ -239,11 +239,15 @@ class Localisation:
         """method -> (F,) m, distance of the estimate from the truth (NaN: none)."""
         return {m: np.linalg.norm(e - self.truth, axis=1) for m, e in self.estimates.items()}
 
-    def metrics(self) -> dict:
+    def metrics(self, frames: np.ndarray | None = None) -> dict:
+        """Per method: coverage (fraction of frames with an estimate), error mean, p95 and
+        median (m), over ``frames`` ((F,) bool; default all)."""
         out = {}
         for m, e in self.errors().items():
+            if frames is not None:
+                e = e[frames]
             ok = np.isfinite(e)
-            out[m] = {"coverage": float(ok.mean()),
+            out[m] = {"coverage": float(ok.mean()) if ok.size else None,
                       "error_mean_m": float(e[ok].mean()) if ok.any() else None,
                       "error_p95_m": float(np.percentile(e[ok], 95)) if ok.any() else None,
                       "error_median_m": float(np.median(e[ok])) if ok.any() else None}

@@ -374,6 +374,7 @@ class TrackingRecord:
     true_box: np.ndarray            # (F, G, 4) px, visible ground-truth box (NaN: none visible)
     true_centre: np.ndarray         # (F, G, 2) px, projection of the target's centre
     true_depth: np.ndarray          # (F, G) m, along the optical axis
+    visible_fraction: np.ndarray    # (F, G) visible target pixels / its unoccluded silhouette's
     target_pos: np.ndarray          # (F, 3) m, true target centre
     target_radius: float            # m
     intr: Intrinsics
@@ -495,7 +496,7 @@ def run_tracking(config, detector: FrameDetector | None = None, intr: Intrinsics
 
     G = len(cams)
     rec = {k: [] for k in ("t", "camera_R", "camera_p", "angles", "command", "mode", "det_box", "true_box",
-                           "true_centre", "true_depth", "target_pos")}
+                           "true_centre", "true_depth", "visible_fraction", "target_pos")}
     rows = []
     commands = np.array([c.command.angle for _, c in cams], float)
     bar = tqdm(total=n_frames, desc="track (render, detect, steer, simulate)", unit="frame", disable=not progress)
@@ -543,6 +544,7 @@ def run_tracking(config, detector: FrameDetector | None = None, intr: Intrinsics
         rec["true_box"].append([v.box if v.box is not None else np.full(4, np.nan) for v in tv])
         rec["true_centre"].append([v.centre for v in tv])
         rec["true_depth"].append([v.depth for v in tv])
+        rec["visible_fraction"].append([v.visible_fraction for v in tv])
         rec["target_pos"].append(bp[bi[target]])
         bar.update(1)
         if k == n_frames - 1:
@@ -557,10 +559,21 @@ def run_tracking(config, detector: FrameDetector | None = None, intr: Intrinsics
                           columns=columns, **arr)
 
 
+MOVING_SPEED = 0.5      # m/s: above this the target counts as moving (falling, evading), below as held
+
+
+def target_moving(record: TrackingRecord) -> np.ndarray:
+    """(F,) bool: frames in which the target's speed (central differences) is above MOVING_SPEED."""
+    if len(record.t) < 2:
+        return np.zeros(len(record.t), bool)
+    v = np.gradient(record.target_pos, record.t, axis=0)
+    return np.linalg.norm(v, axis=1) > MOVING_SPEED
+
+
 def tracking_metrics(record: TrackingRecord) -> dict:
     """In-view fraction, detection fraction and pixel error of the target's centre from the
     image centre (px; mean and 95th percentile over frames with the target in front), per
-    camera and over all."""
+    camera, over all, and over the frames with the target moving (:func:`target_moving`)."""
     inview = record.in_view()
     err = record.pixel_error()
     detected = np.all(np.isfinite(record.det_box), axis=-1)
@@ -576,6 +589,9 @@ def tracking_metrics(record: TrackingRecord) -> dict:
                 "pixel_error_median_px": float(np.median(e)) if e.size else None}
 
     out = {"all": stats(np.ones_like(inview, bool))}
+    moving = target_moving(record)
+    out["target_moving"] = stats(np.broadcast_to(moving[:, None], inview.shape))
+    out["target_moving"]["note"] = f"frames with the target faster than {MOVING_SPEED:g} m/s"
     for g, name in enumerate(record.cameras):
         sel = np.zeros_like(inview, bool)
         sel[:, g] = True

@@ -13,16 +13,18 @@ import numpy as np
 
 from mysim_jax.perception.localize import (METHODS, PoseNoise, box_size_px, box_touches_border, localize_record,
                                            size_range_fits, sphere_range)
-from mysim_jax.perception.track import TrackingRecord, tracking_metrics
+from mysim_jax.perception.track import TrackingRecord, target_moving, tracking_metrics
 
 
-def size_range_data(record: TrackingRecord) -> dict:
-    """Per detection with a whole box (not cut by the image border): the area fraction
-    ``alpha = w h / (W H)`` (paper), the size-corrected pinhole range (m) and the true
-    distance from the optical centre to the target's centre (m)."""
+def size_range_data(record: TrackingRecord, min_visible: float = 0.95) -> dict:
+    """Per detection with a whole box (not cut by the image border) of a target at least
+    ``min_visible`` visible (no net line or UAV in front: the relation between size and
+    range, not occlusion, is what is fitted): the area fraction ``alpha = w h / (W H)``
+    (paper), the size-corrected pinhole range (m) and the true distance from the optical
+    centre to the target's centre (m)."""
     intr = record.intr
     box = record.det_box.reshape(-1, 4)
-    ok = np.all(np.isfinite(box), axis=1)
+    ok = np.all(np.isfinite(box), axis=1) & (record.visible_fraction.reshape(-1) >= min_visible)
     box = box[ok]
     whole = ~box_touches_border(intr, box)
     box = box[whole]
@@ -130,7 +132,9 @@ def write_tracking_report(record: TrackingRecord, out: Path, pose_noise: PoseNoi
     out = Path(out)
     metrics = {"tracking": tracking_metrics(record)}
     loc = localize_record(record, progress=progress)
-    metrics["localisation"] = {"true_poses": loc.metrics()}
+    moving = target_moving(record)
+    metrics["localisation"] = {"true_poses": loc.metrics(),
+                               "true_poses_target_moving": {"frames": int(moving.sum()), **loc.metrics(moving)}}
     if pose_noise is not None:
         noisy = localize_record(record, pose_noise=pose_noise, progress=progress)
         metrics["localisation"]["perturbed_poses"] = {
