@@ -66,6 +66,9 @@ def main(argv=None) -> int:
                         "(px, default 1)")
     parser.add_argument("--miss-rate", type=float, default=0.0, help="--track, oracle: probability of a missed "
                         "detection (default 0)")
+    parser.add_argument("--range-sigma", type=float, default=0.05, metavar="REL", help="--track: relative range "
+                        "noise the fusion assumes (default 0.05, for a sphere; ~0.3 for a drone target, whose box "
+                        "depends on its attitude)")
     parser.add_argument("--no-cue", action="store_true", help="--track: no start cue; the cameras search")
     parser.add_argument("--pose-noise", type=float, nargs=2, metavar=("M", "RAD"), help="--track: also localise "
                         "with camera poses perturbed by these position and rotation standard deviations")
@@ -138,13 +141,15 @@ def _track(args) -> int:
     try:
         config = load_config(args.track)
         out = check_output_dir(args.out)
-        from mysim_jax.perception.track import OracleDetector, TrackerConfig, check_tracking_scene, image_detector
+        from mysim_jax.perception.track import OracleDetector, check_tracking_scene, image_detector
 
         check_tracking_scene(config)
         if config.sim.precision == "float64":
             raise PerceptionError(f"{args.track}: tracking runs the scene in float32; set sim.precision: float32")
         if args.t_end is not None and not args.t_end > 0:
             raise PerceptionError(f"--t-end must be positive, got {args.t_end}")
+        if not args.range_sigma > 0:
+            raise PerceptionError(f"--range-sigma must be positive, got {args.range_sigma}")
         if not args.camera_rate > 0:
             raise PerceptionError(f"--camera-rate must be positive, got {args.camera_rate}")
         intr = intrinsics(width=args.size[0], height=args.size[1])
@@ -186,7 +191,8 @@ def _track(args) -> int:
         extra = {"scene": config.name, "frames": int(len(record.t)), "frame_rate_hz": args.camera_rate,
                  "image": list(args.size), "detector": args.detector, "det_noise_px": args.det_noise,
                  "miss_rate": args.miss_rate, "initial_cue": not args.no_cue, "wall_time_s": wall}
-        metrics = write_tracking_report(record, tmp, pose_noise=pose_noise, extra=extra, progress=not args.no_progress)
+        metrics = write_tracking_report(record, tmp, pose_noise=pose_noise, extra=extra, progress=not args.no_progress,
+                                        range_sigma=args.range_sigma)
     tr = metrics["tracking"]["all"]
     print(f"{config.name}: {len(record.cameras)} gimbal cameras x {len(record.t)} frames at {args.camera_rate:g} Hz "
           f"in {wall:.1f} s; wrote {out}/")

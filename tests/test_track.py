@@ -128,7 +128,7 @@ def test_closed_loop_search_centre_lose_recover(closed_loop):
     assert detected[after].all() and rec.in_view()[after, 0].all()
     assert err[after][2:].max() < 8.0                       # measured: 2.1 px
     m = tracking_metrics(rec)
-    assert m["gim0"]["frames"] == len(t) and 0 < m["all"]["in_view_fraction"] <= 1
+    assert m["gim0"]["camera_frames"] == len(t) and 0 < m["all"]["in_view_fraction"] <= 1
 
 
 def test_bad_input(small_config, tmp_path):

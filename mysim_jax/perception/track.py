@@ -47,7 +47,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from mysim_jax.perception.camera import R_BODY_CV, Intrinsics, PerceptionError, quat_to_matrix
+from mysim_jax.perception.camera import Intrinsics, PerceptionError, quat_to_matrix
 from mysim_jax.perception.render import Frame, Renderer
 
 
@@ -391,6 +391,27 @@ class TrackingRecord:
         d = np.hypot(self.true_centre[..., 0] - self.intr.cx, self.true_centre[..., 1] - self.intr.cy)
         return np.where(self.true_depth > 0, d, np.nan)
 
+    @classmethod
+    def load_npz(cls, path) -> "TrackingRecord":
+        """A record written by :meth:`save_npz` (``scripts/perceive.py --track`` writes
+        ``tracking.npz``), e.g. to localise again with other settings; ``columns`` stay empty."""
+        try:
+            data = np.load(path, allow_pickle=False)
+        except (OSError, ValueError) as err:
+            raise PerceptionError(f"{path}: not a tracking record ({err})") from None
+        names = [f.name for f in dataclasses.fields(cls) if f.name not in ("intr", "columns")]
+        missing = [n for n in names + ["intr"] if n not in data.files]
+        if missing:
+            raise PerceptionError(f"{path}: not a tracking record of this version (missing {', '.join(missing)}); "
+                                  f"write it with scripts/perceive.py --track")
+        w, h, fx, fy, cx, cy = data["intr"]
+        fields = {n: data[n] for n in names}
+        fields["cameras"] = tuple(str(c) for c in fields["cameras"])
+        fields["uavs"] = tuple(str(u) for u in fields["uavs"])
+        fields["target_radius"] = float(fields["target_radius"])
+        return cls(intr=Intrinsics(width=int(w), height=int(h), fx=float(fx), fy=float(fy), cx=float(cx),
+                                   cy=float(cy)), **fields)
+
     def save_npz(self, path) -> None:
         np.savez_compressed(path, **{f.name: getattr(self, f.name) for f in dataclasses.fields(self)
                                      if f.name not in ("intr", "columns")},
@@ -582,7 +603,7 @@ def tracking_metrics(record: TrackingRecord) -> dict:
         e = err[sel]
         e = e[np.isfinite(e)]
         iv = inview[sel]
-        return {"frames": int(iv.size), "in_view_fraction": float(iv.mean()) if iv.size else None,
+        return {"camera_frames": int(iv.size), "in_view_fraction": float(iv.mean()) if iv.size else None,
                 "detected_fraction": float(detected[sel].mean()) if iv.size else None,
                 "pixel_error_mean_px": float(e.mean()) if e.size else None,
                 "pixel_error_p95_px": float(np.percentile(e, 95)) if e.size else None,

@@ -126,17 +126,17 @@ def _plot_size_range(data: dict, fits: dict, path: Path) -> None:
 
 
 def write_tracking_report(record: TrackingRecord, out: Path, pose_noise: PoseNoise | None = None,
-                          extra: dict | None = None, progress: bool = True) -> dict:
+                          extra: dict | None = None, progress: bool = True, range_sigma: float = 0.05) -> dict:
     """Write ``metrics.json``, ``tracking.npz``, ``localisation.csv`` and the plots into ``out``;
-    returns the metrics."""
+    returns the metrics. ``range_sigma``: the relative range noise the fusion assumes."""
     out = Path(out)
     metrics = {"tracking": tracking_metrics(record)}
-    loc = localize_record(record, progress=progress)
+    loc = localize_record(record, progress=progress, range_sigma=range_sigma)
     moving = target_moving(record)
-    metrics["localisation"] = {"true_poses": loc.metrics(),
+    metrics["localisation"] = {"range_sigma": range_sigma, "true_poses": loc.metrics(),
                                "true_poses_target_moving": {"frames": int(moving.sum()), **loc.metrics(moving)}}
     if pose_noise is not None:
-        noisy = localize_record(record, pose_noise=pose_noise, progress=progress)
+        noisy = localize_record(record, pose_noise=pose_noise, progress=progress, range_sigma=range_sigma)
         metrics["localisation"]["perturbed_poses"] = {
             "position_sigma_m": pose_noise.position_m, "rotation_sigma_rad": pose_noise.rotation_rad,
             **noisy.metrics()}
