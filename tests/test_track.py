@@ -101,10 +101,11 @@ def test_tracker_modes_kinematic(small_config):
 
 @pytest.fixture(scope="module")
 def closed_loop(small_config):
-    """2.6 s in the simulator at 25 Hz, 160 x 90 px, no start cue, detections dropped in [1.6, 2.0) s."""
+    """2.6 s in the simulator at 25 Hz, 160 x 90 px, no start cue, detections dropped in [1.6, 2.0) s;
+    the evading target drawn as a sphere (so that its box gives its range)."""
     return run_tracking(small_config, detector=OracleDetector(noise_px=0.5, seed=1),
                         intr=intrinsics(width=160, height=90), initial_cue=False, force_loss=(1.6, 2.0),
-                        progress=False)
+                        target_style="sphere", progress=False)
 
 
 def test_closed_loop_search_centre_lose_recover(closed_loop):
@@ -157,3 +158,24 @@ def test_bad_input(small_config, tmp_path):
     assert perceive.main(["--track", "configs/capture_maneuvering_cameras.yaml", "--out", str(tmp_path / "o")]) == 2
     assert perceive.main(["--track", "configs/capture_falling_gimbals.yaml", "--out", str(tmp_path / "o2"),
                           "--pose-noise", "-1", "0"]) == 2
+
+
+def test_record_roundtrip_and_single_camera_localisation(closed_loop, tmp_path):
+    from mysim_jax.perception.localize import localize_record
+    from mysim_jax.perception.track import TrackingRecord
+
+    closed_loop.save_npz(tmp_path / "tracking.npz")
+    back = TrackingRecord.load_npz(tmp_path / "tracking.npz")
+    assert back.cameras == closed_loop.cameras and back.intr == closed_loop.intr
+    np.testing.assert_array_equal(back.det_box, closed_loop.det_box)
+    np.testing.assert_array_equal(back.mode, closed_loop.mode)
+    loc = localize_record(back)
+    err = loc.errors()["single"]
+    detected = np.all(np.isfinite(back.det_box[:, 0]), axis=1)
+    whole = detected & np.isfinite(err)
+    assert np.isnan(loc.estimates["triples_median"]).all()          # one camera: no triple
+    # one camera, range from a ~15 px box at 160 x 90 (one pixel is 7 % of the range): measured median 0.05 m
+    assert whole.sum() >= 0.8 * detected.sum() and np.median(err[whole]) < 0.3
+    with pytest.raises(PerceptionError, match="not a tracking record"):
+        (tmp_path / "bad.npz").write_bytes(b"nothing")
+        TrackingRecord.load_npz(tmp_path / "bad.npz")

@@ -456,7 +456,8 @@ def _state_columns(scene, state) -> dict[str, np.ndarray]:
 def run_tracking(config, detector: FrameDetector | None = None, intr: Intrinsics | None = None,
                  frame_rate: float = 25.0, tracker_config: TrackerConfig = TrackerConfig(),
                  t_end: float | None = None, initial_cue: bool = True, cooperative_cue: bool = True,
-                 force_loss: tuple[float, float] | None = None, progress: bool = True) -> TrackingRecord:
+                 force_loss: tuple[float, float] | None = None, target_style: str = "auto",
+                 progress: bool = True) -> TrackingRecord:
     """Simulate ``config`` (a scene config with gimbal cameras and a target) with every gimbal
     steered by a :class:`GimbalTracker` from its rendered images (see the module doc).
 
@@ -468,7 +469,9 @@ def run_tracking(config, detector: FrameDetector | None = None, intr: Intrinsics
     velocity otherwise): the cue that starts a capture; without it the cameras search. ``cooperative_cue``: a
     camera that has lost the target points at the other cameras' triangulated target while
     at least two of them see it. ``force_loss``: ``(t0, t1)`` s, a window in which every
-    detection is dropped (to test recovery).
+    detection is dropped (to test recovery). ``target_style``: how the renderer draws the
+    target (:class:`~mysim_jax.perception.render.Renderer`; ``"auto"``: a drone for a
+    maneuvering target, else a sphere).
     """
     import jax
     from tqdm.auto import tqdm
@@ -501,7 +504,7 @@ def run_tracking(config, detector: FrameDetector | None = None, intr: Intrinsics
     names = tuple(c.name for _, c in cams)
     uavs = tuple(u for u, _ in cams)
     geoms = [GimbalGeometry(c) for _, c in cams]
-    renderer = _SkyRenderer(config, intr)
+    renderer = _SkyRenderer(config, intr, target_style=target_style)
     trackers = [GimbalTracker(g, intr, frame_dt, tracker_config, c.command.angle) for g, (_, c) in zip(geoms, cams)]
     qp = params.quadrotor
     params = params.replace(quadrotor=qp.replace(gimbal_amplitude=qp.gimbal_amplitude * 0.0))
