@@ -210,7 +210,7 @@ class TrackerConfig:
     tilt_limits: tuple[float, float] | None = None    # rad, the tilt's mechanical range (None: unlimited)
     hold_frames: int = 2                    # frames holding the command after a loss
     predict_s: float = 1.0                  # s pointing along the predicted bearing (or a cue) after that
-    search_pan_rate: float = 2.0            # rad/s, the search turns the pan round at this rate
+    search_pan_rate: float = 3.0            # rad/s, the search turns the pan round at this rate
     search_rows: int = 5                    # raster rows of the search: the last tilt, then above and below
 
     def __post_init__(self):
@@ -419,6 +419,23 @@ class TrackingRecord:
                                            self.intr.cx, self.intr.cy]))
 
 
+def _team_point(frames, detections, intr, radius) -> np.ndarray | None:
+    """(3,) m: the target's position from other cameras' detections (least squares over their
+    rays, with ranges from whole boxes; one camera needs a range), or None."""
+    from mysim_jax.perception.localize import (box_size_px, box_touches_border, fuse, pixel_bearings,
+                                               sphere_range)
+
+    boxes = np.array([np.asarray(d.box, float) for d in detections])
+    centres = np.stack([(boxes[:, 0] + boxes[:, 2]) / 2, (boxes[:, 1] + boxes[:, 3]) / 2], -1)
+    bearings = pixel_bearings(intr, np.array([f.R for f in frames]), centres)
+    ranges = sphere_range(box_size_px(intr, boxes), radius, intr.fx)
+    ranges = np.where(box_touches_border(intr, boxes) | ~np.isfinite(ranges), np.nan, ranges)
+    try:
+        return fuse("all_ls", np.array([f.p for f in frames]), bearings, ranges)
+    except PerceptionError:
+        return None
+
+
 def _point_at_start(config, scene, state):
     """A copy of ``config`` whose gimbal cameras start pointed at the target's start position."""
     bi = {n: i for i, n in enumerate(scene.body_names)}
@@ -467,8 +484,8 @@ def run_tracking(config, detector: FrameDetector | None = None, intr: Intrinsics
     ``initial_cue``: until a camera first detects the target, it points at the target's
     path predicted from its true start state (ballistic for a falling target, constant
     velocity otherwise): the cue that starts a capture; without it the cameras search. ``cooperative_cue``: a
-    camera that has lost the target points at the other cameras' triangulated target while
-    at least two of them see it. ``force_loss``: ``(t0, t1)`` s, a window in which every
+    camera that has lost the target points at the target located by the cameras that see it
+    (least squares over their rays and box ranges; one camera with a whole box suffices). ``force_loss``: ``(t0, t1)`` s, a window in which every
     detection is dropped (to test recovery). ``target_style``: how the renderer draws the
     target (:class:`~mysim_jax.perception.render.Renderer`; ``"auto"``: a drone for a
     maneuvering target, else a sphere).
@@ -478,7 +495,6 @@ def run_tracking(config, detector: FrameDetector | None = None, intr: Intrinsics
 
     from mysim_jax.build import build
     from mysim_jax.perception.camera import intrinsics as make_intrinsics
-    from mysim_jax.perception.localize import triangulate_rays
     from mysim_jax.sim import rollout, single_env_scene
     from mysim_jax.tasks.scripted import team_policy
 
@@ -549,12 +565,11 @@ def run_tracking(config, detector: FrameDetector | None = None, intr: Intrinsics
             cue = None
             if initial_cue and not dets[g] and trackers[g].last_seen_t is None:
                 cue = cue_point(t) - frames[g].p
-            elif cooperative_cue and not dets[g] and len([s for s in seen if s != g]) >= 2:
-                others = [s for s in seen if s != g]
-                point = triangulate_rays(np.array([frames[s].p for s in others]),
-                                         np.array([trackers[s].bearing(box_centre(dets[s][0].box), frames[s].R)
-                                                   for s in others]))
-                cue = point - frames[g].p
+            elif cooperative_cue and not dets[g] and any(s != g for s in seen):
+                point = _team_point([frames[s] for s in seen if s != g], [dets[s][0] for s in seen if s != g],
+                                    intr, config.target.radius)
+                if point is not None:
+                    cue = point - frames[g].p
             commands[g] = trackers[g].update(t, dets[g], angles[g], uav_Rs[g], frames[g].R, cue,
                                              uav_omega=np.asarray(state.phys.body_angvel[bi[uavs[g]]], float))
         tv = [f.target for f in frames]
