@@ -202,7 +202,9 @@ def _track(args) -> int:
         if e["error_mean_m"] is not None:
             print(f"  {m}: error mean {e['error_mean_m']:.4f} m, p95 {e['error_p95_m']:.4f} m "
                   f"({100 * e['coverage']:.0f} % of frames)")
-    if "size_range" in metrics:
+    if "skipped" in metrics.get("size_range", {}):
+        print(f"  size-range fits skipped: {metrics['size_range']['skipped']}")
+    elif "size_range" in metrics:
         f = metrics["size_range"]
         print(f"  range from box area: paper (k = -1) rel. error mean {100 * f['paper_inverse_area']['relative_error_mean']:.1f} %, "
               f"pinhole (k = -1/2) {100 * f['pinhole_inverse_sqrt_area']['relative_error_mean']:.1f} %, "

@@ -145,8 +145,13 @@ def write_tracking_report(record: TrackingRecord, out: Path, pose_noise: PoseNoi
                                                               for k in range(len(record.cameras) + 1)}
     data = size_range_data(record)
     plots = ["pointing.png", "localisation_error.png", "localisation_paths.png"]
-    if len(data["alpha"]) >= 3:
+    n, span = len(data["alpha"]), (data["distance"].max() / data["distance"].min() if len(data["alpha"]) else 1.0)
+    if n < 10 or span < 1.5:
+        metrics["size_range"] = {"skipped": f"{n} whole, unoccluded boxes over distances spanning a factor "
+                                            f"{span:.2f}; the fits need >= 10 over a factor >= 1.5"}
+    else:
         fits = size_range_fits(data["alpha"], data["distance"])
+        fits["distance_range_m"] = [float(data["distance"].min()), float(data["distance"].max())]
         rel = np.abs(data["pinhole_range"] / data["distance"] - 1)
         fits["sphere_pinhole_formula"] = {"relative_error_mean": float(rel.mean()),
                                           "relative_error_p95": float(np.percentile(rel, 95)),
