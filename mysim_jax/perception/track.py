@@ -1,0 +1,641 @@
+"""Gimbal target tracking (paper Alg. target_tracking_process), closed loop in the simulator.
+
+Every UAV carries a gimbal camera (:mod:`mysim_jax.dynamics.gimbal`: a universal joint with
+PD servos towards commanded angles). Each camera frame, for every gimbal camera:
+
+1. render the camera's image at the current state (:mod:`mysim_jax.perception.render`);
+2. detect the target (any callable ``Frame -> list[Detection]``, best first: the learned
+   detector through :func:`image_detector`, or the :class:`OracleDetector` stand-in built
+   from the renderer's ground-truth box);
+3. turn the pixel error of the box centre from the image centre into gimbal commands
+   (:class:`GimbalTracker`), with recovery when the target is lost;
+4. set the commanded angles (``params.quadrotor.gimbal_angle``, a traced parameter) and
+   advance the simulation by one frame period.
+
+So the camera's motion comes from the gimbal's own joint dynamics (servo bandwidth, the
+UAV's attitude, the tether loads on the UAV) and the images see the camera where the
+simulated joint has put it. The simulation runs as jitted ``lax.scan`` chunks of one frame
+period; the commands are a parameter, so nothing recompiles between frames.
+
+Control law. The box centre pixel ``(u, v)`` is a bearing ``R_c K⁻¹ (u, v, 1)`` (world),
+seen from the gimbal's centre (the camera's optical centre is the joint point, so it does
+not move with the angles). Rotated into the UAV frame, the bearing gives the angles
+``a*`` that would put the target at the image centre (the gimbal's inverse kinematics,
+:class:`GimbalGeometry`); ``a* − a`` (``a``: the encoder angles) is the pixel error
+expressed as angles through the intrinsics and the gimbal's geometry. The command is
+
+    cmd = a + kp (a* − a) + ki ∫ (a* − a) dt + ȧ* · lead
+
+with the bearing's world rate ``ȧ*`` from the last two detections (a lead of about one
+frame plus the servo's lag compensates the frame delay), then rate-limited to
+``max_rate`` and the tilt clipped to ``tilt_limits``. ``kp = 1`` points the camera at the
+target in one frame (the servo is much faster than the frame rate).
+
+Recovery when no detection comes: ``hold_frames`` frames holding the command, then up to
+``predict_s`` pointing along the bearing predicted from the last detections (constant
+angular rate in the world), or at a cue point when one is given (e.g. the other UAVs'
+fused estimate of the target, :mod:`mysim_jax.perception.localize`), then a search pattern
+(a raster: the pan turning round at ``search_pan_rate``, 1.25 turns per row, the rows 0.7
+fields of view apart in tilt from the last tilt outwards) until the target is found again.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
+
+import numpy as np
+
+from mysim_jax.perception.camera import Intrinsics, PerceptionError, quat_to_matrix
+from mysim_jax.perception.render import Frame, Renderer
+
+
+# --- detections -----------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Detection:
+    """A detected target: the interface of :mod:`mysim_jax.perception.detect` (any object with
+    ``box`` and ``score`` works)."""
+
+    box: np.ndarray     # (4,) px (u_min, v_min, u_max, v_max), the renderer's pixel convention
+    score: float        # confidence in [0, 1]
+
+
+FrameDetector = Callable[[Frame], list]     # Frame -> detections, best first
+
+
+def image_detector(detector) -> FrameDetector:
+    """Adapt an image detector (``detector.detect(image (H, W, 3) uint8 RGB) -> list``) to frames."""
+    if not hasattr(detector, "detect"):
+        raise PerceptionError(f"a detector needs a detect(image) method; got {type(detector).__name__}")
+    return lambda frame: detector.detect(frame.image)
+
+
+class OracleDetector:
+    """Stand-in detector from the renderer's ground truth: the visible target's box
+    (``TargetView.box``) with Gaussian pixel noise on each edge, missed with probability
+    ``miss_rate`` and whenever fewer than ``min_visible_px`` target pixels show.
+
+    ``noise_px``: standard deviation of each box edge (px); ``seed``: the noise's seed.
+    """
+
+    def __init__(self, noise_px: float = 1.0, miss_rate: float = 0.0, min_visible_px: int = 4, seed: int = 0):
+        if not noise_px >= 0:
+            raise PerceptionError(f"noise_px must be >= 0, got {noise_px}")
+        if not 0.0 <= miss_rate <= 1.0:
+            raise PerceptionError(f"miss_rate must be in [0, 1], got {miss_rate}")
+        self.noise_px = float(noise_px)
+        self.miss_rate = float(miss_rate)
+        self.min_visible_px = int(min_visible_px)
+        self.rng = np.random.default_rng(seed)
+
+    def __call__(self, frame: Frame) -> list[Detection]:
+        tv = frame.target
+        if tv is None:
+            raise PerceptionError("the oracle detector needs a scene with a target (frame.target is None)")
+        if tv.box is None or tv.visible_px < self.min_visible_px or self.rng.random() < self.miss_rate:
+            return []
+        box = tv.box + self.rng.normal(0.0, self.noise_px, 4)
+        box = np.array([min(box[0], box[2]), min(box[1], box[3]), max(box[0], box[2]), max(box[1], box[3])])
+        return [Detection(box=box, score=1.0)]
+
+
+def box_centre(box) -> np.ndarray:
+    """(2,) px centre of a box (u_min, v_min, u_max, v_max)."""
+    b = np.asarray(box, float)
+    return np.array([(b[0] + b[2]) / 2, (b[1] + b[3]) / 2])
+
+
+# --- gimbal geometry ------------------------------------------------------------------------
+
+
+def _rot_z(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _rotvec_matrix(w) -> np.ndarray:
+    """(3, 3) rotation by the rotation vector ``w`` (rad)."""
+    th = float(np.linalg.norm(w))
+    if th < 1e-12:
+        return np.eye(3)
+    k = np.asarray(w, float) / th
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + np.sin(th) * K + (1 - np.cos(th)) * K @ K
+
+
+def _wrap(a):
+    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
+
+
+class GimbalGeometry:
+    """Forward and inverse kinematics of one gimbal camera (a ``mount: gimbal`` camera config).
+
+    The camera body's orientation in the UAV frame is ``r_i R_z(a₁) R_y(π/2) R_z(a₂) r_jᵀ``
+    (:func:`mysim_jax.control.build.camera_in_uav`): ``a₁`` pan about the outer axis,
+    ``a₂`` tilt about the inner axis. The optical axis is the camera body's +x.
+    """
+
+    def __init__(self, camera_config):
+        from mysim_jax.control.build import R_Y_90, gimbal_marker_frames
+
+        if getattr(camera_config, "mount", None) != "gimbal":
+            raise PerceptionError(f"camera '{getattr(camera_config, 'name', camera_config)}' is not on a gimbal "
+                                  f"(mount: {getattr(camera_config, 'mount', None)!r}); tracking needs "
+                                  f"mount: gimbal")
+        self.name = camera_config.name
+        self.r_i, self.r_j = gimbal_marker_frames(camera_config)
+        self._r_y = R_Y_90
+        v = self.r_j.T @ np.array([1.0, 0.0, 0.0])        # optical axis in the inner marker's frame
+        self._rho = float(np.hypot(v[0], v[1]))
+        self._phi = float(np.arctan2(v[1], v[0]))
+        self._v = v
+
+    def camera_in_uav(self, angles) -> np.ndarray:
+        """(3, 3) camera body frame -> UAV body frame at gimbal angles (a₁, a₂) rad."""
+        a1, a2 = angles
+        return self.r_i @ _rot_z(a1) @ self._r_y @ _rot_z(a2) @ self.r_j.T
+
+    def angles(self, uav_R: np.ndarray, camera_R: np.ndarray) -> np.ndarray:
+        """(2,) encoder angles from the UAV's and the camera body's (3, 3) body -> world rotations."""
+        rel = (uav_R @ self.r_i).T @ (camera_R @ self.r_j)
+        return np.array([np.arctan2(rel[1, 2], rel[0, 2]), np.arctan2(rel[2, 1], -rel[2, 0])])
+
+    def aim(self, direction_uav, near, tilt_limits=None) -> np.ndarray:
+        """(2,) angles pointing the optical axis along ``direction_uav`` (UAV frame), the
+        solution nearest the angles ``near`` (two exist: tilt one way or flipped over) among
+        those with the tilt within ``tilt_limits`` (rad; None: any)."""
+        w = self.r_i.T @ (np.asarray(direction_uav, float) / np.linalg.norm(direction_uav))
+        near = np.asarray(near, float)
+        c = np.clip(-w[2] / max(self._rho, 1e-12), -1.0, 1.0)
+        best = None
+        for sign in (1.0, -1.0):
+            a2 = sign * np.arccos(c) - self._phi
+            u = self._r_y @ _rot_z(a2) @ self._v
+            a1 = np.arctan2(w[1], w[0]) - np.arctan2(u[1], u[0])
+            cand = near + _wrap(np.array([a1, a2]) - near)
+            if tilt_limits is not None and not tilt_limits[0] <= cand[1] <= tilt_limits[1]:
+                turns = cand[1] + 2 * np.pi * np.arange(-2, 3)       # the same tilt, whole turns apart
+                inside = turns[(turns >= tilt_limits[0]) & (turns <= tilt_limits[1])]
+                if inside.size:
+                    cand[1] = inside[np.argmin(np.abs(inside - near[1]))]
+            cost = np.abs(cand - near).sum()
+            if tilt_limits is not None and not tilt_limits[0] <= cand[1] <= tilt_limits[1]:
+                cost += 100.0 + abs(cand[1] - np.clip(cand[1], *tilt_limits))
+            if best is None or cost < best[0]:
+                best = (cost, cand)
+        return best[1]
+
+
+# --- the controller -------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class TrackerConfig:
+    """Gains, limits and recovery timing of :class:`GimbalTracker` (angles rad, times s).
+
+    The integral gain is off by default: with ``kp = 1`` the loop points the camera in one
+    frame, the servo has no steady-state error to remove (the camera's centre of mass is on
+    the joint), and a moving target is followed by the bearing-rate feed-forward; an integral
+    then only adds an offset that decays at ``ki`` (measured on a static target: 2.7 px
+    left after 2 s with ``ki = 0.5``)."""
+
+    kp: float = 1.0                         # on the angle error a* - a (1: point in one frame)
+    ki: float = 0.0                         # 1/s, on the angle error (off: see the class doc)
+    integral_limit: float = 0.05            # rad, anti-windup clip of ki * integral
+    lead_s: float | None = None             # bearing-rate feed-forward; None: one frame + 20 ms servo lag
+    max_rate: float = 10.0                  # rad/s, command slew limit per axis
+    tilt_limits: tuple[float, float] | None = None    # rad, the tilt's mechanical range (None: unlimited)
+    hold_frames: int = 2                    # frames holding the command after a loss
+    predict_s: float = 1.0                  # s pointing along the predicted bearing (or a cue) after that
+    search_pan_rate: float = 3.0            # rad/s, the search turns the pan round at this rate
+    search_rows: int = 5                    # raster rows of the search: the last tilt, then above and below
+
+    def __post_init__(self):
+        for name in ("kp", "max_rate", "search_pan_rate", "search_rows"):
+            if not getattr(self, name) > 0:
+                raise PerceptionError(f"TrackerConfig.{name} must be positive, got {getattr(self, name)}")
+        for name in ("ki", "integral_limit", "predict_s"):
+            if not getattr(self, name) >= 0:
+                raise PerceptionError(f"TrackerConfig.{name} must be >= 0, got {getattr(self, name)}")
+        if self.tilt_limits is not None and not self.tilt_limits[0] < self.tilt_limits[1]:
+            raise PerceptionError(f"TrackerConfig.tilt_limits must be (low, high) with low < high, got {self.tilt_limits}")
+
+
+TRACK, HOLD, PREDICT, SEARCH = "track", "hold", "predict", "search"
+
+
+class GimbalTracker:
+    """Pan/tilt commands of one gimbal camera from its detections (see the module doc).
+
+    ``geometry``: the gimbal's :class:`GimbalGeometry`; ``intr``: the camera's intrinsics;
+    ``frame_dt``: s between frames.
+    """
+
+    def __init__(self, geometry: GimbalGeometry, intr: Intrinsics, frame_dt: float,
+                 config: TrackerConfig = TrackerConfig(), initial_command=(0.0, 0.0)):
+        if not frame_dt > 0:
+            raise PerceptionError(f"frame_dt must be positive, got {frame_dt}")
+        self.geometry, self.intr, self.dt, self.config = geometry, intr, float(frame_dt), config
+        self.lead = config.lead_s if config.lead_s is not None else self.dt + 0.02
+        self.command = np.asarray(initial_command, float).copy()
+        self.integral = np.zeros(2)
+        self.last_bearing: np.ndarray | None = None      # (3,) world unit vector at the last detection
+        self.bearing_rate = np.zeros(3)                  # (3,) 1/s, world
+        self.last_seen_t: float | None = None
+        self.lost_frames = 0
+        self.mode = SEARCH
+        self.uav_omega: np.ndarray | None = None
+        self.search_t0: float | None = None
+        self.search_centre: np.ndarray | None = None
+
+    def bearing(self, pixel, camera_R: np.ndarray) -> np.ndarray:
+        """(3,) world unit bearing of ``pixel`` (u, v) from a camera with OpenCV -> world rotation ``camera_R``."""
+        u, v = pixel
+        ray = camera_R @ np.array([(u - self.intr.cx) / self.intr.fx, (v - self.intr.cy) / self.intr.fy, 1.0])
+        return ray / np.linalg.norm(ray)
+
+    def _limit(self, target: np.ndarray) -> np.ndarray:
+        step = np.clip(_wrap(target - self.command), -self.config.max_rate * self.dt, self.config.max_rate * self.dt)
+        cmd = self.command + step
+        if self.config.tilt_limits is not None:
+            cmd[1] = np.clip(cmd[1], *self.config.tilt_limits)
+        return cmd
+
+    def _aim(self, direction_world, uav_R, near) -> np.ndarray:
+        if self.uav_omega is not None:      # the UAV's attitude one lead time ahead
+            uav_R = uav_R @ _rotvec_matrix(self.uav_omega * self.lead)
+        return self.geometry.aim(uav_R.T @ direction_world, near, self.config.tilt_limits)
+
+    def update(self, t: float, detections: Sequence, angles, uav_R: np.ndarray, camera_R: np.ndarray,
+               cue_direction=None, uav_omega=None) -> np.ndarray:
+        """The command (2,) rad to hold until the next frame.
+
+        ``t``: s, the frame's time; ``detections``: best first; ``angles``: (2,) encoder
+        angles; ``uav_R``: (3, 3) UAV body -> world; ``camera_R``: (3, 3) OpenCV camera frame
+        -> world; ``cue_direction``: optional (3,) world direction to the target from
+        elsewhere (used while the target is lost); ``uav_omega``: optional (3,) rad/s, the UAV's
+        body-frame angular velocity (its rotation over the lead time is compensated).
+        """
+        cfg = self.config
+        self.uav_omega = None if uav_omega is None else np.asarray(uav_omega, float)
+        angles = np.asarray(angles, float)
+        if len(detections):
+            b = self.bearing(box_centre(detections[0].box), camera_R)
+            if self.last_bearing is not None and self.lost_frames == 0:
+                rate = (b - self.last_bearing) / self.dt
+                self.bearing_rate = 0.5 * self.bearing_rate + 0.5 * rate
+            else:
+                self.bearing_rate = np.zeros(3)
+            self.last_bearing, self.last_seen_t, self.lost_frames = b, t, 0
+            self.mode, self.search_t0 = TRACK, None
+            aim = self._aim(b + self.bearing_rate * self.lead, uav_R, angles)
+            error = _wrap(aim - angles)
+            self.integral = np.clip(self.integral + error * self.dt, -cfg.integral_limit / max(cfg.ki, 1e-12),
+                                    cfg.integral_limit / max(cfg.ki, 1e-12))
+            target = angles + cfg.kp * error + cfg.ki * self.integral
+            self.command = self._limit(target)
+            return self.command.copy()
+
+        self.lost_frames += 1
+        self.integral[:] = 0.0
+        since = np.inf if self.last_seen_t is None else t - self.last_seen_t
+        if self.last_seen_t is not None and self.lost_frames <= cfg.hold_frames:
+            self.mode = HOLD
+            return self.command.copy()
+        direction = None
+        if cue_direction is not None:
+            direction = np.asarray(cue_direction, float)
+        elif self.last_bearing is not None and since <= cfg.hold_frames * self.dt + cfg.predict_s:
+            direction = self.last_bearing + self.bearing_rate * min(since + self.lead, 0.5)
+        if direction is not None and np.linalg.norm(direction) > 1e-9:
+            self.mode, self.search_t0 = PREDICT, None
+            self.command = self._limit(self._aim(direction, uav_R, self.command))
+            return self.command.copy()
+        # search: a raster; the pan turns round 1.25 times per row (the overlap catches a target
+        # that moved on while the row began), rows 0.7 fields of view apart in tilt, first at
+        # the last tilt, then alternately above and below it
+        if self.mode != SEARCH or self.search_t0 is None:
+            self.mode, self.search_t0, self.search_centre = SEARCH, t, self.command.copy()
+        s = t - self.search_t0 + self.dt
+        row = int(s * cfg.search_pan_rate / (2.5 * np.pi)) % cfg.search_rows
+        step = 0.7 * 2 * np.arctan(self.intr.height / (2 * self.intr.fy))
+        offset = step * ((row + 1) // 2) * (1 if row % 2 else -1)
+        target = self.search_centre + np.array([cfg.search_pan_rate * s, offset])
+        step_pan = cfg.search_pan_rate * self.dt
+        self.command = np.array([self.command[0] + step_pan, self._limit(target)[1]])
+        if cfg.tilt_limits is not None:
+            self.command[1] = np.clip(self.command[1], *cfg.tilt_limits)
+        return self.command.copy()
+
+
+# --- closed loop in the simulator -----------------------------------------------------------
+
+
+def gimbal_cameras(config) -> list[tuple[str, object]]:
+    """``[(uav body, camera config), ...]`` of every gimbal camera, in the simulator's gimbal order."""
+    return [(q.body, c) for q in config.quadrotors for c in q.cameras if c.mount == "gimbal"]
+
+
+class _SkyRenderer(Renderer):
+    """The renderer for a tracking camera: it may look above the horizon (the target is often
+    higher than the UAV), so the check that a camera sees ground (needed by VIO) is skipped."""
+
+    def _check_ground(self, name, columns, poses, rows):
+        return None
+
+
+def check_tracking_scene(config) -> None:
+    """Raise unless the scene has a target and a gimbal camera on at least one UAV."""
+    if getattr(config, "target", None) is None:
+        raise PerceptionError(f"scene '{config.name}' has no target; tracking needs a target: block")
+    if not gimbal_cameras(config):
+        fixed = [c.name for q in config.quadrotors for c in q.cameras]
+        raise PerceptionError(
+            f"scene '{config.name}' has no gimbal camera (cameras: {', '.join(fixed) or 'none'}); add one with "
+            f"mount: gimbal under a quadrotor's cameras: (see configs/capture_falling_gimbals.yaml)")
+
+
+@dataclass
+class TrackingRecord:
+    """What the closed loop saw and did, per frame and gimbal camera (``F`` frames, ``G`` cameras)."""
+
+    cameras: tuple[str, ...]
+    uavs: tuple[str, ...]
+    t: np.ndarray                   # (F,) s
+    camera_R: np.ndarray            # (F, G, 3, 3) OpenCV camera frame -> world (true)
+    camera_p: np.ndarray            # (F, G, 3) m, optical centre (true)
+    angles: np.ndarray              # (F, G, 2) rad, encoder angles at the frame
+    command: np.ndarray             # (F, G, 2) rad, command set after the frame
+    mode: np.ndarray                # (F, G) str, tracker mode after the frame
+    det_box: np.ndarray             # (F, G, 4) px, best detection (NaN: none)
+    true_box: np.ndarray            # (F, G, 4) px, visible ground-truth box (NaN: none visible)
+    true_centre: np.ndarray         # (F, G, 2) px, projection of the target's centre
+    true_depth: np.ndarray          # (F, G) m, along the optical axis
+    visible_fraction: np.ndarray    # (F, G) visible target pixels / its unoccluded silhouette's
+    target_pos: np.ndarray          # (F, 3) m, true target centre
+    target_radius: float            # m
+    intr: Intrinsics
+    columns: dict = field(default_factory=dict)    # trajectory columns, one row per frame
+
+    def in_view(self) -> np.ndarray:
+        """(F, G) bool: the target's centre projects inside the image, in front of the camera."""
+        u, v = self.true_centre[..., 0], self.true_centre[..., 1]
+        return ((self.true_depth > 0) & (u >= -0.5) & (u <= self.intr.width - 0.5)
+                & (v >= -0.5) & (v <= self.intr.height - 0.5))
+
+    def pixel_error(self) -> np.ndarray:
+        """(F, G) px, distance of the target's projected centre from the image centre (NaN behind the camera)."""
+        d = np.hypot(self.true_centre[..., 0] - self.intr.cx, self.true_centre[..., 1] - self.intr.cy)
+        return np.where(self.true_depth > 0, d, np.nan)
+
+    @classmethod
+    def load_npz(cls, path) -> "TrackingRecord":
+        """A record written by :meth:`save_npz` (``scripts/perceive.py --track`` writes
+        ``tracking.npz``), e.g. to localise again with other settings; ``columns`` stay empty."""
+        try:
+            data = np.load(path, allow_pickle=False)
+        except (OSError, ValueError) as err:
+            raise PerceptionError(f"{path}: not a tracking record ({err})") from None
+        names = [f.name for f in dataclasses.fields(cls) if f.name not in ("intr", "columns")]
+        missing = [n for n in names + ["intr"] if n not in data.files]
+        if missing:
+            raise PerceptionError(f"{path}: not a tracking record of this version (missing {', '.join(missing)}); "
+                                  f"write it with scripts/perceive.py --track")
+        w, h, fx, fy, cx, cy = data["intr"]
+        fields = {n: data[n] for n in names}
+        fields["cameras"] = tuple(str(c) for c in fields["cameras"])
+        fields["uavs"] = tuple(str(u) for u in fields["uavs"])
+        fields["target_radius"] = float(fields["target_radius"])
+        return cls(intr=Intrinsics(width=int(w), height=int(h), fx=float(fx), fy=float(fy), cx=float(cx),
+                                   cy=float(cy)), **fields)
+
+    def save_npz(self, path) -> None:
+        np.savez_compressed(path, **{f.name: getattr(self, f.name) for f in dataclasses.fields(self)
+                                     if f.name not in ("intr", "columns")},
+                            intr=np.array([self.intr.width, self.intr.height, self.intr.fx, self.intr.fy,
+                                           self.intr.cx, self.intr.cy]))
+
+
+def _team_point(frames, detections, intr, radius) -> np.ndarray | None:
+    """(3,) m: the target's position from other cameras' detections (least squares over their
+    rays, with ranges from whole boxes; one camera needs a range), or None."""
+    from mysim_jax.perception.localize import (box_size_px, box_touches_border, fuse, pixel_bearings,
+                                               sphere_range)
+
+    boxes = np.array([np.asarray(d.box, float) for d in detections])
+    centres = np.stack([(boxes[:, 0] + boxes[:, 2]) / 2, (boxes[:, 1] + boxes[:, 3]) / 2], -1)
+    bearings = pixel_bearings(intr, np.array([f.R for f in frames]), centres)
+    ranges = sphere_range(box_size_px(intr, boxes), radius, intr.fx)
+    ranges = np.where(box_touches_border(intr, boxes) | ~np.isfinite(ranges), np.nan, ranges)
+    try:
+        return fuse("all_ls", np.array([f.p for f in frames]), bearings, ranges)
+    except PerceptionError:
+        return None
+
+
+def _point_at_start(config, scene, state):
+    """A copy of ``config`` whose gimbal cameras start pointed at the target's start position."""
+    bi = {n: i for i, n in enumerate(scene.body_names)}
+    target = np.asarray(state.phys.body_pos[bi[config.target.name]], float)
+    quads = []
+    for q in config.quadrotors:
+        cams = []
+        for c in q.cameras:
+            if c.mount == "gimbal":
+                uR = quat_to_matrix(np.asarray(state.phys.body_quat[bi[q.body]], float))
+                d = target - np.asarray(state.phys.body_pos[bi[c.name]], float)
+                a = GimbalGeometry(c).aim(uR.T @ d, c.command.angle)
+                c = c.model_copy(update={"command": c.command.model_copy(update={"angle": (float(a[0]), float(a[1]))})})
+            cams.append(c)
+        quads.append(q.model_copy(update={"cameras": cams}))
+    return config.model_copy(update={"quadrotors": quads})
+
+
+def _state_columns(scene, state) -> dict[str, np.ndarray]:
+    """One-row trajectory columns (time, poses, point positions) of a simulator state."""
+    phys = state.phys
+    cols = {"time": np.array([float(state.time)])}
+    pp, bp, bq = np.asarray(phys.point_pos), np.asarray(phys.body_pos), np.asarray(phys.body_quat)
+    for i, n in enumerate(scene.point_names):
+        for c, a in enumerate("xyz"):
+            cols[f"{n}_{a}"] = pp[i, c:c + 1].astype(float)
+    for i, n in enumerate(scene.body_names):
+        for c, a in enumerate("xyz"):
+            cols[f"{n}_{a}"] = bp[i, c:c + 1].astype(float)
+        for c, a in enumerate("wxyz"):
+            cols[f"{n}_q{a}"] = bq[i, c:c + 1].astype(float)
+    return cols
+
+
+def run_tracking(config, detector: FrameDetector | None = None, intr: Intrinsics | None = None,
+                 frame_rate: float = 25.0, tracker_config: TrackerConfig = TrackerConfig(),
+                 t_end: float | None = None, initial_cue: bool = True, cooperative_cue: bool = True,
+                 force_loss: tuple[float, float] | None = None, target_style: str = "auto",
+                 progress: bool = True) -> TrackingRecord:
+    """Simulate ``config`` (a scene config with gimbal cameras and a target) with every gimbal
+    steered by a :class:`GimbalTracker` from its rendered images (see the module doc).
+
+    ``detector``: ``Frame -> detections`` (default: :class:`OracleDetector`); ``intr``: the
+    cameras' intrinsics (default: the paper's camera at 640 x 360); ``frame_rate``: Hz, a
+    whole number of simulator steps per frame; ``t_end``: s (default: the config's).
+    ``initial_cue``: until a camera first detects the target, it points at the target's
+    path predicted from its true start state (ballistic for a falling target, constant
+    velocity otherwise): the cue that starts a capture; without it the cameras search. ``cooperative_cue``: a
+    camera that has lost the target points at the target located by the cameras that see it
+    (least squares over their rays and box ranges; one camera with a whole box suffices). ``force_loss``: ``(t0, t1)`` s, a window in which every
+    detection is dropped (to test recovery). ``target_style``: how the renderer draws the
+    target (:class:`~mysim_jax.perception.render.Renderer`; ``"auto"``: a drone for a
+    maneuvering target, else a sphere).
+    """
+    import jax
+    from tqdm.auto import tqdm
+
+    from mysim_jax.build import build
+    from mysim_jax.perception.camera import intrinsics as make_intrinsics
+    from mysim_jax.sim import rollout, single_env_scene
+    from mysim_jax.tasks.scripted import team_policy
+
+    check_tracking_scene(config)
+    if not frame_rate > 0:
+        raise PerceptionError(f"frame_rate must be positive, got {frame_rate}")
+    intr = make_intrinsics(width=640, height=360) if intr is None else intr
+    detector = OracleDetector() if detector is None else detector
+    scene, params, state = build(config)
+    if initial_cue:
+        config = _point_at_start(config, scene, state)
+        scene, params, state = build(config)
+    scene = single_env_scene(scene)
+    steps = int(round(1.0 / (frame_rate * scene.dt)))
+    if steps < 1 or abs(steps * scene.dt * frame_rate - 1.0) > 1e-6:
+        raise PerceptionError(f"frame_rate {frame_rate:g} Hz is not a whole number of simulator steps "
+                              f"(dt = {scene.dt:g} s); pick 1 / (k dt), e.g. {1.0 / (round(1 / (frame_rate * scene.dt)) * scene.dt):g} Hz")
+    frame_dt = steps * scene.dt
+    t_end = config.sim.t_end if t_end is None else float(t_end)
+    n_frames = int(np.floor(t_end / frame_dt + 1e-9)) + 1
+    policy = team_policy(config, scene)
+    cams = gimbal_cameras(config)
+    names = tuple(c.name for _, c in cams)
+    uavs = tuple(u for u, _ in cams)
+    geoms = [GimbalGeometry(c) for _, c in cams]
+    renderer = _SkyRenderer(config, intr, target_style=target_style)
+    trackers = [GimbalTracker(g, intr, frame_dt, tracker_config, c.command.angle) for g, (_, c) in zip(geoms, cams)]
+    qp = params.quadrotor
+    params = params.replace(quadrotor=qp.replace(gimbal_amplitude=qp.gimbal_amplitude * 0.0))
+    advance = jax.jit(rollout, static_argnums=(0, 3, 4, 5))
+    bi = {n: i for i, n in enumerate(scene.body_names)}
+    target = config.target.name
+
+    p0, v0 = np.asarray(state.phys.body_pos[bi[target]], float), np.asarray(state.phys.body_vel[bi[target]], float)
+    g_acc = np.asarray(params.gravity, float) if config.target.behaviour == "falling" else np.zeros(3)
+
+    def cue_point(t):
+        return p0 + v0 * t + 0.5 * g_acc * t * t
+
+    G = len(cams)
+    rec = {k: [] for k in ("t", "camera_R", "camera_p", "angles", "command", "mode", "det_box", "true_box",
+                           "true_centre", "true_depth", "visible_fraction", "target_pos")}
+    rows = []
+    commands = np.array([c.command.angle for _, c in cams], float)
+    bar = tqdm(total=n_frames, desc="track (render, detect, steer, simulate)", unit="frame", disable=not progress)
+    for k in range(n_frames):
+        cols = _state_columns(scene, state)
+        rows.append(cols)
+        t = float(cols["time"][0])
+        bq = np.asarray(state.phys.body_quat, float)
+        bp = np.asarray(state.phys.body_pos, float)
+        if not (np.all(np.isfinite(bq)) and np.all(np.isfinite(bp))):
+            raise PerceptionError(f"the simulation turned non-finite at t = {t:g} s; simulate the scene with "
+                                  f"scripts/simulate.py to see where")
+        frames, dets, angles, uav_Rs = [], [], [], []
+        for g, (uav, cam) in enumerate(cams):
+            frame = renderer.render(cols, cam.name, 0)
+            found = list(detector(frame))
+            if force_loss is not None and force_loss[0] <= t < force_loss[1]:
+                found = []
+            uR = quat_to_matrix(bq[bi[uav]])
+            angles.append(geoms[g].angles(uR, quat_to_matrix(bq[bi[cam.name]])))
+            frames.append(frame)
+            dets.append(found)
+            uav_Rs.append(uR)
+        seen = [g for g in range(G) if dets[g]]
+        for g in range(G):
+            cue = None
+            if initial_cue and not dets[g] and trackers[g].last_seen_t is None:
+                cue = cue_point(t) - frames[g].p
+            elif cooperative_cue and not dets[g] and any(s != g for s in seen):
+                point = _team_point([frames[s] for s in seen if s != g], [dets[s][0] for s in seen if s != g],
+                                    intr, config.target.radius)
+                if point is not None:
+                    cue = point - frames[g].p
+            commands[g] = trackers[g].update(t, dets[g], angles[g], uav_Rs[g], frames[g].R, cue,
+                                             uav_omega=np.asarray(state.phys.body_angvel[bi[uavs[g]]], float))
+        tv = [f.target for f in frames]
+        rec["t"].append(t)
+        rec["camera_R"].append([f.R for f in frames])
+        rec["camera_p"].append([f.p for f in frames])
+        rec["angles"].append(angles)
+        rec["command"].append(commands.copy())
+        rec["mode"].append([tr.mode for tr in trackers])
+        rec["det_box"].append([d[0].box if d else np.full(4, np.nan) for d in dets])
+        rec["true_box"].append([v.box if v.box is not None else np.full(4, np.nan) for v in tv])
+        rec["true_centre"].append([v.centre for v in tv])
+        rec["true_depth"].append([v.depth for v in tv])
+        rec["visible_fraction"].append([v.visible_fraction for v in tv])
+        rec["target_pos"].append(bp[bi[target]])
+        bar.update(1)
+        if k == n_frames - 1:
+            break
+        qp = params.quadrotor
+        params = params.replace(quadrotor=qp.replace(gimbal_angle=jax.numpy.asarray(commands, qp.gimbal_angle.dtype)))
+        state, _ = advance(scene, params, state, steps, steps, policy)
+    bar.close()
+    columns = {key: np.concatenate([r[key] for r in rows]) for key in rows[0]}
+    arr = {k: np.asarray(v) for k, v in rec.items()}
+    return TrackingRecord(cameras=names, uavs=uavs, intr=intr, target_radius=float(config.target.radius),
+                          columns=columns, **arr)
+
+
+MOVING_SPEED = 0.5      # m/s: above this the target counts as moving (falling, evading), below as held
+
+
+def target_moving(record: TrackingRecord) -> np.ndarray:
+    """(F,) bool: frames in which the target's speed (central differences) is above MOVING_SPEED."""
+    if len(record.t) < 2:
+        return np.zeros(len(record.t), bool)
+    v = np.gradient(record.target_pos, record.t, axis=0)
+    return np.linalg.norm(v, axis=1) > MOVING_SPEED
+
+
+def tracking_metrics(record: TrackingRecord) -> dict:
+    """In-view fraction, detection fraction and pixel error of the target's centre from the
+    image centre (px; mean and 95th percentile over frames with the target in front), per
+    camera, over all, and over the frames with the target moving (:func:`target_moving`)."""
+    inview = record.in_view()
+    err = record.pixel_error()
+    detected = np.all(np.isfinite(record.det_box), axis=-1)
+
+    def stats(sel):
+        e = err[sel]
+        e = e[np.isfinite(e)]
+        iv = inview[sel]
+        return {"camera_frames": int(iv.size), "in_view_fraction": float(iv.mean()) if iv.size else None,
+                "detected_fraction": float(detected[sel].mean()) if iv.size else None,
+                "pixel_error_mean_px": float(e.mean()) if e.size else None,
+                "pixel_error_p95_px": float(np.percentile(e, 95)) if e.size else None,
+                "pixel_error_median_px": float(np.median(e)) if e.size else None}
+
+    out = {"all": stats(np.ones_like(inview, bool))}
+    moving = target_moving(record)
+    out["target_moving"] = stats(np.broadcast_to(moving[:, None], inview.shape))
+    out["target_moving"]["note"] = f"frames with the target faster than {MOVING_SPEED:g} m/s"
+    for g, name in enumerate(record.cameras):
+        sel = np.zeros_like(inview, bool)
+        sel[:, g] = True
+        out[name] = stats(sel)
+    modes, counts = np.unique(record.mode, return_counts=True)
+    out["modes"] = {str(m): int(c) for m, c in zip(modes, counts)}
+    out["image_centre_px"] = [record.intr.cx, record.intr.cy]
+    return out

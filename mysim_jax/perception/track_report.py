@@ -1,0 +1,173 @@
+"""Metrics and plots of a tracking run: gimbal pointing, target localisation, size-range fits.
+
+:func:`write_tracking_report` is what ``scripts/perceive.py --track`` writes into its
+output folder (see there for the files).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from mysim_jax.perception.localize import (METHODS, PoseNoise, box_size_px, box_touches_border, localize_record,
+                                           size_range_fits, sphere_range)
+from mysim_jax.perception.track import TrackingRecord, target_moving, tracking_metrics
+
+
+def size_range_data(record: TrackingRecord, min_visible: float = 0.95) -> dict:
+    """Per detection with a whole box (not cut by the image border) of a target at least
+    ``min_visible`` visible (no net line or UAV in front: the relation between size and
+    range, not occlusion, is what is fitted): the area fraction ``alpha = w h / (W H)``
+    (paper), the size-corrected pinhole range (m) and the true distance from the optical
+    centre to the target's centre (m)."""
+    intr = record.intr
+    box = record.det_box.reshape(-1, 4)
+    ok = np.all(np.isfinite(box), axis=1) & (record.visible_fraction.reshape(-1) >= min_visible)
+    box = box[ok]
+    whole = ~box_touches_border(intr, box)
+    box = box[whole]
+    dist = np.linalg.norm(record.target_pos[:, None, :] - record.camera_p, axis=-1).reshape(-1)[ok][whole]
+    w, h = box[:, 2] - box[:, 0], box[:, 3] - box[:, 1]
+    return {"alpha": w * h / (intr.width * intr.height),
+            "pinhole_range": sphere_range(box_size_px(intr, box), record.target_radius, intr.fx),
+            "distance": dist}
+
+
+def _plot_pointing(record: TrackingRecord, path: Path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    err = record.pixel_error()
+    inview = record.in_view()
+    fig, ax = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
+    for g, name in enumerate(record.cameras):
+        ax[0].plot(record.t, err[:, g], lw=1, label=name)
+        ax[1].plot(record.t, inview[:, g] + 0.02 * g, lw=1, drawstyle="steps-post", label=name)
+    half = np.hypot(record.intr.cx, record.intr.cy)
+    ax[0].axhline(record.intr.cy, color="k", ls=":", lw=0.8, label="half image height")
+    ax[0].set_ylim(0, min(np.nanmax(err) * 1.05 if np.isfinite(err).any() else half, 2 * half))
+    ax[0].set_ylabel("target centre from image centre [px]")
+    ax[0].legend(fontsize=8, ncol=3)
+    ax[0].set_title(f"gimbal tracking: {record.intr.width} x {record.intr.height} px, "
+                    f"{len(record.t)} frames per camera")
+    ax[1].set_ylabel("target in view")
+    ax[1].set_xlabel("time [s]")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _plot_localisation(loc, path_err: Path, path_paths: Path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    errors = loc.errors()
+    fig, ax = plt.subplots(figsize=(9, 4.5))
+    for m in errors:
+        e = errors[m]
+        ok = np.isfinite(e)
+        label = (f"{m}: mean {e[ok].mean():.3f} m, p95 {np.percentile(e[ok], 95):.3f} m" if ok.any()
+                 else f"{m}: no estimate")
+        ax.plot(loc.t, e, lw=1, label=label)
+    ax.set_yscale("log")
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("target position error [m]")
+    ax.set_title("fused target position error per method")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path_err, dpi=110)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(1, 2, figsize=(11, 4.8))
+    ax[0].plot(loc.truth[:, 0], loc.truth[:, 1], "k-", lw=2, label="true")
+    for m in ("triples_median", "all_ls"):
+        if m in loc.estimates:
+            ax[0].plot(loc.estimates[m][:, 0], loc.estimates[m][:, 1], ".", ms=3, label=m)
+            ax[1].plot(loc.t, loc.estimates[m][:, 2], ".", ms=3, label=m)
+    ax[0].set_aspect("equal", adjustable="datalim")
+    ax[0].set_xlabel("x [m]")
+    ax[0].set_ylabel("y [m]")
+    ax[0].set_title("top view")
+    ax[0].legend(fontsize=8)
+    ax[1].plot(loc.t, loc.truth[:, 2], "k-", lw=2, label="true")
+    ax[1].set_xlabel("time [s]")
+    ax[1].set_ylabel("z [m]")
+    ax[1].set_title("height")
+    ax[1].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path_paths, dpi=110)
+    plt.close(fig)
+
+
+def _plot_size_range(data: dict, fits: dict, path: Path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    a, d = data["alpha"], data["distance"]
+    xs = np.geomspace(a.min(), a.max(), 100)
+    fig, ax = plt.subplots(figsize=(6.5, 4.8))
+    ax.loglog(a, d, ".", ms=3, color="0.5", label="detections (true distance)")
+    for key, style in (("paper_inverse_area", "r-"), ("pinhole_inverse_sqrt_area", "b-"), ("free_exponent", "g--")):
+        f = fits[key]
+        ax.loglog(xs, f["constant"] * xs ** f["exponent"], style,
+                  label=f"{key}: k = {f['exponent']:.3f}, rel. err mean {100 * f['relative_error_mean']:.1f} %")
+    ax.set_xlabel("box area fraction alpha = w h / (W H)")
+    ax.set_ylabel("distance to target [m]")
+    ax.set_title("range = c alpha^k")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def write_tracking_report(record: TrackingRecord, out: Path, pose_noise: PoseNoise | None = None,
+                          extra: dict | None = None, progress: bool = True, range_sigma: float = 0.05) -> dict:
+    """Write ``metrics.json``, ``tracking.npz``, ``localisation.csv`` and the plots into ``out``;
+    returns the metrics. ``range_sigma``: the relative range noise the fusion assumes."""
+    out = Path(out)
+    metrics = {"tracking": tracking_metrics(record)}
+    loc = localize_record(record, progress=progress, range_sigma=range_sigma)
+    moving = target_moving(record)
+    metrics["localisation"] = {"range_sigma": range_sigma, "true_poses": loc.metrics(),
+                               "true_poses_target_moving": {"frames": int(moving.sum()), **loc.metrics(moving)}}
+    if pose_noise is not None:
+        noisy = localize_record(record, pose_noise=pose_noise, progress=progress, range_sigma=range_sigma)
+        metrics["localisation"]["perturbed_poses"] = {
+            "position_sigma_m": pose_noise.position_m, "rotation_sigma_rad": pose_noise.rotation_rad,
+            **noisy.metrics()}
+    n_det = loc.n_detecting
+    metrics["localisation"]["detecting_cameras_histogram"] = {str(k): int((n_det == k).sum())
+                                                              for k in range(len(record.cameras) + 1)}
+    data = size_range_data(record)
+    plots = ["pointing.png", "localisation_error.png", "localisation_paths.png"]
+    n, span = len(data["alpha"]), (data["distance"].max() / data["distance"].min() if len(data["alpha"]) else 1.0)
+    if n < 10 or span < 1.5:
+        metrics["size_range"] = {"skipped": f"{n} whole, unoccluded boxes over distances spanning a factor "
+                                            f"{span:.2f}; the fits need >= 10 over a factor >= 1.5"}
+    else:
+        fits = size_range_fits(data["alpha"], data["distance"])
+        fits["distance_range_m"] = [float(data["distance"].min()), float(data["distance"].max())]
+        rel = np.abs(data["pinhole_range"] / data["distance"] - 1)
+        fits["sphere_pinhole_formula"] = {"relative_error_mean": float(rel.mean()),
+                                          "relative_error_p95": float(np.percentile(rel, 95)),
+                                          "note": "rho = r sqrt(1 + (2 f / s)^2), s = sqrt(w h) cos^1.5(gamma); "
+                                                  "no fitted constant"}
+        metrics["size_range"] = fits
+        _plot_size_range(data, fits, out / "size_range.png")
+        plots.append("size_range.png")
+    _plot_pointing(record, out / "pointing.png")
+    _plot_localisation(loc, out / "localisation_error.png", out / "localisation_paths.png")
+    metrics["plots"] = plots
+    if extra:
+        metrics.update(extra)
+    record.save_npz(out / "tracking.npz")
+    header = ["t", "true_x", "true_y", "true_z", "detecting"] + [f"{m}_{a}" for m in METHODS for a in "xyz"]
+    table = np.column_stack([loc.t, loc.truth, loc.n_detecting] + [loc.estimates[m] for m in METHODS])
+    np.savetxt(out / "localisation.csv", table, delimiter=",", header=",".join(header), comments="", fmt="%.6g")
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    return metrics

@@ -1,0 +1,181 @@
+"""Gimbal tracking: the gimbal's kinematics, the controller's modes, a short closed-loop run in
+the simulator (search, centring, a forced loss and the recovery), bad input."""
+
+import numpy as np
+import pytest
+
+from mysim_jax.config import load_config
+from mysim_jax.perception.camera import PerceptionError, intrinsics
+from mysim_jax.perception.track import (Detection, GimbalGeometry, GimbalTracker, OracleDetector, TrackerConfig,
+                                        check_tracking_scene, image_detector, run_tracking, tracking_metrics)
+
+SCENE = """
+name: track_small
+description: one hovering UAV with a gimbal camera and a slowly evading target
+sim: {t_end: 2.6, dt: 2.0e-3, substeps: 2, output_dt: 0.04, integrator: semi_implicit_euler, precision: float32}
+bodies:
+  - {name: uav0, mass: 0.28, inertia: [1.4e-4, 1.4e-4, 2.17e-4], pos: [0.0, 0.0, 2.0]}
+quadrotors:
+  - body: uav0
+    reference: {center: [0.0, 0.0, 2.0]}
+    cameras:
+      - {name: gim0, mount: gimbal, offset: [0.0, 0.0, -0.04]}
+target:
+  behaviour: maneuvering
+  spawn:
+    position: {low: [-1.0, 3.0, 2.4], high: [-1.0, 3.0, 2.4]}
+    velocity: {low: [0.3, 0.3, 0.0], high: [0.3, 0.3, 0.0]}
+  propulsion: {max_acceleration: 1.0, max_speed: 1.0, flee_acceleration: 0.3, jink_acceleration: 0.8,
+               altitude: [2.0, 3.0]}
+"""
+
+
+@pytest.fixture(scope="module")
+def small_config(tmp_path_factory):
+    path = tmp_path_factory.mktemp("track") / "track_small.yaml"
+    path.write_text(SCENE)
+    return load_config(path)
+
+
+def test_gimbal_aim_inverts_the_kinematics(small_config):
+    geom = GimbalGeometry(small_config.quadrotors[0].cameras[0])
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        a = rng.uniform([-3.0, -1.5], [3.0, 1.5])
+        d = geom.camera_in_uav(a) @ np.array([1.0, 0.0, 0.0])
+        b = geom.aim(d, a + rng.normal(0, 0.1, 2))
+        np.testing.assert_allclose(b, a, atol=1e-9)
+        # the encoder angles of that pose are the angles again
+        uav_R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+        uav_R *= np.sign(np.linalg.det(uav_R))
+        np.testing.assert_allclose(geom.angles(uav_R, uav_R @ geom.camera_in_uav(a)), a, atol=1e-9)
+    # the flipped solution is taken when the near one is outside the tilt limits
+    d = geom.camera_in_uav([0.3, 2.0]) @ np.array([1.0, 0.0, 0.0])
+    flipped = geom.aim(d, [0.3, 2.0], tilt_limits=(-1.5, 1.5))
+    np.testing.assert_allclose(geom.camera_in_uav(flipped) @ [1.0, 0.0, 0.0], d, atol=1e-9)
+    np.testing.assert_allclose(flipped, [0.3 - np.pi, np.pi - 2.0], atol=1e-9)     # pan turned half round
+
+
+def _kinematic_loop(geom, intr, target_fn, n, cfg=TrackerConfig(), drop=()):
+    """A tracker against a perfect servo (angles = last command) on a level UAV at the origin,
+    with detections projected from the target's world position."""
+    from mysim_jax.perception.camera import R_BODY_CV
+
+    tracker = GimbalTracker(geom, intr, 0.04, cfg)
+    angles = np.zeros(2)
+    out = []
+    for k in range(n):
+        t = 0.04 * k
+        R = geom.camera_in_uav(angles) @ R_BODY_CV
+        Xc = R.T @ target_fn(t)
+        uv = np.array([intr.fx * Xc[0] / Xc[2] + intr.cx, intr.fy * Xc[1] / Xc[2] + intr.cy])
+        seen = Xc[2] > 0 and 0 <= uv[0] < intr.width and 0 <= uv[1] < intr.height and k not in drop
+        dets = [Detection(box=np.r_[uv - 3, uv + 3], score=1.0)] if seen else []
+        angles = tracker.update(t, dets, angles, np.eye(3), R)
+        out.append((tracker.mode, np.hypot(*(uv - [intr.cx, intr.cy])) if Xc[2] > 0 else np.inf, seen))
+    return out
+
+
+def test_tracker_modes_kinematic(small_config):
+    geom = GimbalGeometry(small_config.quadrotors[0].cameras[0])
+    intr = intrinsics(width=320, height=180)
+    # a target off to the side and above: found by the search, then centred
+    out = _kinematic_loop(geom, intr, lambda t: np.array([-2.0, 3.0, 0.4]), 60)
+    modes = [m for m, _, _ in out]
+    assert modes[0] == "search"
+    first = next(k for k, (_, _, seen) in enumerate(out) if seen)
+    assert all(m == "track" for m in modes[first:])
+    assert max(e for _, e, _ in out[first + 2:]) < 1.0       # a static target is centred to a pixel
+    # a moving target lost for 20 frames: hold, then predict, then search; found again after it
+    cfg = TrackerConfig(predict_s=0.3)
+    drop = set(range(20, 40))
+    out = _kinematic_loop(geom, intr, lambda t: np.array([3.0, 0.5 * t, 0.5]), 150, cfg, drop)
+    modes = [m for m, _, _ in out]
+    assert modes[20:22] == ["hold", "hold"]
+    # last seen at frame 19: predict while 0.04 (k - 19) <= 2 frames + predict_s, i.e. to frame 28
+    assert modes[22:29] == ["predict"] * 7 and modes[29:40] == ["search"] * 11
+    back = next(k for k in range(40, 150) if out[k][2])      # the search comes round again
+    assert all(m == "track" for m in modes[back:])
+    assert max(e for _, e, _ in out[back + 3:]) < 10.0       # moving at 0.17 rad/s: centred to a few px
+
+
+@pytest.fixture(scope="module")
+def closed_loop(small_config):
+    """2.6 s in the simulator at 25 Hz, 160 x 90 px, no start cue, detections dropped in [1.6, 2.0) s;
+    the evading target drawn as a sphere (so that its box gives its range)."""
+    return run_tracking(small_config, detector=OracleDetector(noise_px=0.5, seed=1),
+                        intr=intrinsics(width=160, height=90), initial_cue=False, force_loss=(1.6, 2.0),
+                        target_style="sphere", progress=False)
+
+
+def test_closed_loop_search_centre_lose_recover(closed_loop):
+    rec = closed_loop
+    t = rec.t
+    modes = rec.mode[:, 0]
+    detected = np.all(np.isfinite(rec.det_box[:, 0]), axis=1)
+    err = rec.pixel_error()[:, 0]
+    assert modes[0] == "search" and not detected[0]
+    first = int(np.argmax(detected))
+    assert detected.any() and t[first] < 1.4, "the search did not find the target"
+    # centred while tracking (measured: at most 1.6 px at 160 x 90 from 3 frames after acquisition)
+    settled = (np.arange(len(t)) >= first + 3) & (t < 1.6)
+    assert settled.sum() >= 3 and err[settled].max() < 8.0, err[settled]
+    # the forced loss: hold, then predict along the last bearing
+    lost = (t >= 1.6) & (t < 2.0)
+    assert not detected[lost].any()
+    assert list(modes[lost][:2]) == ["hold", "hold"] and set(modes[lost][2:]) == {"predict"}
+    # recovered: the target stayed in view and is detected on the first frame after the loss
+    after = t >= 2.0
+    assert detected[after].all() and rec.in_view()[after, 0].all()
+    assert err[after][2:].max() < 8.0                       # measured: 2.1 px
+    m = tracking_metrics(rec)
+    assert m["gim0"]["camera_frames"] == len(t) and 0 < m["all"]["in_view_fraction"] <= 1
+
+
+def test_bad_input(small_config, tmp_path):
+    no_gimbal = load_config("configs/capture_maneuvering_cameras.yaml")
+    with pytest.raises(PerceptionError, match="no gimbal camera .*cam0"):
+        check_tracking_scene(no_gimbal)
+    no_target = small_config.model_copy(update={"target": None})
+    with pytest.raises(PerceptionError, match="no target"):
+        check_tracking_scene(no_target)
+    with pytest.raises(PerceptionError, match="not on a gimbal"):
+        GimbalGeometry(no_gimbal.quadrotors[0].cameras[0])
+    with pytest.raises(PerceptionError, match="miss_rate"):
+        OracleDetector(miss_rate=1.5)
+    with pytest.raises(PerceptionError, match="detect"):
+        image_detector(object())
+    with pytest.raises(PerceptionError, match="max_rate"):
+        TrackerConfig(max_rate=0.0)
+    with pytest.raises(PerceptionError, match="whole number of simulator steps"):
+        run_tracking(small_config, frame_rate=33.0, progress=False)
+    # the script: a one-line error and exit code 2
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("perceive", "scripts/perceive.py")
+    perceive = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(perceive)
+    assert perceive.main(["--track", "configs/capture_maneuvering_cameras.yaml", "--out", str(tmp_path / "o")]) == 2
+    assert perceive.main(["--track", "configs/capture_falling_gimbals.yaml", "--out", str(tmp_path / "o2"),
+                          "--pose-noise", "-1", "0"]) == 2
+
+
+def test_record_roundtrip_and_single_camera_localisation(closed_loop, tmp_path):
+    from mysim_jax.perception.localize import localize_record
+    from mysim_jax.perception.track import TrackingRecord
+
+    closed_loop.save_npz(tmp_path / "tracking.npz")
+    back = TrackingRecord.load_npz(tmp_path / "tracking.npz")
+    assert back.cameras == closed_loop.cameras and back.intr == closed_loop.intr
+    np.testing.assert_array_equal(back.det_box, closed_loop.det_box)
+    np.testing.assert_array_equal(back.mode, closed_loop.mode)
+    loc = localize_record(back)
+    err = loc.errors()["single"]
+    detected = np.all(np.isfinite(back.det_box[:, 0]), axis=1)
+    whole = detected & np.isfinite(err)
+    assert np.isnan(loc.estimates["triples_median"]).all()          # one camera: no triple
+    # one camera, range from a ~15 px box at 160 x 90 (one pixel is 7 % of the range): measured median 0.05 m
+    assert whole.sum() >= 0.8 * detected.sum() and np.median(err[whole]) < 0.3
+    with pytest.raises(PerceptionError, match="not a tracking record"):
+        (tmp_path / "bad.npz").write_bytes(b"nothing")
+        TrackingRecord.load_npz(tmp_path / "bad.npz")
