@@ -176,6 +176,16 @@ def test_record_roundtrip_and_single_camera_localisation(closed_loop, tmp_path):
     assert np.isnan(loc.estimates["triples_median"]).all()          # one camera: no triple
     # one camera, range from a ~15 px box at 160 x 90 (one pixel is 7 % of the range): measured median 0.05 m
     assert whole.sum() >= 0.8 * detected.sum() and np.median(err[whole]) < 0.3
+    # the true velocity is recorded (it agrees with the positions' central differences) and
+    # the team's target track error model is fitted to the filtered estimate
+    np.testing.assert_array_equal(back.target_vel, closed_loop.target_vel)
+    diff = np.gradient(back.target_pos, back.t, axis=0)[1:-1] - back.target_vel[1:-1]
+    assert np.median(np.linalg.norm(diff, axis=1)) < 0.1 * np.median(np.linalg.norm(back.target_vel, axis=1))
+    from mysim_jax.perception.track_report import target_error_model
+    model = target_error_model(back, loc, method="single")
+    first = int(np.argmax(np.isfinite(loc.estimates["single"]).all(axis=1)))
+    assert model["first_fix_s"] == pytest.approx(back.t[first])
+    assert 0 < model["position_m"]["pooled"]["sigma"] < 1.0 and model["velocity_m_s"]["pooled"]["sigma"] > 0
     with pytest.raises(PerceptionError, match="not a tracking record"):
         (tmp_path / "bad.npz").write_bytes(b"nothing")
         TrackingRecord.load_npz(tmp_path / "bad.npz")

@@ -376,6 +376,7 @@ class TrackingRecord:
     true_depth: np.ndarray          # (F, G) m, along the optical axis
     visible_fraction: np.ndarray    # (F, G) visible target pixels / its unoccluded silhouette's
     target_pos: np.ndarray          # (F, 3) m, true target centre
+    target_vel: np.ndarray          # (F, 3) m/s, true target velocity
     target_radius: float            # m
     intr: Intrinsics
     columns: dict = field(default_factory=dict)    # trajectory columns, one row per frame
@@ -536,7 +537,7 @@ def run_tracking(config, detector: FrameDetector | None = None, intr: Intrinsics
 
     G = len(cams)
     rec = {k: [] for k in ("t", "camera_R", "camera_p", "angles", "command", "mode", "det_box", "true_box",
-                           "true_centre", "true_depth", "visible_fraction", "target_pos")}
+                           "true_centre", "true_depth", "visible_fraction", "target_pos", "target_vel")}
     rows = []
     commands = np.array([c.command.angle for _, c in cams], float)
     bar = tqdm(total=n_frames, desc="track (render, detect, steer, simulate)", unit="frame", disable=not progress)
@@ -585,6 +586,7 @@ def run_tracking(config, detector: FrameDetector | None = None, intr: Intrinsics
         rec["true_depth"].append([v.depth for v in tv])
         rec["visible_fraction"].append([v.visible_fraction for v in tv])
         rec["target_pos"].append(bp[bi[target]])
+        rec["target_vel"].append(np.asarray(state.phys.body_vel[bi[target]], float))
         bar.update(1)
         if k == n_frames - 1:
             break

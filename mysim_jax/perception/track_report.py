@@ -125,6 +125,33 @@ def _plot_size_range(data: dict, fits: dict, path: Path) -> None:
     plt.close(fig)
 
 
+TEAM_METHOD = "triples_weighted"     # the fusion whose estimate the team's target track filters
+
+
+def target_error_model(record: TrackingRecord, loc, poses: str = "true", method: str = TEAM_METHOD,
+                       position_sigma: float = 0.05, jerk_sigma: float = 5.0) -> dict:
+    """The team's target track and its errors: the fused positions of ``method`` filtered
+    over time (:func:`mysim_jax.perception.target_filter.target_filter`) into a position and
+    velocity estimate, and a Gauss-Markov fit of each one's error against the true target
+    (:func:`mysim_jax.perception.metrics.gauss_markov_fit`), from the first fix on: the
+    ``error_model`` that ``scripts/perception_gap.py fit --target`` reads."""
+    from mysim_jax.perception.metrics import gauss_markov_fit
+    from mysim_jax.perception.target_filter import target_filter
+
+    p, v = target_filter(loc.t, loc.estimates[method], position_sigma=position_sigma, jerk_sigma=jerk_sigma)
+    ok = np.all(np.isfinite(p), axis=1)
+    if ok.sum() < 3:
+        return {"skipped": f"{int(ok.sum())} frames with a target track; the fit needs >= 3"}
+    first = int(np.argmax(ok))
+    t = loc.t[first:]
+    return {"method": method, "camera_poses": poses,
+            "filter": {"kind": "constant acceleration", "position_sigma_m": position_sigma,
+                       "jerk_sigma_m_s3": jerk_sigma},
+            "first_fix_s": float(loc.t[first]),
+            "position_m": gauss_markov_fit(t, p[first:] - record.target_pos[first:]),
+            "velocity_m_s": gauss_markov_fit(t, v[first:] - record.target_vel[first:])}
+
+
 def write_tracking_report(record: TrackingRecord, out: Path, pose_noise: PoseNoise | None = None,
                           extra: dict | None = None, progress: bool = True, range_sigma: float = 0.05) -> dict:
     """Write ``metrics.json``, ``tracking.npz``, ``localisation.csv`` and the plots into ``out``;
@@ -140,6 +167,8 @@ def write_tracking_report(record: TrackingRecord, out: Path, pose_noise: PoseNoi
         metrics["localisation"]["perturbed_poses"] = {
             "position_sigma_m": pose_noise.position_m, "rotation_sigma_rad": pose_noise.rotation_rad,
             **noisy.metrics()}
+    metrics["error_model"] = target_error_model(record, noisy if pose_noise is not None else loc,
+                                                poses="perturbed" if pose_noise is not None else "true")
     n_det = loc.n_detecting
     metrics["localisation"]["detecting_cameras_histogram"] = {str(k): int((n_det == k).sum())
                                                               for k in range(len(record.cameras) + 1)}
