@@ -73,6 +73,8 @@ def main(argv=None) -> int:
     parser.add_argument("--no-cue", action="store_true", help="--track: no start cue; the cameras search")
     parser.add_argument("--pose-noise", type=float, nargs=2, metavar=("M", "RAD"), help="--track: also localise "
                         "with camera poses perturbed by these position and rotation standard deviations")
+    parser.add_argument("--pose-noise-time", type=float, default=0.0, metavar="S", help="--track: correlation "
+                        "time of the pose noise (Gauss-Markov over the frames, as VIO errors; default 0: white)")
     parser.add_argument("--out", required=True, help="output folder (created if missing)")
     parser.add_argument("--camera", help="fixed camera to use (default: the first fixed camera)")
     parser.add_argument("--body", help="UAV body to estimate (default: the camera's)")
@@ -166,9 +168,11 @@ def _track(args) -> int:
         if args.pose_noise is not None:
             from mysim_jax.perception.localize import PoseNoise
 
-            pose_noise = PoseNoise(position_m=args.pose_noise[0], rotation_rad=args.pose_noise[1], seed=args.seed)
-            if not (args.pose_noise[0] >= 0 and args.pose_noise[1] >= 0):
-                raise PerceptionError(f"--pose-noise values must be >= 0, got {args.pose_noise}")
+            pose_noise = PoseNoise(position_m=args.pose_noise[0], rotation_rad=args.pose_noise[1], seed=args.seed,
+                                   correlation_time=args.pose_noise_time)
+            if not (args.pose_noise[0] >= 0 and args.pose_noise[1] >= 0 and args.pose_noise_time >= 0):
+                raise PerceptionError(f"--pose-noise values and --pose-noise-time must be >= 0, got "
+                                      f"{args.pose_noise}, {args.pose_noise_time}")
     except (ConfigError, OutputError, PerceptionError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

@@ -202,21 +202,31 @@ def fuse(method: str, origins, bearings, ranges, **sigmas) -> np.ndarray | None:
 class PoseNoise:
     """Perturbation of the camera poses fed to localisation (e.g. to stand in for VIO errors):
     per frame and camera, a Gaussian position offset (m) and a rotation about a random axis by
-    a Gaussian angle (rad)."""
+    a Gaussian angle (rad). With ``correlation_time`` > 0 (s) both are first-order
+    Gauss-Markov processes over the frames instead of independent per frame (as VIO errors
+    are: see the ``error_model`` of ``scripts/perceive.py``), with the same spread."""
 
     position_m: float = 0.0
     rotation_rad: float = 0.0
     seed: int = 0
+    correlation_time: float = 0.0
 
-    def apply(self, R: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Perturbed copies of rotations (..., 3, 3) and positions (..., 3)."""
-        if self.position_m < 0 or self.rotation_rad < 0:
+    def apply(self, R: np.ndarray, p: np.ndarray, dt: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Perturbed copies of rotations (F, ..., 3, 3) and positions (F, ..., 3); ``dt``: the
+        frame interval (s), needed when ``correlation_time`` > 0."""
+        if self.position_m < 0 or self.rotation_rad < 0 or self.correlation_time < 0:
             raise PerceptionError(f"pose noise must be >= 0, got position {self.position_m} m, "
-                                  f"rotation {self.rotation_rad} rad")
+                                  f"rotation {self.rotation_rad} rad, correlation time {self.correlation_time} s")
         rng = np.random.default_rng(self.seed)
-        p = p + rng.normal(0, self.position_m, p.shape)
+        dp = rng.normal(0, self.position_m, p.shape)
         w = rng.normal(0, 1, p.shape)
         w = w / np.linalg.norm(w, axis=-1, keepdims=True) * rng.normal(0, self.rotation_rad, p.shape[:-1])[..., None]
+        if self.correlation_time > 0:
+            if dt is None or not dt > 0:
+                raise PerceptionError("pose noise with a correlation time needs the frame interval dt > 0")
+            rho = float(np.exp(-dt / self.correlation_time))
+            dp, w = _gauss_markov(dp, rho), _gauss_markov(w, rho)
+        p = p + dp
         th = np.linalg.norm(w, axis=-1)[..., None, None]
         k = w / np.maximum(np.linalg.norm(w, axis=-1, keepdims=True), 1e-300)
         Kx = np.zeros(w.shape[:-1] + (3, 3))
@@ -224,6 +234,17 @@ class PoseNoise:
         Kx[..., 1, 0], Kx[..., 2, 0], Kx[..., 2, 1] = k[..., 2], -k[..., 1], k[..., 0]
         dR = np.eye(3) + np.sin(th) * Kx + (1 - np.cos(th)) * Kx @ Kx
         return dR @ R, p
+
+
+def _gauss_markov(white: np.ndarray, rho: float) -> np.ndarray:
+    """Filter independent draws along axis 0 into ``e[k] = rho e[k-1] + √(1 - rho²) white[k]``
+    (``e[0] = white[0]``): the same stationary spread, correlated over the frames."""
+    out = np.empty_like(white)
+    out[0] = white[0]
+    drive = np.sqrt(1.0 - rho * rho)
+    for k in range(1, len(white)):
+        out[k] = rho * out[k - 1] + drive * white[k]
+    return out
 
 
 @dataclass
@@ -263,7 +284,8 @@ def localize_record(record, pose_noise: PoseNoise | None = None, methods=METHODS
     intr = record.intr
     R, p = record.camera_R, record.camera_p
     if pose_noise is not None:
-        R, p = pose_noise.apply(R, p)
+        t = np.asarray(record.t, float)
+        R, p = pose_noise.apply(R, p, dt=float((t[-1] - t[0]) / (len(t) - 1)) if len(t) > 1 else None)
     boxes = record.det_box
     has = np.all(np.isfinite(boxes), axis=-1)                     # (F, G)
     safe = np.where(has[..., None], boxes, 0.0)

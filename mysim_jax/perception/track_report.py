@@ -166,6 +166,7 @@ def write_tracking_report(record: TrackingRecord, out: Path, pose_noise: PoseNoi
         noisy = localize_record(record, pose_noise=pose_noise, progress=progress, range_sigma=range_sigma)
         metrics["localisation"]["perturbed_poses"] = {
             "position_sigma_m": pose_noise.position_m, "rotation_sigma_rad": pose_noise.rotation_rad,
+            "correlation_time_s": pose_noise.correlation_time,
             **noisy.metrics()}
     metrics["error_model"] = target_error_model(record, noisy if pose_noise is not None else loc,
                                                 poses="perturbed" if pose_noise is not None else "true")
