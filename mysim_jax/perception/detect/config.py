@@ -42,16 +42,18 @@ class ModelConfig(StrictModel):
 
 
 class TrainConfig(StrictModel):
-    steps: PosInt = 1400
+    steps: PosInt = 3000
     batch_size: PosInt = 16
-    crop: Annotated[int, Field(ge=64, le=4096, multiple_of=32)] = 192   # px, square training crops
-    learning_rate: PosFloat = 2e-3
+    crop: Annotated[int, Field(ge=64, le=4096, multiple_of=32)] = 160   # px, square training crops
+    learning_rate: PosFloat = 3e-3
     warmup_steps: Annotated[int, Field(ge=0)] = 50
     weight_decay: Annotated[float, Field(ge=0.0, allow_inf_nan=False)] = 1e-4
     p_target_crop: Prob = 0.7            # crops chosen to contain the target (else anywhere)
-    scale_range: tuple[PosFloat, PosFloat] = (0.8, 1.25)   # random image rescale before cropping
+    scale_range: tuple[PosFloat, PosFloat] = (0.6, 1.6)   # random image rescale before cropping
     hflip: bool = True
-    photometric: Annotated[float, Field(ge=0.0, le=1.0)] = 0.15   # brightness/contrast jitter (fraction)
+    photometric: Annotated[float, Field(ge=0.0, lt=1.0)] = 0.5    # brightness gain in [1 - x, 1 + x] (log-uniform)
+    colour_jitter: Annotated[float, Field(ge=0.0, lt=1.0)] = 0.1  # per-channel gain in [1 - x, 1 + x]
+    gamma: Annotated[float, Field(ge=0.0, le=2.0)] = 0.3          # gamma exp(U(-x, x))
     seed: Annotated[int, Field(ge=0)] = 0
 
     @model_validator(mode="after")

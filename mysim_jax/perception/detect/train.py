@@ -8,7 +8,8 @@
 2. trains :class:`~mysim_jax.perception.detect.model.CenterNet` with AdamW (linear warm-up,
    cosine decay) on square crops of the training frames (``train.crop`` px; with
    ``p_target_crop`` placed so they contain the target's centre), augmented by a random
-   rescale (``scale_range``), horizontal flips and brightness/contrast jitter;
+   rescale (``scale_range``), horizontal flips, a random gamma, brightness gain and offset,
+   and per-channel (white balance) gains;
 3. evaluates the CNN and the classical baseline on both evaluation sets (precision, recall,
    mean IoU at ``eval.min_score``; AP@``iou_threshold``; frames per second, median of per-frame
    times) and writes ``OUT/detector.msgpack``, ``OUT/metrics.json``, ``OUT/pr_curve.png``,
@@ -141,10 +142,13 @@ def make_crop(image: np.ndarray, label: dict, cfg: DetectorConfig, rng: np.rando
     if t.hflip and rng.random() < 0.5:
         crop = crop[:, ::-1].copy()
         boxes = [(np.array([C - 1 - b[2], b[1], C - 1 - b[0], b[3]]), ig) for b, ig in boxes]
-    if t.photometric > 0:
-        gain = 1 + rng.uniform(-t.photometric, t.photometric)
-        bias = 255 * rng.uniform(-t.photometric, t.photometric) / 2
-        crop = np.clip(crop.astype(np.float32) * gain + bias, 0, 255).astype(np.uint8)
+    if t.photometric > 0 or t.colour_jitter > 0 or t.gamma > 0:
+        x = crop.astype(np.float32) * (1.0 / 255.0)
+        x = x ** np.float32(np.exp(rng.uniform(-t.gamma, t.gamma)))
+        gain = np.exp(rng.uniform(np.log(1 - t.photometric), np.log(1 + t.photometric)))
+        gain = gain * (1 + rng.uniform(-t.colour_jitter, t.colour_jitter, 3))
+        x = x * gain.astype(np.float32) + np.float32(rng.uniform(-0.05, 0.05) if t.photometric > 0 else 0.0)
+        crop = np.clip(x * 255.0 + 0.5, 0, 255).astype(np.uint8)
     return crop, boxes
 
 
