@@ -11,7 +11,10 @@ weights; ``load_detector(OUT/detector.msgpack)`` loads them), ``metrics.json`` (
 recall, mean IoU, AP@0.5 and frames/s of both detectors on both sets), ``pr_curve.png``,
 ``examples/*/frame_*.png`` (annotated frames), ``train_log.json`` and ``config.yaml``.
 Rendered frames are kept in ``OUT/cache`` (or ``--cache``) and reused by a rerun with the
-same data settings.
+same data settings. ``--weights FILE`` evaluates FILE instead of training (the evaluation
+frames only are rendered):
+
+    python scripts/train_detector.py configs/detector.yaml --weights docs/detector/detector.msgpack --out runs/det_eval
 
 A bad config (unknown keys, negative sizes, zero images, ...) or an unusable OUT is a
 one-line-per-problem error and exit code 2 before anything is rendered or compiled.
@@ -29,6 +32,8 @@ def main(argv=None) -> int:
     parser.add_argument("config", help="detector config (YAML), e.g. configs/detector.yaml")
     parser.add_argument("--out", default="runs/detector", help="output folder (default runs/detector)")
     parser.add_argument("--cache", help="folder of rendered frames (default OUT/cache)")
+    parser.add_argument("--weights", help="evaluate these weights (a detector.msgpack) instead of training, e.g. "
+                        "docs/detector/detector.msgpack")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bars")
     args = parser.parse_args(argv)
 
@@ -40,6 +45,11 @@ def main(argv=None) -> int:
         cfg = load_config(args.config)
         out = check_output_dir(args.out)
         cache = None if args.cache is None else check_output_dir(args.cache, flag="--cache")
+        if args.weights is not None:
+            from pathlib import Path
+
+            if not Path(args.weights).is_file():
+                raise OutputError(f"--weights {args.weights}: no such file (a detector.msgpack)")
     except (ConfigError, OutputError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
@@ -47,9 +57,10 @@ def main(argv=None) -> int:
     from mysim_jax.perception.detect.train import run
 
     t0 = time.perf_counter()
-    metrics = run(cfg, out, progress=not args.no_progress, cache=cache)
-    print(f"trained {cfg.train.steps} steps in {metrics['train_seconds']:.0f} s; wrote {out}/ "
-          f"({time.perf_counter() - t0:.0f} s in all)")
+    metrics = run(cfg, out, progress=not args.no_progress, cache=cache, weights=args.weights)
+    done = (f"evaluated {args.weights}" if args.weights else
+            f"trained {cfg.train.steps} steps in {metrics['train_seconds']:.0f} s")
+    print(f"{done}; wrote {out}/ ({time.perf_counter() - t0:.0f} s in all)")
     for key in ("cnn/held_out", "baseline/held_out", "cnn/in_distribution", "baseline/in_distribution"):
         m = metrics[key]
         print(f"  {key:26s} precision {m['precision']:.3f}  recall {m['recall']:.3f}  mean IoU {m['mean_iou']:.3f}  "

@@ -14,6 +14,8 @@
    mean IoU at ``eval.min_score``; AP@``iou_threshold``; frames per second, median of per-frame
    times) and writes ``OUT/detector.msgpack``, ``OUT/metrics.json``, ``OUT/pr_curve.png``,
    ``OUT/examples/*.png`` and ``OUT/config.yaml``.
+
+With ``weights`` given, step 2 is skipped and those weights are evaluated instead.
 """
 
 from __future__ import annotations
@@ -265,7 +267,7 @@ def _recall_by(dets, gts, labels, min_score, thr) -> dict:
             continue
         d = lab["distance"]
         band = "d<3" if d < 3 else "3<=d<10" if d < 10 else "10<=d<25" if d < 25 else "d>=25"
-        for key in (lab["kind"], band, f"scene={lab['meta']['scene']}"):
+        for key in (lab["kind"], band, f"{lab['kind']}, {band}", f"scene={lab['meta']['scene']}"):
             groups.setdefault(key, []).append(i)
     out = {}
     for key, idx in sorted(groups.items()):
@@ -320,8 +322,11 @@ def plot_pr(path: Path, curves: dict) -> None:
     plt.close(fig)
 
 
-def run(cfg: DetectorConfig, out: Path, progress: bool = True, cache: Path | None = None) -> dict:
-    """Render, train, evaluate and write a run into ``out`` (see the module doc); returns the metrics."""
+def run(cfg: DetectorConfig, out: Path, progress: bool = True, cache: Path | None = None,
+        weights: Path | None = None) -> dict:
+    """Render, train, evaluate and write a run into ``out`` (see the module doc); returns the
+    metrics. With ``weights`` (a detector.msgpack) nothing is trained: those weights are
+    evaluated (and the training frames are not rendered)."""
     import yaml
 
     from mysim_jax.perception.detect.classical import ColourBlobDetector
@@ -333,22 +338,29 @@ def run(cfg: DetectorConfig, out: Path, progress: bool = True, cache: Path | Non
     (out / "config.yaml").write_text(yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False))
     cache = out / "cache" if cache is None else Path(cache)
     w = cfg.data.workers
-    train_images, train_labels = build_set(spec_of(cfg, "train"), cache, "train", workers=w, progress=progress)
+    if weights is None:
+        train_images, train_labels = build_set(spec_of(cfg, "train"), cache, "train", workers=w, progress=progress)
     sets = {"held_out": build_set(spec_of(cfg, "eval_held_out"), cache, "eval_held_out", workers=w, progress=progress),
             "in_distribution": build_set(spec_of(cfg, "eval_in"), cache, "eval_in", first=EVAL_IN_OFFSET, workers=w,
                                          progress=progress)}
-    log_lines = []
-    t0 = time.time()
-    params, history = train(cfg, train_images, train_labels, progress=progress,
-                            log=lambda k, loss, parts: log_lines.append(dict(step=k, loss=loss, **parts)))
-    train_s = time.time() - t0
-    cnn = CNNDetector(params=params, widths=tuple(cfg.model.widths), input_width=cfg.model.input_width,
-                      min_score=cfg.eval.min_score)
-    cnn.save(out / "detector.msgpack")
-    (out / "train_log.json").write_text(json.dumps(log_lines))
+    if weights is None:
+        log_lines = []
+        t0 = time.time()
+        params, history = train(cfg, train_images, train_labels, progress=progress,
+                                log=lambda k, loss, parts: log_lines.append(dict(step=k, loss=loss, **parts)))
+        train_s = time.time() - t0
+        cnn = CNNDetector(params=params, widths=tuple(cfg.model.widths), input_width=cfg.model.input_width,
+                          min_score=cfg.eval.min_score)
+        cnn.save(out / "detector.msgpack")
+        (out / "train_log.json").write_text(json.dumps(log_lines))
+        metrics = dict(train_seconds=train_s, steps=cfg.train.steps,
+                       final_loss=float(np.mean([l for _, l in history[-50:]])),
+                       weights_bytes=(out / "detector.msgpack").stat().st_size)
+    else:
+        cnn = CNNDetector.load(weights)
+        cnn.min_score = cfg.eval.min_score
+        metrics = dict(weights=str(weights), weights_bytes=Path(weights).stat().st_size)
     baseline = ColourBlobDetector()
-    metrics = dict(train_seconds=train_s, steps=cfg.train.steps, final_loss=float(np.mean([l for _, l in history[-50:]])),
-                   weights_bytes=(out / "detector.msgpack").stat().st_size)
     curves = {}
     for set_name, (images, labels) in sets.items():
         results = {}
