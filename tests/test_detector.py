@@ -188,7 +188,8 @@ def test_bad_weights_file(tmp_path):
 
 
 def test_a_few_steps_lower_the_loss():
-    """Ten steps on one fixed batch of 4 small crops lower the loss by more than a third."""
+    """Ten steps on one fixed batch of 4 small crops lower the loss by more than a third
+    (measured: 4.57 -> 1.84, to 0.40 of the first)."""
     from mysim_jax.perception.detect.model import encode_targets
     from mysim_jax.perception.detect.train import init_params, make_trainer
 
@@ -256,3 +257,40 @@ def test_script_rejects_bad_config_before_work(tmp_path, capsys):
     assert not (tmp_path / "out").exists()
     assert module.main([str(tmp_path / "missing.yaml"), "--out", str(tmp_path / "out")]) == 2
     assert "no such config file" in capsys.readouterr().err
+
+
+def test_script_end_to_end_on_a_tiny_config(tmp_path):
+    """The whole pipeline (render, train, evaluate, write) on a tiny config: every output is
+    written and the metrics are well-formed (not that they are good: 3 steps train nothing)."""
+    import importlib.util
+    import json
+
+    spec = importlib.util.spec_from_file_location("train_detector", ROOT / "scripts" / "train_detector.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    cfg = tmp_path / "tiny.yaml"
+    cfg.write_text("data: {width: 160, height: 90, train_images: 4, eval_images: 3, workers: 1}\n"
+                   "model: {widths: [4, 4, 4, 4, 4], input_width: 128}\n"
+                   "train: {steps: 3, batch_size: 2, crop: 64, warmup_steps: 1}\n"
+                   "eval: {n_examples: 2}\n")
+    out = tmp_path / "run"
+    assert module.main([str(cfg), "--out", str(out), "--no-progress"]) == 0
+    for name in ("detector.msgpack", "metrics.json", "pr_curve.png", "config.yaml", "train_log.json"):
+        assert (out / name).is_file(), name
+    assert list((out / "examples" / "held_out").glob("frame_*.png"))
+    metrics = json.loads((out / "metrics.json").read_text())
+    for key in ("cnn/held_out", "baseline/held_out", "cnn/in_distribution", "baseline/in_distribution"):
+        assert metrics[key]["n_images"] == 3 and metrics[key]["fps"] > 0
+    det = load_detector(out / "detector.msgpack")
+    assert det.input_width == 128 and isinstance(det.detect(np.zeros((90, 160, 3), np.uint8), min_score=0.0), list)
+
+
+def test_validating_a_config_does_not_import_jax():
+    import subprocess
+    import sys
+
+    code = ("import sys; from mysim_jax.perception.detect.config import load_config; "
+            f"load_config({str(ROOT / 'configs' / 'detector.yaml')!r}); "
+            "import mysim_jax.perception.detect; print('jax' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
