@@ -1,12 +1,12 @@
-"""The classical baseline: an orange colour threshold, then contours (OpenCV).
+"""The classical baseline: an orange colour threshold, then connected blobs (OpenCV).
 
 What a robotics user tries first for a target of a known colour: both capture targets show
 the target orange (:data:`mysim_jax.perception.render.TARGET`; the sphere all over, the
 evading drone on its front arms). The image is converted to HSV, pixels of orange hue
 (OpenCV hue ``hue`` range, i.e. 10-42 deg, which leaves out the UAVs' red front arms and the
 yellow tethers) with enough saturation and value are kept, closed with a small ellipse (so a
-drone's two front arms merge into one blob), and every external contour of at least
-``min_area_px`` pixels gives a box. Its score grows with the blob's area and mean
+drone's two front arms merge into one blob), and every connected component (8-connected)
+of at least ``min_area_px`` pixels gives a box. Its score grows with the blob's area and mean
 saturation: ``(1 - exp(-area / 30)) * mean_saturation``.
 
 Limits (by design, not bugs): it finds only the orange parts, so a drone's box covers its

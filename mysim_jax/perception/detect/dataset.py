@@ -14,8 +14,9 @@ free camera (:class:`~mysim_jax.perception.camera.CameraPoses`). Per sample:
   cut by the border), height above the ground, and a random attitude (the drone);
 * what else is in view: with ``p_occluder`` the capture formation (the 2 m net hanging under
   its four UAVs) or one UAV is put on the line of sight in front of the target, offset so
-  that it hides part of it; otherwise the formation and some UAVs are scattered in view as
-  distractors, or hidden under the ground;
+  that it hides part of it; otherwise, with ``p_distractors``, the formation or one to three
+  UAVs are put elsewhere in view (2-30 m away) as distractors; unused objects are hidden
+  under the ground;
 * the world: a ground texture seed, sun azimuth/elevation/strength and sky and ground
   colours, from the split's ranges;
 * with ``p_empty`` the target is hidden under the ground (a frame with no target).

@@ -277,9 +277,12 @@ def _recall_by(dets, gts, labels, min_score, thr) -> dict:
 
 
 def write_examples(folder: Path, images, labels, results: dict, n: int) -> None:
-    """Frames with the ground truth (green), CNN (red) and baseline (blue) boxes and scores."""
+    """Frames (spheres and drones in turn, and one without a target) with the ground truth
+    (green), CNN (red) and baseline (blue) best boxes and scores."""
     folder.mkdir(parents=True, exist_ok=True)
-    picks = [i for i, lab in enumerate(labels) if lab["box"] is not None][: max(n - 1, 0)]
+    spheres = [i for i, lab in enumerate(labels) if lab["box"] is not None and lab["kind"] == "sphere"]
+    drones = [i for i, lab in enumerate(labels) if lab["box"] is not None and lab["kind"] == "drone"]
+    picks = [i for pair in zip(spheres, drones) for i in pair][: max(n - 1, 0)]
     picks += [i for i, lab in enumerate(labels) if lab["box"] is None][:1]
     for i in picks[:n]:
         img = np.ascontiguousarray(np.asarray(images[i])[..., ::-1])
