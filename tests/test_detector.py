@@ -17,7 +17,7 @@ from mysim_jax.perception.detect.metrics import average_precision, iou, match, s
 from conftest import ROOT
 
 # Committed weights (docs/detector/detector.msgpack) on the 20 held-out frames below: the best
-# detection matches the target (IoU >= 0.5) in 12 of 20 (0.60); the floor allows two fewer.
+# detection matches the target (IoU >= 0.5) in 13 of 20 (0.65); the floor allows three fewer.
 RECALL_FLOOR = 0.5
 
 # --- metrics ----------------------------------------------------------------------------------
@@ -143,7 +143,7 @@ def test_committed_weights_are_small():
 
 
 def test_committed_detector_finds_held_out_targets(detector, held_out_batch):
-    """Recall at IoU 0.5 of the best detection per frame on 20 held-out frames (measured 0.60;
+    """Recall at IoU 0.5 of the best detection per frame on 20 held-out frames (measured 0.65;
     docs/detector.md has the numbers on the 300-frame held-out set)."""
     found = 0
     for s in held_out_batch:

@@ -42,7 +42,7 @@ class ModelConfig(StrictModel):
 
 
 class TrainConfig(StrictModel):
-    steps: PosInt = 3000
+    steps: PosInt = 5000
     batch_size: PosInt = 16
     crop: Annotated[int, Field(ge=64, le=4096, multiple_of=32)] = 160   # px, square training crops
     learning_rate: PosFloat = 3e-3

@@ -23,6 +23,7 @@ from __future__ import annotations
 import hashlib
 import json
 import time
+from itertools import zip_longest
 from pathlib import Path
 
 import cv2
@@ -282,7 +283,7 @@ def write_examples(folder: Path, images, labels, results: dict, n: int) -> None:
     folder.mkdir(parents=True, exist_ok=True)
     spheres = [i for i, lab in enumerate(labels) if lab["box"] is not None and lab["kind"] == "sphere"]
     drones = [i for i, lab in enumerate(labels) if lab["box"] is not None and lab["kind"] == "drone"]
-    picks = [i for pair in zip(spheres, drones) for i in pair][: max(n - 1, 0)]
+    picks = [i for pair in zip_longest(spheres, drones) for i in pair if i is not None][: max(n - 1, 0)]
     picks += [i for i, lab in enumerate(labels) if lab["box"] is None][:1]
     for i in picks[:n]:
         img = np.ascontiguousarray(np.asarray(images[i])[..., ::-1])
