@@ -1,0 +1,100 @@
+"""The detector training config (``configs/detector.yaml``), validated without importing JAX.
+
+Unknown keys, booleans given for numbers, non-positive sizes or counts, probabilities outside
+[0, 1] and crops that do not fit the image are errors naming the field
+(:class:`~mysim_jax.config_base.ConfigError`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+from pydantic import Field, ValidationError, model_validator
+
+from mysim_jax.config_base import (ConfigError, PosFloat, StrictModel, format_validation_error, read_yaml_file)
+
+PosInt = Annotated[int, Field(gt=0)]
+Prob = Annotated[float, Field(ge=0.0, le=1.0, allow_inf_nan=False)]
+Pixels = Annotated[int, Field(ge=32, le=4096)]
+
+
+class DataConfig(StrictModel):
+    """Rendered frames (:mod:`mysim_jax.perception.detect.dataset`)."""
+
+    width: Pixels = 640                  # px
+    height: Pixels = 360                 # px
+    train_images: PosInt = 3000          # training frames (split 'train')
+    eval_images: PosInt = 300            # frames of each evaluation set (held-out; in-distribution)
+    seed: Annotated[int, Field(ge=0)] = 0
+    p_empty: Prob = 0.1
+    p_occluder: Prob = 0.25
+    p_distractors: Prob = 0.5
+    p_drone: Prob = 0.5
+    min_visible_px: Annotated[int, Field(ge=1)] = 6
+    min_visible_fraction: Prob = 0.3
+    workers: Annotated[int, Field(ge=1, le=64)] = 2     # rendering processes
+
+
+class ModelConfig(StrictModel):
+    widths: Annotated[list[PosInt], Field(min_length=5, max_length=5)] = [16, 32, 48, 64, 96]  # channels, strides 2..32
+    input_width: Annotated[int, Field(ge=64, le=4096, multiple_of=32)] = 640    # px, images resized to this
+
+
+class TrainConfig(StrictModel):
+    steps: PosInt = 5000
+    batch_size: PosInt = 16
+    crop: Annotated[int, Field(ge=64, le=4096, multiple_of=32)] = 160   # px, square training crops
+    learning_rate: PosFloat = 3e-3
+    warmup_steps: Annotated[int, Field(ge=0)] = 50
+    weight_decay: Annotated[float, Field(ge=0.0, allow_inf_nan=False)] = 1e-4
+    p_target_crop: Prob = 0.7            # crops chosen to contain the target (else anywhere)
+    scale_range: tuple[PosFloat, PosFloat] = (0.6, 1.6)   # random image rescale before cropping
+    hflip: bool = True
+    photometric: Annotated[float, Field(ge=0.0, lt=1.0)] = 0.5    # brightness gain in [1 - x, 1 + x] (log-uniform)
+    colour_jitter: Annotated[float, Field(ge=0.0, lt=1.0)] = 0.1  # per-channel gain in [1 - x, 1 + x]
+    gamma: Annotated[float, Field(ge=0.0, le=2.0)] = 0.3          # gamma exp(U(-x, x))
+    seed: Annotated[int, Field(ge=0)] = 0
+
+    @model_validator(mode="after")
+    def _scale_order(self):
+        if self.scale_range[0] > self.scale_range[1]:
+            raise ValueError(f"train.scale_range: low {self.scale_range[0]:g} is above high {self.scale_range[1]:g}")
+        return self
+
+
+class EvalConfig(StrictModel):
+    min_score: Annotated[float, Field(ge=0.0, lt=1.0)] = 0.3     # operating point of precision / recall
+    iou_threshold: Annotated[float, Field(gt=0.0, lt=1.0)] = 0.5
+    n_examples: Annotated[int, Field(ge=0, le=100)] = 8          # annotated example images written
+
+
+class DetectorConfig(StrictModel):
+    name: str = "detector"
+    data: DataConfig = DataConfig()
+    model: ModelConfig = ModelConfig()
+    train: TrainConfig = TrainConfig()
+    eval: EvalConfig = EvalConfig()
+
+    @model_validator(mode="after")
+    def _crop_fits(self):
+        h_in = round(self.data.height * self.model.input_width / self.data.width)
+        if self.train.crop > self.model.input_width or self.train.crop > h_in + 32:
+            raise ValueError(f"train.crop: {self.train.crop} px does not fit the {self.model.input_width} x {h_in} px "
+                             f"network input (model.input_width, data.width x data.height)")
+        return self
+
+
+def config_from_dict(raw, source: str = "<dict>") -> DetectorConfig:
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{source}: a detector config is a mapping of sections (data, model, train, eval), "
+                          f"got {type(raw).__name__}")
+    try:
+        return DetectorConfig.model_validate(raw)
+    except ValidationError as err:
+        raise ConfigError(f"{source}: invalid detector config:\n{format_validation_error(err)}") from None
+
+
+def load_config(path: str | Path) -> DetectorConfig:
+    """Read and validate a detector config file."""
+    return config_from_dict(read_yaml_file(path), str(path))

@@ -1,0 +1,255 @@
+"""The learned detector: a small CenterNet-style CNN (flax linen).
+
+Network (:class:`CenterNet`): a strided convolution backbone down to 1/32 of the input, a
+top-down path (upsample and add the lateral features) back to 1/4, and three heads at stride
+``STRIDE`` = 4: a centre heatmap (one class, logits), the box size (log of width and height
+in output cells) and the sub-cell offset of the box centre. No normalisation layers (plain
+ReLU convolutions), so a forward pass has no state besides the parameters.
+
+Coordinates. The network works in *edge coordinates* x = u + 0.5, y = v + 0.5 (the image
+spans [0, W] x [0, H]; a renderer box (u_min, v_min, u_max, v_max) is
+[u_min + 0.5, u_max + 0.5] there). Output cell (i, j) spans edge coordinates
+[j s, (j + 1) s] x [i s, (i + 1) s] with s = STRIDE; a box's centre falls in one cell, which
+is its positive in the heatmap, with a Gaussian of the box's size around it.
+
+Training target and loss (:func:`encode_targets`, :func:`loss_fn`): the CenterNet focal loss
+on the heatmap (alpha 2, beta 4), normalised by the number of boxes, plus L1 losses on the
+log size and the offset at the centre cell. A target marked ``ignore`` adds no positive and
+masks the heatmap loss over its box.
+
+Decoding (:func:`decode`): sigmoid heatmap, local maxima in 3 x 3 windows, the ``top_k``
+highest with their boxes.
+
+Inference (:class:`CNNDetector`): the image is resized to ``input_width`` px wide (its aspect
+kept), padded on the right and bottom (edge pixels repeated) to multiples of 32, run through
+the jitted network (one compile per padded size), and the boxes are scaled back to the input
+image's pixels.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from functools import partial
+from pathlib import Path
+
+import cv2
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import serialization
+
+from mysim_jax.perception.camera import PerceptionError
+from mysim_jax.perception.detect import Detection
+
+STRIDE = 4          # px of network input per output cell
+PAD_TO = 32         # input sides are padded to multiples of this (the backbone's total stride)
+
+
+class CenterNet(nn.Module):
+    """(B, H, W, 3) images in [-0.5, 0.5] (H, W multiples of 32) -> (B, H/4, W/4, 5) outputs:
+    heatmap logit, log width, log height (output cells), centre offset x, y (cells)."""
+
+    widths: tuple[int, ...] = (16, 32, 48, 64, 96)    # channels at strides 2, 4, 8, 16, 32
+
+    @nn.compact
+    def __call__(self, x):
+        conv = partial(nn.Conv, kernel_size=(3, 3), padding="SAME", kernel_init=nn.initializers.he_normal())
+        feats = []
+        for k, c in enumerate(self.widths):
+            x = nn.relu(conv(c, strides=(2, 2), name=f"down{k}")(x))
+            if k > 0:
+                x = nn.relu(conv(c, name=f"body{k}")(x))
+            feats.append(x)
+        # top-down path: stride 32 -> 4
+        y = feats[-1]
+        for k in range(len(self.widths) - 2, 0, -1):
+            c = self.widths[k]
+            b, h, w, _ = feats[k].shape
+            y = jax.image.resize(y, (b, h, w, y.shape[-1]), method="nearest")
+            y = nn.Conv(c, (1, 1), name=f"lat{k}")(y) + feats[k]
+            y = nn.relu(conv(c, name=f"up{k}")(y))
+        head = nn.relu(conv(self.widths[1], name="head")(y))
+        heat = nn.Conv(1, (1, 1), name="heat", bias_init=nn.initializers.constant(-4.0))(head)
+        box = nn.Conv(4, (1, 1), name="box", kernel_init=nn.initializers.normal(1e-3))(head)
+        return jnp.concatenate([heat, box], axis=-1)
+
+
+def normalise(images: np.ndarray | jnp.ndarray):
+    """uint8 RGB -> float32 in [-0.5, 0.5]."""
+    return jnp.asarray(images, jnp.float32) * (1.0 / 255.0) - 0.5
+
+
+# --- training targets and loss ----------------------------------------------------------------
+
+
+def encode_targets(boxes: list, shape: tuple[int, int]) -> dict[str, np.ndarray]:
+    """Heatmap, regression targets and masks of one image of input size ``shape`` (H, W) px.
+
+    ``boxes``: list of ((4,) renderer box in input px, ignore flag). Returns arrays at the
+    output resolution (h, w) = (H / 4, W / 4): ``heat`` (h, w) Gaussian peaks in [0, 1],
+    ``weight`` (h, w) heatmap-loss weight (0 over ignored boxes), ``index`` () flat centre cell
+    of the first counted box, ``reg`` (4,) its log w, log h, offset x, y, ``has`` () 1 if it exists.
+    """
+    H, W = shape
+    h, w = H // STRIDE, W // STRIDE
+    heat = np.zeros((h, w), np.float32)
+    weight = np.ones((h, w), np.float32)
+    out = dict(heat=heat, weight=weight, index=np.int32(0), reg=np.zeros(4, np.float32), has=np.float32(0))
+    ys, xs = np.mgrid[0:h, 0:w]
+    for box, ignore in boxes:
+        x0, y0, x1, y1 = (np.asarray(box, float) + 0.5) / STRIDE        # edge coordinates, cells
+        if ignore:
+            weight[max(int(np.floor(y0)), 0):int(np.ceil(y1)) + 1, max(int(np.floor(x0)), 0):int(np.ceil(x1)) + 1] = 0
+            continue
+        cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
+        j, i = int(np.clip(np.floor(cx), 0, w - 1)), int(np.clip(np.floor(cy), 0, h - 1))
+        bw, bh = max(x1 - x0, 1e-3), max(y1 - y0, 1e-3)
+        sigma = max(0.5, 0.12 * np.sqrt(bw * bh))
+        g = np.exp(-((xs - j) ** 2 + (ys - i) ** 2) / (2 * sigma ** 2))
+        np.maximum(heat, g.astype(np.float32), out=heat)
+        heat[i, j] = 1.0
+        if not out["has"]:
+            out.update(index=np.int32(i * w + j), reg=np.array([np.log(bw), np.log(bh), cx - j, cy - i], np.float32),
+                       has=np.float32(1))
+    return out
+
+
+def loss_fn(params, model: CenterNet, images, targets) -> tuple[jnp.ndarray, dict]:
+    """Mean loss over a batch: focal heatmap loss + L1 on log size + L1 on offset."""
+    out = model.apply({"params": params}, normalise(images))
+    B = out.shape[0]
+    logit = out[..., 0].reshape(B, -1)
+    heat = targets["heat"].reshape(B, -1)
+    weight = targets["weight"].reshape(B, -1)
+    p = jax.nn.sigmoid(logit)
+    log_p, log_1p = jax.nn.log_sigmoid(logit), jax.nn.log_sigmoid(-logit)
+    pos = (heat >= 1.0).astype(jnp.float32)
+    pos_loss = -pos * (1 - p) ** 2 * log_p
+    neg_loss = -(1 - pos) * (1 - heat) ** 4 * p ** 2 * log_1p
+    n_pos = jnp.maximum(jnp.sum(pos), 1.0)
+    focal = jnp.sum(weight * (pos_loss + neg_loss)) / n_pos
+    reg_pred = jnp.take_along_axis(out[..., 1:].reshape(B, -1, 4), targets["index"][:, None, None], axis=1)[:, 0]
+    err = jnp.abs(reg_pred - targets["reg"]) * targets["has"][:, None]
+    n_box = jnp.maximum(jnp.sum(targets["has"]), 1.0)
+    size = jnp.sum(err[:, :2]) / n_box
+    offset = jnp.sum(err[:, 2:]) / n_box
+    total = focal + 0.5 * size + offset
+    return total, dict(focal=focal, size=size, offset=offset)
+
+
+# --- decoding ---------------------------------------------------------------------------------
+
+
+def decode(out: jnp.ndarray, top_k: int = 10):
+    """(B, h, w, 5) network outputs -> scores (B, k) and boxes (B, k, 4) in renderer px of the
+    network input, best first."""
+    B, h, w, _ = out.shape
+    heat = jax.nn.sigmoid(out[..., 0])
+    peak = jax.lax.reduce_window(heat, -jnp.inf, jax.lax.max, (1, 3, 3), (1, 1, 1), "SAME")
+    heat = jnp.where(heat >= peak, heat, 0.0).reshape(B, -1)
+    scores, index = jax.lax.top_k(heat, top_k)
+    reg = jnp.take_along_axis(out[..., 1:].reshape(B, -1, 4), index[..., None], axis=1)
+    i, j = index // w, index % w
+    cx, cy = j + reg[..., 2], i + reg[..., 3]
+    bw, bh = jnp.exp(jnp.clip(reg[..., 0], -3, 6)), jnp.exp(jnp.clip(reg[..., 1], -3, 6))
+    boxes = jnp.stack([cx - bw / 2, cy - bh / 2, cx + bw / 2, cy + bh / 2], axis=-1) * STRIDE - 0.5
+    return scores, boxes
+
+
+# --- the detector -----------------------------------------------------------------------------
+
+
+def check_image(image) -> np.ndarray:
+    """Raise unless ``image`` is an (H, W, 3) uint8 RGB array with H, W >= 8."""
+    image = np.asarray(image)
+    if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
+        raise PerceptionError(f"detect takes an (H, W, 3) uint8 RGB image, got {image.dtype} {image.shape}")
+    if image.shape[0] < 8 or image.shape[1] < 8:
+        raise PerceptionError(f"image {image.shape[1]} x {image.shape[0]} px is too small to detect in (at least 8 x 8)")
+    return image
+
+
+@dataclass
+class CNNDetector:
+    """The learned detector (see the module doc). ``min_score``: detections below it are dropped."""
+
+    params: dict
+    widths: tuple[int, ...] = (16, 32, 48, 64, 96)
+    input_width: int = 640          # px, images are resized to this width
+    min_score: float = 0.3
+    top_k: int = 10
+
+    def __post_init__(self):
+        self.model = CenterNet(widths=tuple(self.widths))
+        self._forward = jax.jit(lambda p, x: decode(self.model.apply({"params": p}, normalise(x)), self.top_k))
+
+    def _prepare(self, image) -> tuple[np.ndarray, float, float]:
+        H, W = image.shape[:2]
+        w = self.input_width
+        h = max(int(round(H * w / W)), 1)
+        x = image if (w, h) == (W, H) else cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA if w < W else cv2.INTER_LINEAR)
+        ph, pw = -h % PAD_TO, -w % PAD_TO
+        if ph or pw:
+            x = cv2.copyMakeBorder(x, 0, ph, 0, pw, cv2.BORDER_REPLICATE)
+        return x, W / w, H / h
+
+    def detect_batch(self, images: list[np.ndarray], min_score: float | None = None) -> list[list[Detection]]:
+        """:meth:`detect` of several images of one size (one network call)."""
+        images = [check_image(im) for im in images]
+        if len({im.shape for im in images}) > 1:
+            raise PerceptionError("detect_batch takes images of one size")
+        prepared = [self._prepare(im) for im in images]
+        scores, boxes = self._forward(self.params, np.stack([p[0] for p in prepared]))
+        scores, boxes = np.asarray(scores), np.asarray(boxes, dtype=float)
+        floor = self.min_score if min_score is None else min_score
+        H, W = images[0].shape[:2]
+        out = []
+        for (_, sx, sy), sc, bx in zip(prepared, scores, boxes):
+            scale = np.array([sx, sy, sx, sy])
+            dets = []
+            for s, b in zip(sc, bx):
+                if s < floor:
+                    break
+                box = (b + 0.5) * scale - 0.5                     # back to the input image's px
+                box = np.clip(box, -0.5, [W - 0.5, H - 0.5, W - 0.5, H - 0.5])
+                if box[2] > box[0] and box[3] > box[1]:
+                    dets.append(Detection(box=box, score=float(s)))
+            out.append(dets)
+        return out
+
+    def detect(self, image: np.ndarray, min_score: float | None = None) -> list[Detection]:
+        """Detections in ``image`` ((H, W, 3) uint8 RGB, any size), best first, scores >= ``min_score``
+        (default: the detector's)."""
+        return self.detect_batch([image], min_score)[0]
+
+    # --- files --------------------------------------------------------------------------------
+
+    def save(self, path: str | Path) -> Path:
+        """Write the parameters and architecture as one msgpack file."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        meta = json.dumps(dict(widths=list(self.widths), input_width=self.input_width, min_score=self.min_score,
+                               top_k=self.top_k, stride=STRIDE))
+        params = jax.tree.map(lambda a: np.asarray(a, np.float32), self.params)
+        path.write_bytes(serialization.msgpack_serialize({"meta": meta, "params": params}))
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> "CNNDetector":
+        """A detector from a file written by :meth:`save`."""
+        path = Path(path)
+        if not path.is_file():
+            raise PerceptionError(f"no detector weights at {path}; train them with scripts/train_detector.py "
+                                  f"configs/detector.yaml, or pass the path of a detector.msgpack")
+        try:
+            blob = serialization.msgpack_restore(path.read_bytes())
+            meta = json.loads(blob["meta"])
+            params = blob["params"]
+        except Exception as exc:     # a corrupt or foreign file: say which
+            raise PerceptionError(f"{path} is not a detector weights file ({type(exc).__name__}: {exc})") from None
+        if meta.get("stride") != STRIDE:
+            raise PerceptionError(f"{path} was written for output stride {meta.get('stride')}, this code uses {STRIDE}")
+        return cls(params=params, widths=tuple(meta["widths"]), input_width=int(meta["input_width"]),
+                   min_score=float(meta["min_score"]), top_k=int(meta["top_k"]))

@@ -1,0 +1,380 @@
+"""Training and evaluation of the learned detector, and the run's outputs.
+
+:func:`run` does what ``scripts/train_detector.py`` does, in order:
+
+1. renders (or reuses from ``OUT/cache``) three sets of frames: ``train`` (split TRAIN),
+   ``eval_in`` (split TRAIN, other frames: in-distribution) and ``eval_held_out`` (split
+   HELD_OUT), with ``data.workers`` processes, into ``.npy`` files read as memory maps;
+2. trains :class:`~mysim_jax.perception.detect.model.CenterNet` with AdamW (linear warm-up,
+   cosine decay) on square crops of the training frames (``train.crop`` px; with
+   ``p_target_crop`` placed so they contain the target's centre), augmented by a random
+   rescale (``scale_range``), horizontal flips, a random gamma, brightness gain and offset,
+   and per-channel (white balance) gains;
+3. evaluates the CNN and the classical baseline on both evaluation sets (precision, recall,
+   mean IoU at ``eval.min_score``; AP@``iou_threshold``; frames per second, median of per-frame
+   times) and writes ``OUT/detector.msgpack``, ``OUT/metrics.json``, ``OUT/pr_curve.png``,
+   ``OUT/examples/*.png`` and ``OUT/config.yaml``.
+
+With ``weights`` given, step 2 is skipped and those weights are evaluated instead.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from itertools import zip_longest
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from mysim_jax.perception.detect.config import DetectorConfig
+from mysim_jax.perception.detect.dataset import DatasetSpec, render_sample
+
+SETS = {"train": "train", "eval_in": "train", "eval_held_out": "held_out"}
+# frame indices of the in-distribution evaluation set start here (after any training frame)
+EVAL_IN_OFFSET = 1_000_000
+
+
+# --- data -------------------------------------------------------------------------------------
+
+
+def spec_of(cfg: DetectorConfig, which: str) -> DatasetSpec:
+    d = cfg.data
+    n = d.train_images if which == "train" else d.eval_images
+    return DatasetSpec(split=SETS[which], n_images=n, seed=d.seed, width=d.width, height=d.height, p_empty=d.p_empty,
+                       p_occluder=d.p_occluder, p_distractors=d.p_distractors, p_drone=d.p_drone,
+                       min_visible_px=d.min_visible_px, min_visible_fraction=d.min_visible_fraction)
+
+
+def _label(s) -> dict:
+    return dict(box=None if s.box is None else [float(x) for x in s.box], ignore=s.ignore, kind=s.kind,
+                distance=s.distance, visible_fraction=s.visible_fraction, visible_px=s.visible_px, meta=s.meta)
+
+
+def _render_chunk(args):
+    spec, path, first, indices = args
+    images = np.load(path, mmap_mode="r+")
+    labels = []
+    for i in indices:
+        s = render_sample(spec, i + first)
+        images[i] = s.image
+        labels.append(_label(s))
+    images.flush()
+    return indices, labels
+
+
+def build_set(spec: DatasetSpec, folder: Path, name: str, first: int = 0, workers: int = 1,
+              progress: bool = True) -> tuple[np.ndarray, list[dict]]:
+    """Render frames ``first .. first + n - 1`` of ``spec`` into ``folder/NAME.npy`` (uint8
+    (n, H, W, 3)) and ``folder/NAME.json`` (labels), or read them if already there for the
+    same spec. Returns the images (a read-only memory map) and the labels."""
+    from tqdm.auto import tqdm
+
+    folder.mkdir(parents=True, exist_ok=True)
+    key = hashlib.sha1(repr((spec, first)).encode()).hexdigest()[:12]
+    npy, js = folder / f"{name}_{key}.npy", folder / f"{name}_{key}.json"
+    if npy.is_file() and js.is_file():
+        return np.load(npy, mmap_mode="r"), json.loads(js.read_text())
+    images = np.lib.format.open_memmap(npy.with_suffix(".part.npy"), mode="w+", dtype=np.uint8,
+                                       shape=(spec.n_images, spec.height, spec.width, 3))
+    del images
+    labels: list = [None] * spec.n_images
+    chunks = [list(range(k, min(k + 25, spec.n_images))) for k in range(0, spec.n_images, 25)]
+    jobs = [(spec, str(npy.with_suffix(".part.npy")), first, c) for c in chunks]
+    bar = tqdm(total=spec.n_images, desc=f"render {name}", unit="frame", disable=not progress)
+    if workers > 1:
+        import multiprocessing as mp
+
+        with mp.get_context("spawn").Pool(workers) as pool:
+            for indices, labs in pool.imap_unordered(_render_chunk, jobs):
+                for i, lab in zip(indices, labs):
+                    labels[i] = lab
+                bar.update(len(indices))
+    else:
+        for job in jobs:
+            indices, labs = _render_chunk(job)
+            for i, lab in zip(indices, labs):
+                labels[i] = lab
+            bar.update(len(indices))
+    bar.close()
+    npy.with_suffix(".part.npy").rename(npy)
+    js.write_text(json.dumps(labels))
+    return np.load(npy, mmap_mode="r"), labels
+
+
+def truths(labels: list[dict]) -> list[list]:
+    """Ground truth per frame as the metrics take it: [(box, ignore)] or []."""
+    return [[] if lab["box"] is None else [(np.asarray(lab["box"]), lab["ignore"])] for lab in labels]
+
+
+# --- crops and augmentation -------------------------------------------------------------------
+
+
+def make_crop(image: np.ndarray, label: dict, cfg: DetectorConfig, rng: np.random.Generator):
+    """One augmented square training crop of a frame: (crop, crop, 3) uint8 and its [(box, ignore)]."""
+    t = cfg.train
+    C = t.crop
+    H, W = image.shape[:2]
+    s = cfg.model.input_width / W * float(np.exp(rng.uniform(np.log(t.scale_range[0]), np.log(t.scale_range[1]))))
+    w, h = max(int(round(W * s)), C), max(int(round(H * s)), 1)
+    sx, sy = w / W, h / H
+    img = cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA if sx < 1 else cv2.INTER_LINEAR)
+    # pad right / bottom by repeating edges, as inference pads to multiples of 32
+    ph = max(C - h, 0) + int(rng.integers(0, 33))
+    img = cv2.copyMakeBorder(img, 0, ph, 0, 0, cv2.BORDER_REPLICATE)
+    box = None if label["box"] is None else (np.asarray(label["box"]) + 0.5) * [sx, sy, sx, sy] - 0.5
+    Hp = img.shape[0]
+    if box is not None and rng.random() < t.p_target_crop:
+        cx, cy = (box[0] + box[2]) / 2, (box[1] + box[3]) / 2
+        x0 = int(np.clip(cx - rng.uniform(0.05, 0.95) * C, 0, w - C))
+        y0 = int(np.clip(cy - rng.uniform(0.05, 0.95) * C, 0, Hp - C))
+    else:
+        x0, y0 = int(rng.integers(0, w - C + 1)), int(rng.integers(0, Hp - C + 1))
+    crop = np.ascontiguousarray(img[y0:y0 + C, x0:x0 + C])
+    boxes = []
+    if box is not None:
+        b = box - [x0, y0, x0, y0]
+        area = (b[2] - b[0]) * (b[3] - b[1])
+        cb = np.clip(b, -0.5, C - 0.5)
+        carea = max(cb[2] - cb[0], 0) * max(cb[3] - cb[1], 0)
+        if carea > 0:
+            cut = carea < 0.3 * area       # mostly cut off by the crop: neither required nor false
+            boxes.append((cb, bool(label["ignore"]) or cut))
+    if t.hflip and rng.random() < 0.5:
+        crop = crop[:, ::-1].copy()
+        boxes = [(np.array([C - 1 - b[2], b[1], C - 1 - b[0], b[3]]), ig) for b, ig in boxes]
+    if t.photometric > 0 or t.colour_jitter > 0 or t.gamma > 0:
+        x = crop.astype(np.float32) * (1.0 / 255.0)
+        x = x ** np.float32(np.exp(rng.uniform(-t.gamma, t.gamma)))
+        gain = np.exp(rng.uniform(np.log(1 - t.photometric), np.log(1 + t.photometric)))
+        gain = gain * (1 + rng.uniform(-t.colour_jitter, t.colour_jitter, 3))
+        x = x * gain.astype(np.float32) + np.float32(rng.uniform(-0.05, 0.05) if t.photometric > 0 else 0.0)
+        crop = np.clip(x * 255.0 + 0.5, 0, 255).astype(np.uint8)
+    return crop, boxes
+
+
+def batch_of(images, labels, idx, cfg: DetectorConfig, rng):
+    from mysim_jax.perception.detect.model import encode_targets
+
+    crops, targets = [], []
+    for i in idx:
+        crop, boxes = make_crop(np.asarray(images[i]), labels[i], cfg, rng)
+        crops.append(crop)
+        targets.append(encode_targets(boxes, crop.shape[:2]))
+    return np.stack(crops), {k: np.stack([t[k] for t in targets]) for k in targets[0]}
+
+
+# --- training ---------------------------------------------------------------------------------
+
+
+def make_trainer(cfg: DetectorConfig):
+    """(model, optimiser, jitted step(params, opt_state, images, targets) -> (params, opt_state, loss, parts))."""
+    import jax
+    import optax
+
+    from mysim_jax.perception.detect.model import CenterNet, loss_fn
+
+    t = cfg.train
+    model = CenterNet(widths=tuple(cfg.model.widths))
+    schedule = optax.warmup_cosine_decay_schedule(0.0, t.learning_rate, max(t.warmup_steps, 1), max(t.steps, 2),
+                                                  end_value=0.02 * t.learning_rate)
+    opt = optax.chain(optax.clip_by_global_norm(5.0), optax.adamw(schedule, weight_decay=t.weight_decay))
+
+    @jax.jit
+    def step(params, opt_state, images, targets):
+        (loss, parts), grads = jax.value_and_grad(loss_fn, has_aux=True)(params, model, images, targets)
+        updates, opt_state = opt.update(grads, opt_state, params)
+        return optax.apply_updates(params, updates), opt_state, loss, parts
+
+    return model, opt, step
+
+
+def init_params(cfg: DetectorConfig, seed: int | None = None):
+    import jax
+
+    from mysim_jax.perception.detect.model import CenterNet, normalise
+
+    model = CenterNet(widths=tuple(cfg.model.widths))
+    C = cfg.train.crop
+    key = jax.random.PRNGKey(cfg.train.seed if seed is None else seed)
+    return model.init(key, normalise(np.zeros((1, C, C, 3), np.uint8)))["params"]
+
+
+def train(cfg: DetectorConfig, images, labels, progress: bool = True, steps: int | None = None, log=None):
+    """Train from scratch; returns (params, loss history as a list of (step, loss))."""
+    from tqdm.auto import tqdm
+
+    _, opt, step = make_trainer(cfg)
+    params = init_params(cfg)
+    opt_state = opt.init(params)
+    rng = np.random.default_rng(cfg.train.seed)
+    n = len(labels)
+    steps = cfg.train.steps if steps is None else steps
+    history = []
+    bar = tqdm(range(steps), desc="train detector", unit="step", disable=not progress)
+    running = None
+    for k in bar:
+        idx = rng.integers(0, n, cfg.train.batch_size)
+        x, tg = batch_of(images, labels, idx, cfg, rng)
+        params, opt_state, loss, parts = step(params, opt_state, x, tg)
+        loss = float(loss)
+        if not np.isfinite(loss):
+            raise FloatingPointError(f"training loss became {loss} at step {k}; lower train.learning_rate")
+        running = loss if running is None else 0.95 * running + 0.05 * loss
+        history.append((k, loss))
+        if k % 20 == 0:
+            bar.set_postfix(loss=f"{running:.3f}", focal=f"{float(parts['focal']):.3f}")
+            if log is not None:
+                log(k, loss, {key: float(v) for key, v in parts.items()})
+    return params, history
+
+
+# --- evaluation -------------------------------------------------------------------------------
+
+
+def evaluate(detector, images, labels, cfg: DetectorConfig, min_score: float, progress: bool = True,
+             name: str = "") -> dict:
+    """Metrics of ``detector`` on a set (detections down to score 0.01 for AP) and its speed:
+    median over frames of one ``detect`` call, frames/s."""
+    from tqdm.auto import tqdm
+
+    from mysim_jax.perception.detect.metrics import summary
+
+    dets, times = [], []
+    detector.detect(np.asarray(images[0]), min_score=0.01)     # compile / warm up
+    for i in tqdm(range(len(labels)), desc=f"evaluate {name}", unit="frame", disable=not progress, leave=False):
+        img = np.asarray(images[i])
+        t0 = time.perf_counter()
+        d = detector.detect(img, min_score=0.01)
+        times.append(time.perf_counter() - t0)
+        dets.append(d)
+    gts = truths(labels)
+    out = summary(dets, gts, min_score, cfg.eval.iou_threshold)
+    out["fps"] = float(1.0 / np.median(times))
+    out["image_size"] = [int(images.shape[2]), int(images.shape[1])]
+    # per distance band and target kind: recall at the operating point
+    out["recall_by"] = _recall_by(dets, gts, labels, min_score, cfg.eval.iou_threshold)
+    return out, dets
+
+
+def _recall_by(dets, gts, labels, min_score, thr) -> dict:
+    from mysim_jax.perception.detect.metrics import match
+
+    groups: dict[str, list[int]] = {}
+    for i, lab in enumerate(labels):
+        if lab["box"] is None or lab["ignore"]:
+            continue
+        d = lab["distance"]
+        band = "d<3" if d < 3 else "3<=d<10" if d < 10 else "10<=d<25" if d < 25 else "d>=25"
+        for key in (lab["kind"], band, f"{lab['kind']}, {band}", f"scene={lab['meta']['scene']}"):
+            groups.setdefault(key, []).append(i)
+    out = {}
+    for key, idx in sorted(groups.items()):
+        m = match([[x for x in dets[i] if x.score >= min_score] for i in idx], [gts[i] for i in idx], thr)
+        out[key] = dict(recall=float(m.tp.sum() / m.n_gt), n=m.n_gt)
+    return out
+
+
+def write_examples(folder: Path, images, labels, results: dict, n: int) -> None:
+    """Frames (spheres and drones in turn, and one without a target) with the ground truth
+    (green), CNN (red) and baseline (blue) best boxes and scores."""
+    folder.mkdir(parents=True, exist_ok=True)
+    spheres = [i for i, lab in enumerate(labels) if lab["box"] is not None and lab["kind"] == "sphere"]
+    drones = [i for i, lab in enumerate(labels) if lab["box"] is not None and lab["kind"] == "drone"]
+    picks = [i for pair in zip_longest(spheres, drones) for i in pair if i is not None][: max(n - 1, 0)]
+    picks += [i for i, lab in enumerate(labels) if lab["box"] is None][:1]
+    for i in picks[:n]:
+        img = np.ascontiguousarray(np.asarray(images[i])[..., ::-1])
+        lab = labels[i]
+        if lab["box"] is not None:
+            b = np.round(lab["box"]).astype(int)
+            cv2.rectangle(img, (b[0], b[1]), (b[2], b[3]), (0, 200, 0), 1)
+        for colour, (name, dets) in zip(((0, 0, 255), (255, 80, 0)), results.items()):
+            for d in dets[i][:1]:
+                if d.score < 0.3:
+                    continue
+                b = np.round(d.box).astype(int)
+                cv2.rectangle(img, (b[0] - 2, b[1] - 2), (b[2] + 2, b[3] + 2), colour, 1)
+                cv2.putText(img, f"{name} {d.score:.2f}", (max(b[0], 0), max(b[1] - 5, 10)),
+                            cv2.FONT_HERSHEY_SIMPLEX, 0.35, colour, 1, cv2.LINE_AA)
+        d = lab["distance"]
+        cv2.putText(img, f"{lab['kind']} {d:.1f} m" if lab["box"] is not None else "no target", (5, 15),
+                    cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1, cv2.LINE_AA)
+        cv2.imwrite(str(folder / f"frame_{i:04d}.png"), img)
+
+
+def plot_pr(path: Path, curves: dict) -> None:
+    """Precision-recall curves: ``curves`` label -> (recall, precision)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5.5, 4.5))
+    for label, (r, p) in curves.items():
+        ax.plot(r, p, label=label, ls="-" if "held" in label else "--")
+    ax.set_xlabel("recall (IoU >= 0.5)")
+    ax.set_ylabel("precision")
+    ax.set_xlim(0, 1.01)
+    ax.set_ylim(0, 1.01)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="lower left")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def run(cfg: DetectorConfig, out: Path, progress: bool = True, cache: Path | None = None,
+        weights: Path | None = None) -> dict:
+    """Render, train, evaluate and write a run into ``out`` (see the module doc); returns the
+    metrics. With ``weights`` (a detector.msgpack) nothing is trained: those weights are
+    evaluated (and the training frames are not rendered)."""
+    import yaml
+
+    from mysim_jax.perception.detect.classical import ColourBlobDetector
+    from mysim_jax.perception.detect.metrics import match, pr_curve
+    from mysim_jax.perception.detect.model import CNNDetector
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "config.yaml").write_text(yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False))
+    cache = out / "cache" if cache is None else Path(cache)
+    w = cfg.data.workers
+    if weights is None:
+        train_images, train_labels = build_set(spec_of(cfg, "train"), cache, "train", workers=w, progress=progress)
+    sets = {"held_out": build_set(spec_of(cfg, "eval_held_out"), cache, "eval_held_out", workers=w, progress=progress),
+            "in_distribution": build_set(spec_of(cfg, "eval_in"), cache, "eval_in", first=EVAL_IN_OFFSET, workers=w,
+                                         progress=progress)}
+    if weights is None:
+        log_lines = []
+        t0 = time.time()
+        params, history = train(cfg, train_images, train_labels, progress=progress,
+                                log=lambda k, loss, parts: log_lines.append(dict(step=k, loss=loss, **parts)))
+        train_s = time.time() - t0
+        cnn = CNNDetector(params=params, widths=tuple(cfg.model.widths), input_width=cfg.model.input_width,
+                          min_score=cfg.eval.min_score)
+        cnn.save(out / "detector.msgpack")
+        (out / "train_log.json").write_text(json.dumps(log_lines))
+        metrics = dict(train_seconds=train_s, steps=cfg.train.steps,
+                       final_loss=float(np.mean([l for _, l in history[-50:]])),
+                       weights_bytes=(out / "detector.msgpack").stat().st_size)
+    else:
+        cnn = CNNDetector.load(weights)
+        cnn.min_score = cfg.eval.min_score
+        metrics = dict(weights=str(weights), weights_bytes=Path(weights).stat().st_size)
+    baseline = ColourBlobDetector()
+    curves = {}
+    for set_name, (images, labels) in sets.items():
+        results = {}
+        for det_name, det, thr in (("cnn", cnn, cfg.eval.min_score), ("baseline", baseline, 0.3)):
+            m, dets = evaluate(det, images, labels, cfg, thr, progress=progress, name=f"{det_name} {set_name}")
+            metrics[f"{det_name}/{set_name}"] = m
+            results[det_name] = dets
+            curves[f"{det_name}, {set_name.replace('_', '-')}"] = pr_curve(match(dets, truths(labels), cfg.eval.iou_threshold))
+        if cfg.eval.n_examples:
+            write_examples(out / "examples" / set_name, images, labels, results, cfg.eval.n_examples)
+    plot_pr(out / "pr_curve.png", curves)
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    return metrics

@@ -1,0 +1,296 @@
+"""The target detectors (mysim_jax/perception/detect/): metrics against hand calculations,
+dataset boxes against an independent projection of the sphere, the committed CNN on held-out
+frames, learning on a few steps, the interface, and config errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mysim_jax.config_base import ConfigError
+from mysim_jax.perception.camera import PerceptionError, intrinsics, project
+from mysim_jax.perception.detect import Detection, default_weights_path, load_detector
+from mysim_jax.perception.detect.config import config_from_dict
+from mysim_jax.perception.detect.dataset import DatasetSpec, render_sample
+from mysim_jax.perception.detect.metrics import average_precision, iou, match, summary
+
+from conftest import ROOT
+
+# Committed weights (docs/detector/detector.msgpack) on the 20 held-out frames below: the best
+# detection matches the target (IoU >= 0.5) in 13 of 20 (0.65); the floor allows three fewer.
+RECALL_FLOOR = 0.5
+
+# --- metrics ----------------------------------------------------------------------------------
+
+
+def test_iou_by_hand():
+    assert iou([0, 0, 10, 10], [5, 5, 15, 15]) == pytest.approx(25 / 175)
+    assert iou([0, 0, 10, 10], [0, 0, 10, 10]) == pytest.approx(1.0)
+    assert iou([0, 0, 10, 10], [10, 0, 20, 10]) == 0.0          # touching edges
+    assert iou([0, 0, 4, 2], [1, 0, 3, 2]) == pytest.approx(0.5)
+
+
+def test_ap_on_a_tiny_ranked_list():
+    """Three targets; detections ranked 0.9 TP, 0.8 FP, 0.7 TP, 0.6 FP. PR points (1/3, 1),
+    (1/3, 1/2), (2/3, 2/3), (2/3, 1/2): all-point AP = 1/3 * 1 + 1/3 * 2/3 = 5/9."""
+    gt = [[(np.array([0, 0, 10, 10]), False)], [(np.array([0, 0, 10, 10]), False)],
+          [(np.array([0, 0, 10, 10]), False)]]
+    dets = [[([0, 0, 10, 10], 0.9), ([50, 50, 60, 60], 0.8)],
+            [([1, 0, 11, 10], 0.7)],
+            [([30, 30, 40, 40], 0.6)]]
+    m = match(dets, gt)
+    assert m.n_gt == 3
+    assert list(m.tp[np.argsort(-m.scores)]) == [True, False, True, False]
+    assert average_precision(m) == pytest.approx(5 / 9)
+    s = summary(dets, gt, min_score=0.65)              # keeps 0.9, 0.8, 0.7
+    assert s["precision"] == pytest.approx(2 / 3)
+    assert s["recall"] == pytest.approx(2 / 3)
+    assert s["mean_iou"] == pytest.approx((1.0 + 9 / 11) / 2)
+
+
+def test_duplicates_are_false_and_ignored_targets_are_neither():
+    gt = [[(np.array([0, 0, 10, 10]), False)], [(np.array([0, 0, 10, 10]), True)]]
+    dets = [[([0, 0, 10, 10], 0.9), ([0, 0, 10, 9], 0.8)], [([0, 0, 10, 10], 0.7)]]
+    m = match(dets, gt)
+    assert m.n_gt == 1
+    assert sorted(m.tp.tolist()) == [False, True]       # the duplicate is false; the ignored one dropped
+    assert len(m.scores) == 2
+
+
+# --- dataset ----------------------------------------------------------------------------------
+
+
+def _sphere_extent(intr, R, p, centre, radius):
+    """(u_min, v_min, u_max, v_max) of a sphere's image from 20000 points of its silhouette circle."""
+    c = centre - p
+    D = np.linalg.norm(c)
+    axis = c / D
+    ring_centre = p + c * (1 - radius ** 2 / D ** 2)
+    ring_radius = radius * np.sqrt(1 - radius ** 2 / D ** 2)
+    e1 = np.cross(axis, [0.0, 0.0, 1.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(axis, e1)
+    phi = np.linspace(0, 2 * np.pi, 20000, endpoint=False)
+    ring = ring_centre + ring_radius * (np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2)
+    uv, _ = project(intr, R, p, ring)
+    return np.r_[uv.min(axis=0), uv.max(axis=0)]
+
+
+def test_dataset_boxes_match_the_sphere_projection():
+    """Unoccluded spheres inside the frame: the sample's box (whole pixels) is within 1 px of the
+    silhouette's continuous extent projected here (the renderer's box differs from it by < 0.5 px
+    by construction), and the sample's image is the rendered one (orange at the box centre)."""
+    spec = DatasetSpec(split="train", n_images=40, p_drone=0.0, p_empty=0.0, p_occluder=0.0, width=320, height=180)
+    intr = intrinsics(width=320, height=180)
+    checked = 0
+    for i in range(40):
+        s = render_sample(spec, i)
+        if s.box is None or s.visible_fraction < 1.0:
+            continue
+        m = s.meta
+        ext = _sphere_extent(intr, np.array(m["camera_R"]), np.array(m["camera_p"]), np.array(m["target_pos"]),
+                             m["target_radius"])
+        if ext[0] < 0 or ext[1] < 0 or ext[2] > 319 or ext[3] > 179 or m["scene"] != "none":
+            continue
+        assert np.all(np.abs(s.box - ext) < 1.0), (i, s.box, ext)
+        u, v = int((s.box[0] + s.box[2]) / 2), int((s.box[1] + s.box[3]) / 2)
+        r, g, b = s.image[v, u].astype(int)
+        assert r > g > b, (i, s.image[v, u])
+        checked += 1
+        if checked == 4:
+            break
+    assert checked == 4
+
+
+def test_held_out_split_is_disjoint_from_training():
+    from mysim_jax.perception.detect.dataset import HELD_OUT, TRAIN
+
+    def overlap(a, b):
+        return any(lo1 < hi2 and lo2 < hi1 for lo1, hi1 in a for lo2, hi2 in b)
+
+    for field in ("distance_m", "pitch_deg", "sun_elevation_deg", "sun_strength"):
+        assert not overlap(getattr(TRAIN, field), getattr(HELD_OUT, field)), field
+    assert TRAIN.texture_seeds[1] <= HELD_OUT.texture_seeds[0]
+    assert not set(TRAIN.palettes) & set(HELD_OUT.palettes)
+
+
+# --- the committed detector -------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def detector():
+    return load_detector()
+
+
+@pytest.fixture(scope="module")
+def held_out_batch():
+    """20 held-out frames (640 x 360) with a target that counts, rendered with a seed the
+    committed run never used."""
+    spec = DatasetSpec(split="held_out", n_images=60, seed=12345, p_empty=0.0)
+    out = []
+    for i in range(60):
+        s = render_sample(spec, i)
+        if s.box is not None and not s.ignore:
+            out.append(s)
+        if len(out) == 20:
+            break
+    return out
+
+
+def test_committed_weights_are_small():
+    assert default_weights_path().is_file()
+    assert default_weights_path().stat().st_size < 2_000_000
+
+
+def test_committed_detector_finds_held_out_targets(detector, held_out_batch):
+    """Recall at IoU 0.5 of the best detection per frame on 20 held-out frames (measured 0.65;
+    docs/detector.md has the numbers on the 300-frame held-out set)."""
+    found = 0
+    for s in held_out_batch:
+        dets = detector.detect(s.image)
+        found += bool(dets) and iou(dets[0].box, s.box) >= 0.5
+    assert found / len(held_out_batch) >= RECALL_FLOOR
+
+
+def test_detect_any_size_and_bad_images(detector, held_out_batch):
+    import cv2
+
+    s = max(held_out_batch, key=lambda s: s.visible_px)
+    big = cv2.resize(s.image, (1280, 720), interpolation=cv2.INTER_LINEAR)
+    d1, d2 = detector.detect(s.image), detector.detect(big)
+    assert d1 and d2 and isinstance(d1[0], Detection)
+    assert np.all(np.abs((d2[0].box + 0.5) / 2 - 0.5 - d1[0].box) < 0.1 * (s.box[2] - s.box[0]) + 2)
+    assert all(a.score >= b.score for a, b in zip(d1, d1[1:]))
+    with pytest.raises(PerceptionError, match="uint8 RGB"):
+        detector.detect(np.zeros((360, 640), np.uint8))
+    with pytest.raises(PerceptionError, match="uint8 RGB"):
+        detector.detect(np.zeros((360, 640, 3), np.float32))
+
+
+def test_classical_baseline_finds_a_sphere(held_out_batch):
+    from mysim_jax.perception.detect.classical import ColourBlobDetector
+
+    spheres = [s for s in held_out_batch if s.kind == "sphere"]
+    assert spheres
+    hits = sum(bool(d) and iou(d[0].box, s.box) >= 0.5 for s in spheres for d in [ColourBlobDetector().detect(s.image)])
+    assert hits >= 1
+
+
+def test_bad_weights_file(tmp_path):
+    with pytest.raises(PerceptionError, match="no detector weights"):
+        load_detector(tmp_path / "missing.msgpack")
+    (tmp_path / "junk.msgpack").write_bytes(b"not msgpack at all")
+    with pytest.raises(PerceptionError, match="not a detector weights file"):
+        load_detector(tmp_path / "junk.msgpack")
+
+
+# --- training ---------------------------------------------------------------------------------
+
+
+def test_a_few_steps_lower_the_loss():
+    """Ten steps on one fixed batch of 4 small crops lower the loss by more than a third
+    (measured: 4.57 -> 1.84, to 0.40 of the first)."""
+    from mysim_jax.perception.detect.model import encode_targets
+    from mysim_jax.perception.detect.train import init_params, make_trainer
+
+    cfg = config_from_dict({"model": {"widths": [8, 16, 16, 16, 16], "input_width": 640},
+                            "train": {"crop": 64, "batch_size": 4, "steps": 10, "warmup_steps": 0,
+                                      "learning_rate": 3e-3}})
+    rng = np.random.default_rng(0)
+    images = rng.integers(60, 120, (4, 64, 64, 3)).astype(np.uint8)
+    boxes = []
+    for k in range(4):
+        x, y = rng.integers(8, 40, 2)
+        images[k, y:y + 12, x:x + 12] = (240, 110, 15)
+        boxes.append([(np.array([x - 0.5, y - 0.5, x + 11.5, y + 11.5]), False)])
+    targets = [encode_targets(b, (64, 64)) for b in boxes]
+    targets = {key: np.stack([t[key] for t in targets]) for key in targets[0]}
+    _, opt, step = make_trainer(cfg)
+    params = init_params(cfg)
+    state = opt.init(params)
+    losses = []
+    for _ in range(10):
+        params, state, loss, _ = step(params, state, images, targets)
+        losses.append(float(loss))
+    assert np.all(np.isfinite(losses))
+    assert losses[-1] < 0.67 * losses[0], losses
+
+
+# --- config -----------------------------------------------------------------------------------
+
+
+def test_default_config_is_valid():
+    from mysim_jax.perception.detect.config import load_config
+
+    cfg = load_config(ROOT / "configs" / "detector.yaml")
+    assert cfg.data.width == 640 and cfg.data.height == 360
+
+
+@pytest.mark.parametrize("raw, message", [
+    ({"data": {"train_images": 0}}, "data.train_images"),
+    ({"data": {"width": -640}}, "data.width"),
+    ({"train": {"crop": -32}}, "train.crop"),
+    ({"train": {"batch_size": 0}}, "train.batch_size"),
+    ({"data": {"p_empty": 1.5}}, "data.p_empty"),
+    ({"train": {"scale_range": [1.5, 0.5]}}, "scale_range"),
+    ({"train": {"crop": 1024}}, "train.crop"),
+    ({"trian": {"steps": 3}}, "trian: unknown key"),
+    ({"data": {"eval_images": True}}, "data.eval_images"),
+])
+def test_config_errors(raw, message):
+    with pytest.raises(ConfigError, match=message):
+        config_from_dict(raw)
+
+
+def test_script_rejects_bad_config_before_work(tmp_path, capsys):
+    import importlib.util
+    import sys
+
+    spec = importlib.util.spec_from_file_location("train_detector", ROOT / "scripts" / "train_detector.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("data:\n  train_images: -3\n  colour: red\n")
+    assert module.main([str(bad), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "data.train_images" in err and "data.colour: unknown key" in err
+    assert not (tmp_path / "out").exists()
+    assert module.main([str(tmp_path / "missing.yaml"), "--out", str(tmp_path / "out")]) == 2
+    assert "no such config file" in capsys.readouterr().err
+
+
+def test_script_end_to_end_on_a_tiny_config(tmp_path):
+    """The whole pipeline (render, train, evaluate, write) on a tiny config: every output is
+    written and the metrics are well-formed (not that they are good: 3 steps train nothing)."""
+    import importlib.util
+    import json
+
+    spec = importlib.util.spec_from_file_location("train_detector", ROOT / "scripts" / "train_detector.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    cfg = tmp_path / "tiny.yaml"
+    cfg.write_text("data: {width: 160, height: 90, train_images: 4, eval_images: 3, workers: 1}\n"
+                   "model: {widths: [4, 4, 4, 4, 4], input_width: 128}\n"
+                   "train: {steps: 3, batch_size: 2, crop: 64, warmup_steps: 1}\n"
+                   "eval: {n_examples: 2}\n")
+    out = tmp_path / "run"
+    assert module.main([str(cfg), "--out", str(out), "--no-progress"]) == 0
+    for name in ("detector.msgpack", "metrics.json", "pr_curve.png", "config.yaml", "train_log.json"):
+        assert (out / name).is_file(), name
+    assert list((out / "examples" / "held_out").glob("frame_*.png"))
+    metrics = json.loads((out / "metrics.json").read_text())
+    for key in ("cnn/held_out", "baseline/held_out", "cnn/in_distribution", "baseline/in_distribution"):
+        assert metrics[key]["n_images"] == 3 and metrics[key]["fps"] > 0
+    det = load_detector(out / "detector.msgpack")
+    assert det.input_width == 128 and isinstance(det.detect(np.zeros((90, 160, 3), np.uint8), min_score=0.0), list)
+
+
+def test_validating_a_config_does_not_import_jax():
+    import subprocess
+    import sys
+
+    code = ("import sys; from mysim_jax.perception.detect.config import load_config; "
+            f"load_config({str(ROOT / 'configs' / 'detector.yaml')!r}); "
+            "import mysim_jax.perception.detect; print('jax' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
