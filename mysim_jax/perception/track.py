@@ -48,19 +48,11 @@ from typing import Callable, Sequence
 import numpy as np
 
 from mysim_jax.perception.camera import Intrinsics, PerceptionError, quat_to_matrix
+from mysim_jax.perception.detect import Detection   # noqa: F401  (the detections this module handles)
 from mysim_jax.perception.render import Frame, Renderer
 
 
 # --- detections -----------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class Detection:
-    """A detected target: the interface of :mod:`mysim_jax.perception.detect` (any object with
-    ``box`` and ``score`` works)."""
-
-    box: np.ndarray     # (4,) px (u_min, v_min, u_max, v_max), the renderer's pixel convention
-    score: float        # confidence in [0, 1]
 
 
 FrameDetector = Callable[[Frame], list]     # Frame -> detections, best first
