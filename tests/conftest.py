@@ -22,3 +22,24 @@ def _x64_for_marked_tests(request):
             yield
     else:
         yield
+
+
+def sphere_extent(intr, R, p, centre, radius):
+    """(u_min, v_min, u_max, v_max) px of a sphere's image, from 20000 points of its silhouette
+    circle projected with ``mysim_jax.perception.camera.project`` (camera R, p; sphere centre, m)."""
+    import numpy as np
+
+    from mysim_jax.perception.camera import project
+
+    c = centre - p
+    D = np.linalg.norm(c)
+    axis = c / D
+    ring_centre = p + c * (1 - radius ** 2 / D ** 2)
+    ring_radius = radius * np.sqrt(1 - radius ** 2 / D ** 2)
+    e1 = np.cross(axis, [0.0, 0.0, 1.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(axis, e1)
+    phi = np.linspace(0, 2 * np.pi, 20000, endpoint=False)
+    ring = ring_centre + ring_radius * (np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2)
+    uv, _ = project(intr, R, p, ring)
+    return np.r_[uv.min(axis=0), uv.max(axis=0)]

@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 
 from mysim_jax.config_base import ConfigError
-from mysim_jax.perception.camera import PerceptionError, intrinsics, project
+from mysim_jax.perception.camera import PerceptionError, intrinsics
 from mysim_jax.perception.detect import Detection, default_weights_path, load_detector
 from mysim_jax.perception.detect.config import config_from_dict
 from mysim_jax.perception.detect.dataset import DatasetSpec, render_sample
 from mysim_jax.perception.detect.metrics import average_precision, iou, match, summary
 
-from conftest import ROOT
+from conftest import ROOT, sphere_extent
 
 # Committed weights (docs/detector/detector.msgpack) on the 20 held-out frames below: the best
 # detection matches the target (IoU >= 0.5) in 13 of 20 (0.65); the floor allows three fewer.
@@ -60,22 +60,6 @@ def test_duplicates_are_false_and_ignored_targets_are_neither():
 # --- dataset ----------------------------------------------------------------------------------
 
 
-def _sphere_extent(intr, R, p, centre, radius):
-    """(u_min, v_min, u_max, v_max) of a sphere's image from 20000 points of its silhouette circle."""
-    c = centre - p
-    D = np.linalg.norm(c)
-    axis = c / D
-    ring_centre = p + c * (1 - radius ** 2 / D ** 2)
-    ring_radius = radius * np.sqrt(1 - radius ** 2 / D ** 2)
-    e1 = np.cross(axis, [0.0, 0.0, 1.0])
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(axis, e1)
-    phi = np.linspace(0, 2 * np.pi, 20000, endpoint=False)
-    ring = ring_centre + ring_radius * (np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2)
-    uv, _ = project(intr, R, p, ring)
-    return np.r_[uv.min(axis=0), uv.max(axis=0)]
-
-
 def test_dataset_boxes_match_the_sphere_projection():
     """Unoccluded spheres inside the frame: the sample's box (whole pixels) is within 1 px of the
     silhouette's continuous extent projected here (the renderer's box differs from it by < 0.5 px
@@ -88,7 +72,7 @@ def test_dataset_boxes_match_the_sphere_projection():
         if s.box is None or s.visible_fraction < 1.0:
             continue
         m = s.meta
-        ext = _sphere_extent(intr, np.array(m["camera_R"]), np.array(m["camera_p"]), np.array(m["target_pos"]),
+        ext = sphere_extent(intr, np.array(m["camera_R"]), np.array(m["camera_p"]), np.array(m["target_pos"]),
                              m["target_radius"])
         if ext[0] < 0 or ext[1] < 0 or ext[2] > 319 or ext[3] > 179 or m["scene"] != "none":
             continue
@@ -244,7 +228,6 @@ def test_config_errors(raw, message):
 
 def test_script_rejects_bad_config_before_work(tmp_path, capsys):
     import importlib.util
-    import sys
 
     spec = importlib.util.spec_from_file_location("train_detector", ROOT / "scripts" / "train_detector.py")
     module = importlib.util.module_from_spec(spec)

@@ -20,7 +20,7 @@ from mysim_jax.config import config_from_dict, dump_config
 from mysim_jax.perception.camera import Intrinsics, PerceptionError, intrinsics, project, quat_to_matrix
 from mysim_jax.perception.render import Renderer, load_run, look_at, write_images, write_video
 
-from conftest import CONFIGS
+from conftest import CONFIGS, sphere_extent
 
 W, H = 640, 360
 INTR = intrinsics(width=W, height=H)
@@ -114,29 +114,13 @@ def renderer():
     return Renderer(CONFIG, INTR)
 
 
-def _sphere_extent(R, p, centre, radius):
-    """(u_min, v_min, u_max, v_max) of a sphere's image, from 20000 points of its silhouette circle."""
-    c = centre - p
-    D = np.linalg.norm(c)
-    axis = c / D
-    ring_centre = p + c * (1 - radius ** 2 / D ** 2)
-    ring_radius = radius * np.sqrt(1 - radius ** 2 / D ** 2)
-    e1 = np.cross(axis, [0.0, 0.0, 1.0])
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(axis, e1)
-    phi = np.linspace(0, 2 * np.pi, 20000, endpoint=False)
-    ring = ring_centre + ring_radius * (np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2)
-    uv, _ = project(INTR, R, p, ring)
-    return np.r_[uv.min(axis=0), uv.max(axis=0)]
-
-
 def test_target_box_and_depth_match_the_projected_sphere(renderer):
     r = CONFIG.target.radius
     cols = _columns(CONFIG, {"cam0": _cam_pose(EYE, TARGET_AT), "target": (TARGET_AT, (1, 0, 0, 0))}, far=True)
     frame = renderer.render(cols, "cam0", 0)
     tv = frame.target
     assert tv.visible_fraction == 1.0 and np.array_equal(tv.box, tv.full_box)
-    extent = _sphere_extent(frame.R, frame.p, TARGET_AT, r)
+    extent = sphere_extent(INTR, frame.R, frame.p, TARGET_AT, r)
     assert np.abs(tv.box - extent).max() < BOX_TOL, (tv.box, extent)
     uv, z = project(INTR, frame.R, frame.p, TARGET_AT)
     np.testing.assert_allclose(tv.centre, uv, atol=1e-9)
@@ -265,7 +249,7 @@ def test_free_camera_and_drone_target():
     observer = look_at(EYE, TARGET_AT, cols["time"])
     frame = Renderer(config, INTR).render(cols, observer, 0)
     tv = frame.target
-    sphere = _sphere_extent(frame.R, frame.p, TARGET_AT, config.target.radius)
+    sphere = sphere_extent(INTR, frame.R, frame.p, TARGET_AT, config.target.radius)
     # the drone fits inside the target's sphere: its box does too, and is not much smaller
     assert tv.visible_px > 100
     assert (tv.box[:2] >= sphere[:2] - BOX_TOL).all() and (tv.box[2:] <= sphere[2:] + BOX_TOL).all()
