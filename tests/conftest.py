@@ -13,6 +13,14 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "configs"
+# configs/ holds scene files and two other kinds: MAPPO training files (train_*.yaml) and
+# the target detector's training file (detector*.yaml)
+NOT_SCENES = ("train_", "detector")
+
+
+def scene_files() -> list[Path]:
+    """Every scene file in configs/, sorted."""
+    return sorted(p for p in CONFIGS.glob("*.yaml") if not p.name.startswith(NOT_SCENES))
 
 
 @pytest.fixture(autouse=True)

@@ -342,8 +342,11 @@ def test_validating_every_shipped_scene_does_not_import_jax():
     a second); a module that pulls JAX into the config path breaks that."""
     code = ("import sys, glob, os\nfrom mysim_jax.config import load_config\n"
             "from mysim_jax.mappo.config import load_train_config\n"
+            "from mysim_jax.perception.detect.config import load_config as load_detector_config\n"
             "for f in sorted(glob.glob('configs/*.yaml')):\n"
-            "    (load_train_config if os.path.basename(f).startswith('train_') else load_config)(f)\n"
+            "    name = os.path.basename(f)\n"
+            "    (load_train_config if name.startswith('train_') else\n"
+            "     load_detector_config if name.startswith('detector') else load_config)(f)\n"
             "print('jax' in sys.modules)\n")
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
     assert res.returncode == 0, res.stderr

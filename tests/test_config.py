@@ -13,7 +13,7 @@ from mysim_jax.config import ConfigError, config_from_dict, dump_config, load_co
 from mysim_jax.dynamics.stability import NETWORK_STEP_SAFETY, scene_network_stable_step
 from mysim_jax.sim import rollout
 
-from conftest import CONFIGS
+from conftest import CONFIGS, scene_files
 
 
 def _raw():
@@ -31,11 +31,9 @@ def _err(raw=None, overrides=(), build_too=False):
 
 
 def test_all_configs_load_and_round_trip():
-    """Every scene file (training files, configs/train_*.yaml, are another kind: their
-    test is in test_mappo.py)."""
-    for path in sorted(CONFIGS.glob("*.yaml")):
-        if path.name.startswith("train_"):
-            continue
+    """Every scene file (training files, configs/train_*.yaml and detector.yaml, are other
+    kinds: their tests are in test_mappo.py and test_detector.py)."""
+    for path in scene_files():
         cfg = load_config(path)
         again = config_from_dict(yaml.safe_load(dump_config(cfg)), "dumped")
         assert again == cfg, path.name

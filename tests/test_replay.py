@@ -23,9 +23,9 @@ from mysim_jax.io.capture_plots import net_lines
 from mysim_jax.io.replay import ReplayError, frame_rows, replay_figure, write_replay_html
 from mysim_jax.npgeom import rotate
 
-from conftest import CONFIGS
+from conftest import CONFIGS, scene_files
 
-SCENES = sorted(p.stem for p in CONFIGS.glob("*.yaml") if not p.stem.startswith("train_"))
+SCENES = [p.stem for p in scene_files()]
 CHROMIUM = Path("/usr/bin/chromium")
 CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
                  "--disable-background-networking", "--disable-component-update", "--disable-sync"]
