@@ -7,8 +7,8 @@
 Both are pure and written for **one** environment: batch with ``jax.vmap`` (over keys,
 states and actions; ``params`` shared or batched too), and jit once around a whole
 rollout. ``env`` is a frozen, hashable dataclass (static); ``params`` an
-:class:`EnvParams` pytree (traced: reward weights and randomisation ranges can be
-vmapped or changed without recompiling).
+:class:`EnvParams` pytree (traced: reward weights, randomisation ranges and perception
+error levels can be vmapped or changed without recompiling).
 
 **Time.** One ``step`` is one policy period ``1 / env.policy_rate``: the action is turned
 into a setpoint held for ``control_steps`` control periods (``sim.dt``), in each of
@@ -105,6 +105,10 @@ class EnvParams:
     start: State                  # the nominal first state (the target is placed by the reset)
     weights: jnp.ndarray          # (n_terms,) reward weights, REWARD_TERMS order, >= 0
     ranges: Ranges
+    # (4, 2) (sigma, rho per policy step) of the estimation errors of UAV position [m], UAV
+    # velocity [m/s], target position, target velocity (env.perception; rho = exp(-policy_dt
+    # / correlation_time)); zeros when the team sees true states
+    perception: jnp.ndarray
 
 
 @struct.dataclass
@@ -157,10 +161,7 @@ class CaptureEnv:
     scales: object                       # RewardScales
     randomized_wind: bool
     scripted: object                     # the scripted team (ScriptedTeam)
-    # ((sigma, rho) of uav_pos, uav_vel, target_pos, target_vel): the Gauss-Markov errors
-    # of env.perception per policy step (rho = exp(-policy_dt / correlation_time)); ()
-    # when the team sees true states
-    perception: tuple = ()
+    perception: bool = False             # the team flies on estimates (levels: EnvParams.perception)
 
     # --- sizes ------------------------------------------------------------------------
     @property
@@ -230,8 +231,8 @@ class CaptureEnv:
             "episode_length": steps,
             "done": done,
         }
-        errors = (self._step_errors(jax.random.fold_in(key, 2), state.perception, dtype) if self.perception
-                  else state.perception)
+        errors = (self._step_errors(jax.random.fold_in(key, 2), state.perception, params, dtype)
+                  if self.perception else state.perception)
         after = EnvState(sim=sim, episode=state.episode, steps=steps, held=flags.held, held_time=held_time,
                          touched=touched, returns=returns, perception=errors)
         key_reset, key_obs = jax.random.split(key)
@@ -295,7 +296,7 @@ class CaptureEnv:
         episode = self.draw_episode(k_episode, params.ranges)
         sim = spawn_target(self.scene, self.episode_params(params, episode), params.start, k_spawn)
         dtype = sim.phys.body_pos.dtype
-        errors = self._draw_errors(jax.random.fold_in(key, 5), dtype) if self.perception else None
+        errors = self._draw_errors(jax.random.fold_in(key, 5), params, dtype) if self.perception else None
         return EnvState(sim=sim, episode=episode, steps=jnp.zeros((), jnp.int32), held=jnp.zeros((), bool),
                         held_time=jnp.zeros((), dtype),
                         touched=jnp.zeros((), bool), returns=jnp.zeros((self.n_agents,), dtype), perception=errors)
@@ -305,20 +306,21 @@ class CaptureEnv:
         n = self.n_agents
         return {"uav_pos": (n, 3), "uav_vel": (n, 3), "target_pos": (3,), "target_vel": (3,)}
 
-    def _draw_errors(self, key, dtype) -> PerceptionErrors:
+    def _draw_errors(self, key, params: EnvParams, dtype) -> PerceptionErrors:
         """Errors drawn from their stationary distributions (an episode's first)."""
         keys = jax.random.split(key, 4)
-        return PerceptionErrors(**{name: sigma * jax.random.normal(k, shape, dtype) for k, (name, shape), (sigma, _)
-                                   in zip(keys, self._error_shapes().items(), self.perception)})
+        sigma = params.perception[:, 0].astype(dtype)
+        return PerceptionErrors(**{name: sigma[i] * jax.random.normal(k, shape, dtype)
+                                   for i, (k, (name, shape)) in enumerate(zip(keys, self._error_shapes().items()))})
 
-    def _step_errors(self, key, errors: PerceptionErrors, dtype) -> PerceptionErrors:
+    def _step_errors(self, key, errors: PerceptionErrors, params: EnvParams, dtype) -> PerceptionErrors:
         """One policy period of every Gauss-Markov error: ``e' = rho e + sigma √(1 - rho²) ξ``."""
         keys = jax.random.split(key, 4)
-        out = {}
-        for k, (name, shape), (sigma, rho) in zip(keys, self._error_shapes().items(), self.perception):
-            drive = sigma * float(np.sqrt(max(1.0 - rho * rho, 0.0)))
-            out[name] = (rho * getattr(errors, name) + drive * jax.random.normal(k, shape, dtype)).astype(dtype)
-        return PerceptionErrors(**out)
+        sigma, rho = params.perception[:, 0].astype(dtype), params.perception[:, 1].astype(dtype)
+        drive = sigma * jnp.sqrt(jnp.maximum(1.0 - rho * rho, 0.0))
+        return PerceptionErrors(**{
+            name: (rho[i] * getattr(errors, name) + drive[i] * jax.random.normal(k, shape, dtype)).astype(dtype)
+            for i, (k, (name, shape)) in enumerate(zip(keys, self._error_shapes().items()))})
 
     def estimates(self, state: EnvState):
         """``(uav_pos (n, 3), uav_vel (n, 3), target_pos (3,), target_vel (3,))`` as the team
@@ -495,24 +497,27 @@ def make_env(config) -> tuple[CaptureEnv, EnvParams]:
         slots=tuple(map(tuple, slots.tolist())), control_steps=control_steps, max_steps=max_steps,
         policy_dt=control_steps * config.sim.dt, success=env_cfg.success, failure=env_cfg.failure,
         scales=env_cfg.reward_scales, randomized_wind=env_cfg.randomize.wind is not None, scripted=team,
-        perception=_perception(env_cfg.perception, control_steps * config.sim.dt))
+        perception=env_cfg.perception is not None)
     weights = env_cfg.weights()
     env_params = EnvParams(sim=params, start=state,
                            weights=jnp.asarray([weights[k] for k in REWARD_TERMS], scene.dtype),
-                           ranges=_ranges(config, scene.dtype))
+                           ranges=_ranges(config, scene.dtype),
+                           perception=jnp.asarray(_perception(env_cfg.perception, control_steps * config.sim.dt),
+                                                  scene.dtype))
     return env, env_params
 
 
-def _perception(config, policy_dt: float) -> tuple:
-    """``((sigma, rho), ...)`` of ``env.perception``'s four errors per policy step; ()."""
+def _perception(config, policy_dt: float) -> list:
+    """``[(sigma, rho), ...]`` of ``env.perception``'s four errors per policy step (zeros
+    when there is none)."""
     if config is None:
-        return ()
+        return [(0.0, 0.0)] * 4
     out = []
     for name in ("uav_position", "uav_velocity", "target_position", "target_velocity"):
         gm = getattr(config, name)
         tau = gm.correlation_time
         out.append((float(gm.sigma), float(np.exp(-policy_dt / tau)) if tau > 0 else 0.0))
-    return tuple(out)
+    return out
 
 
 def _default_team():
