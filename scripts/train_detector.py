@@ -16,6 +16,9 @@ frames only are rendered):
 
     python scripts/train_detector.py configs/detector.yaml --weights docs/detector/detector.msgpack --out runs/det_eval
 
+``--eval-seed N`` draws the evaluation frames with seed N instead of ``data.seed`` (fresh frames
+of the same splits; the training frames keep ``data.seed``).
+
 A bad config (unknown keys, negative sizes, zero images, ...) or an unusable OUT is a
 one-line-per-problem error and exit code 2 before anything is rendered or compiled.
 """
@@ -34,6 +37,8 @@ def main(argv=None) -> int:
     parser.add_argument("--cache", help="folder of rendered frames (default OUT/cache)")
     parser.add_argument("--weights", help="evaluate these weights (a detector.msgpack) instead of training, e.g. "
                         "docs/detector/detector.msgpack")
+    parser.add_argument("--eval-seed", type=int, help="seed of the evaluation frames (default: the config's "
+                        "data.eval_seed, else data.seed)")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bars")
     args = parser.parse_args(argv)
 
@@ -43,6 +48,10 @@ def main(argv=None) -> int:
 
     try:
         cfg = load_config(args.config)
+        if args.eval_seed is not None:
+            if args.eval_seed < 0:
+                raise ConfigError(f"--eval-seed {args.eval_seed}: a seed is a whole number >= 0")
+            cfg = cfg.model_copy(update={"data": cfg.data.model_copy(update={"eval_seed": args.eval_seed})})
         out = check_output_dir(args.out)
         cache = None if args.cache is None else check_output_dir(args.cache, flag="--cache")
         if args.weights is not None:

@@ -27,6 +27,7 @@ class DataConfig(StrictModel):
     train_images: PosInt = 3000          # training frames (split 'train')
     eval_images: PosInt = 300            # frames of each evaluation set (held-out; in-distribution)
     seed: Annotated[int, Field(ge=0)] = 0
+    eval_seed: Annotated[int, Field(ge=0)] | None = None   # evaluation frames' seed (default: seed)
     p_empty: Prob = 0.1
     p_occluder: Prob = 0.25
     p_distractors: Prob = 0.5
@@ -39,6 +40,19 @@ class DataConfig(StrictModel):
 class ModelConfig(StrictModel):
     widths: Annotated[list[PosInt], Field(min_length=5, max_length=5)] = [16, 32, 48, 64, 96]  # channels, strides 2..32
     input_width: Annotated[int, Field(ge=64, le=4096, multiple_of=32)] = 640    # px, images resized to this
+    # inference image pyramid: scales of input_width the network runs at, and the box sides
+    # (network px, lo, hi) each level keeps (mysim_jax/perception/detect/model.py)
+    pyramid: Annotated[list[Annotated[float, Field(gt=0.0, le=4.0)]], Field(min_length=1, max_length=6)] = [1.0]
+    pyramid_band_px: tuple[Annotated[float, Field(ge=0.0)], PosFloat] = (24.0, 96.0)
+
+    @model_validator(mode="after")
+    def _pyramid(self):
+        if len(set(self.pyramid)) != len(self.pyramid):
+            raise ValueError(f"model.pyramid: levels must differ, got {self.pyramid}")
+        if self.pyramid_band_px[0] >= self.pyramid_band_px[1]:
+            raise ValueError(f"model.pyramid_band_px: lo {self.pyramid_band_px[0]:g} is not below "
+                             f"hi {self.pyramid_band_px[1]:g}")
+        return self
 
 
 class TrainConfig(StrictModel):

@@ -24,6 +24,15 @@ Inference (:class:`CNNDetector`): the image is resized to ``input_width`` px wid
 kept), padded on the right and bottom (edge pixels repeated) to multiples of 32, run through
 the jitted network (one compile per padded size), and the boxes are scaled back to the input
 image's pixels.
+
+Image pyramid. With ``pyramid`` = (1.0, 0.5, ...) the network also runs on the image resized
+to ``input_width * level`` px wide. A target close to the camera can be larger than anything
+the network saw whole in its training crops (it then finds parts of it); at a coarser level
+it has a size the network knows, and a far target is larger at a finer one. Each level keeps
+the boxes whose longer side, in that level's network pixels, lies in ``pyramid_band_px``
+(lo, hi), except that the finest level keeps everything below hi and the coarsest everything
+above lo. The kept boxes of all levels are merged by non-maximum suppression (IoU
+``PYRAMID_NMS_IOU``), best first. With one level (the default) nothing is dropped or merged.
 """
 
 from __future__ import annotations
@@ -44,6 +53,7 @@ from mysim_jax.perception.camera import PerceptionError
 from mysim_jax.perception.detect import Detection
 
 STRIDE = 4          # px of network input per output cell
+PYRAMID_NMS_IOU = 0.5   # boxes of pyramid levels overlapping more than this are one detection
 PAD_TO = 32         # input sides are padded to multiples of this (the backbone's total stride)
 
 
@@ -158,6 +168,16 @@ def decode(out: jnp.ndarray, top_k: int = 10):
     return scores, boxes
 
 
+def _suppress(dets: list[Detection]) -> list[Detection]:
+    """Greedy non-maximum suppression (IoU above ``PYRAMID_NMS_IOU``), best first."""
+    if len(dets) < 2:
+        return dets
+    xywh = [[float(d.box[0]), float(d.box[1]), float(d.box[2] - d.box[0]), float(d.box[3] - d.box[1])] for d in dets]
+    keep = cv2.dnn.NMSBoxes(xywh, [d.score for d in dets], 0.0, PYRAMID_NMS_IOU)
+    keep = sorted(np.asarray(keep, int).reshape(-1).tolist(), key=lambda i: -dets[i].score)
+    return [dets[i] for i in keep]
+
+
 # --- the detector -----------------------------------------------------------------------------
 
 
@@ -180,14 +200,25 @@ class CNNDetector:
     input_width: int = 640          # px, images are resized to this width
     min_score: float = 0.3
     top_k: int = 10
+    pyramid: tuple[float, ...] = (1.0,)   # image scales (x input_width) the network runs at; see the module doc
+    pyramid_band_px: tuple[float, float] = (24.0, 96.0)   # box sides (network px) a level keeps; see the module doc
 
     def __post_init__(self):
+        self.pyramid = tuple(float(s) for s in self.pyramid)
+        if not self.pyramid or any(not 0.0 < s <= 4.0 for s in self.pyramid):
+            raise PerceptionError(f"detector pyramid levels must be scales in (0, 4], got {self.pyramid}")
+        if len(set(self.pyramid)) != len(self.pyramid):
+            raise PerceptionError(f"detector pyramid levels must differ, got {self.pyramid}")
+        self.pyramid_band_px = tuple(float(x) for x in self.pyramid_band_px)
+        if len(self.pyramid_band_px) != 2 or not 0.0 <= self.pyramid_band_px[0] < self.pyramid_band_px[1]:
+            raise PerceptionError(f"detector pyramid_band_px must be (lo, hi) px with 0 <= lo < hi, "
+                                  f"got {self.pyramid_band_px}")
         self.model = CenterNet(widths=tuple(self.widths))
         self._forward = jax.jit(lambda p, x: decode(self.model.apply({"params": p}, normalise(x)), self.top_k))
 
-    def _prepare(self, image) -> tuple[np.ndarray, float, float]:
+    def _prepare(self, image, level: float = 1.0) -> tuple[np.ndarray, float, float]:
         H, W = image.shape[:2]
-        w = self.input_width
+        w = max(int(round(self.input_width * level)), 8)
         h = max(int(round(H * w / W)), 1)
         x = image if (w, h) == (W, H) else cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA if w < W else cv2.INTER_LINEAR)
         ph, pw = -h % PAD_TO, -w % PAD_TO
@@ -200,24 +231,30 @@ class CNNDetector:
         images = [check_image(im) for im in images]
         if len({im.shape for im in images}) > 1:
             raise PerceptionError("detect_batch takes images of one size")
-        prepared = [self._prepare(im) for im in images]
-        scores, boxes = self._forward(self.params, np.stack([p[0] for p in prepared]))
-        scores, boxes = np.asarray(scores), np.asarray(boxes, dtype=float)
         floor = self.min_score if min_score is None else min_score
         H, W = images[0].shape[:2]
-        out = []
-        for (_, sx, sy), sc, bx in zip(prepared, scores, boxes):
-            scale = np.array([sx, sy, sx, sy])
-            dets = []
-            for s, b in zip(sc, bx):
-                if s < floor:
-                    break
-                box = (b + 0.5) * scale - 0.5                     # back to the input image's px
-                box = np.clip(box, -0.5, [W - 0.5, H - 0.5, W - 0.5, H - 0.5])
-                if box[2] > box[0] and box[3] > box[1]:
-                    dets.append(Detection(box=box, score=float(s)))
-            out.append(dets)
-        return out
+        several = len(self.pyramid) > 1
+        lo, hi = self.pyramid_band_px
+        out = [[] for _ in images]
+        for level in self.pyramid:
+            keep_lo = -np.inf if level == max(self.pyramid) else lo     # the finest level keeps the smallest
+            keep_hi = np.inf if level == min(self.pyramid) else hi      # the coarsest keeps the largest
+            prepared = [self._prepare(im, level) for im in images]
+            scores, boxes = self._forward(self.params, np.stack([p[0] for p in prepared]))
+            scores, boxes = np.asarray(scores), np.asarray(boxes, dtype=float)
+            for dets, (_, sx, sy), sc, bx in zip(out, prepared, scores, boxes):
+                scale = np.array([sx, sy, sx, sy])
+                for s, b in zip(sc, bx):
+                    if s < floor:
+                        break
+                    side = max(b[2] - b[0], b[3] - b[1])          # network px of this level
+                    if several and not keep_lo <= side <= keep_hi:
+                        continue
+                    box = (b + 0.5) * scale - 0.5                     # back to the input image's px
+                    box = np.clip(box, -0.5, [W - 0.5, H - 0.5, W - 0.5, H - 0.5])
+                    if box[2] > box[0] and box[3] > box[1]:
+                        dets.append(Detection(box=box, score=float(s)))
+        return [_suppress(d) for d in out] if several else out
 
     def detect(self, image: np.ndarray, min_score: float | None = None) -> list[Detection]:
         """Detections in ``image`` ((H, W, 3) uint8 RGB, any size), best first, scores >= ``min_score``
@@ -231,7 +268,8 @@ class CNNDetector:
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         meta = json.dumps(dict(widths=list(self.widths), input_width=self.input_width, min_score=self.min_score,
-                               top_k=self.top_k, stride=STRIDE))
+                               top_k=self.top_k, stride=STRIDE, pyramid=list(self.pyramid),
+                               pyramid_band_px=list(self.pyramid_band_px)))
         params = jax.tree.map(lambda a: np.asarray(a, np.float32), self.params)
         path.write_bytes(serialization.msgpack_serialize({"meta": meta, "params": params}))
         return path
@@ -252,4 +290,6 @@ class CNNDetector:
         if meta.get("stride") != STRIDE:
             raise PerceptionError(f"{path} was written for output stride {meta.get('stride')}, this code uses {STRIDE}")
         return cls(params=params, widths=tuple(meta["widths"]), input_width=int(meta["input_width"]),
-                   min_score=float(meta["min_score"]), top_k=int(meta["top_k"]))
+                   min_score=float(meta["min_score"]), top_k=int(meta["top_k"]),
+                   pyramid=tuple(meta.get("pyramid", (1.0,))),
+                   pyramid_band_px=tuple(meta.get("pyramid_band_px", (24.0, 96.0))))

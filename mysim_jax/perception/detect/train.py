@@ -15,7 +15,8 @@
    times) and writes ``OUT/detector.msgpack``, ``OUT/metrics.json``, ``OUT/pr_curve.png``,
    ``OUT/examples/*.png`` and ``OUT/config.yaml``.
 
-With ``weights`` given, step 2 is skipped and those weights are evaluated instead.
+With ``weights`` given, step 2 is skipped and those weights are evaluated instead, with the
+config's inference settings (``model.pyramid``, ``model.pyramid_band_px``, ``eval.min_score``).
 """
 
 from __future__ import annotations
@@ -43,7 +44,8 @@ EVAL_IN_OFFSET = 1_000_000
 def spec_of(cfg: DetectorConfig, which: str) -> DatasetSpec:
     d = cfg.data
     n = d.train_images if which == "train" else d.eval_images
-    return DatasetSpec(split=SETS[which], n_images=n, seed=d.seed, width=d.width, height=d.height, p_empty=d.p_empty,
+    seed = d.seed if which == "train" or d.eval_seed is None else d.eval_seed
+    return DatasetSpec(split=SETS[which], n_images=n, seed=seed, width=d.width, height=d.height, p_empty=d.p_empty,
                        p_occluder=d.p_occluder, p_distractors=d.p_distractors, p_drone=d.p_drone,
                        min_visible_px=d.min_visible_px, min_visible_fraction=d.min_visible_fraction)
 
@@ -354,7 +356,8 @@ def run(cfg: DetectorConfig, out: Path, progress: bool = True, cache: Path | Non
                                 log=lambda k, loss, parts: log_lines.append(dict(step=k, loss=loss, **parts)))
         train_s = time.time() - t0
         cnn = CNNDetector(params=params, widths=tuple(cfg.model.widths), input_width=cfg.model.input_width,
-                          min_score=cfg.eval.min_score)
+                          min_score=cfg.eval.min_score, pyramid=tuple(cfg.model.pyramid),
+                          pyramid_band_px=tuple(cfg.model.pyramid_band_px))
         cnn.save(out / "detector.msgpack")
         (out / "train_log.json").write_text(json.dumps(log_lines))
         metrics = dict(train_seconds=train_s, steps=cfg.train.steps,
@@ -362,7 +365,9 @@ def run(cfg: DetectorConfig, out: Path, progress: bool = True, cache: Path | Non
                        weights_bytes=(out / "detector.msgpack").stat().st_size)
     else:
         cnn = CNNDetector.load(weights)
-        cnn.min_score = cfg.eval.min_score
+        cnn = CNNDetector(params=cnn.params, widths=cnn.widths, input_width=cnn.input_width, top_k=cnn.top_k,
+                          min_score=cfg.eval.min_score, pyramid=tuple(cfg.model.pyramid),
+                          pyramid_band_px=tuple(cfg.model.pyramid_band_px))   # inference settings: the config's
         metrics = dict(weights=str(weights), weights_bytes=Path(weights).stat().st_size)
     baseline = ColourBlobDetector()
     curves = {}
