@@ -189,3 +189,50 @@ def test_record_roundtrip_and_single_camera_localisation(closed_loop, tmp_path):
     with pytest.raises(PerceptionError, match="not a tracking record"):
         (tmp_path / "bad.npz").write_bytes(b"nothing")
         TrackingRecord.load_npz(tmp_path / "bad.npz")
+
+
+def _looking_at(p, x):
+    """(3, 3) OpenCV camera -> world of a camera at ``p`` looking at ``x`` (no roll)."""
+    f = np.asarray(x, float) - p
+    f /= np.linalg.norm(f)
+    r = np.cross(f, [0.0, 0.0, 1.0])
+    r /= np.linalg.norm(r)
+    return np.stack([r, np.cross(f, r), f], axis=-1)
+
+
+def _box_at(intr, R, p, x, half=10.0):
+    c = R.T @ (np.asarray(x, float) - p)
+    u, v = intr.fx * c[0] / c[2] + intr.cx, intr.fy * c[1] / c[2] + intr.cy
+    return np.array([u - half, v - half, u + half, v + half])
+
+
+def test_association_drops_a_false_detection_and_the_consensus_ignores_one_bad_camera():
+    """Four cameras around a target; one of them has its best detection on something 1.5 m
+    away. The consensus point of the others' rays is the target (the least-squares point of
+    all rays is not), and the gate keeps only the true detection, however it was ranked."""
+    from types import SimpleNamespace
+
+    from mysim_jax.perception.localize import fuse_rays
+    from mysim_jax.perception.track import _consensus_point, associate
+
+    intr = intrinsics(width=640, height=360)
+    x = np.array([0.3, -0.2, 4.0])
+    y = x + np.array([1.0, 1.0, -0.6])                 # a teammate, say
+    origins = [np.array(o) for o in ([5.0, 0.0, 2.0], [0.0, 6.0, 2.5], [-5.0, 1.0, 1.5], [0.5, -5.0, 2.0])]
+    frames = [SimpleNamespace(p=o, R=_looking_at(o, x)) for o in origins]
+    good = [Detection(box=_box_at(intr, f.R, f.p, x), score=0.6) for f in frames]
+    false = [Detection(box=_box_at(intr, f.R, f.p, y), score=0.9) for f in frames]
+    dets = [good[0], false[1], good[2], good[3]]       # camera 1 is on the wrong thing
+    point = _consensus_point(frames, dets, intr)
+    np.testing.assert_allclose(point, x, atol=1e-6)
+    rays = [f.R @ np.linalg.solve(np.array([[intr.fx, 0, intr.cx], [0, intr.fy, intr.cy], [0, 0, 1.0]]),
+                                   [(d.box[0] + d.box[2]) / 2, (d.box[1] + d.box[3]) / 2, 1.0]) for f, d in zip(frames, dets)]
+    assert np.linalg.norm(fuse_rays(np.array(origins), np.array(rays))[0] - x) > 0.1
+    kept = associate([false[0], good[0]], frames[0], point, 5.0, intr)
+    assert kept == [good[0]]
+    assert associate([false[0], good[0]], frames[0], None, 5.0, intr) == [false[0], good[0]]
+    assert associate([false[0], good[0]], frames[0], point, None, intr) == [false[0], good[0]]
+    assert associate([false[0]], frames[0], point, 5.0, intr) == []
+    assert _consensus_point(frames[:1], dets[:1], intr) is None      # one ray fixes no point
+    with pytest.raises(PerceptionError, match="gate_deg"):
+        TrackerConfig(gate_deg=0.0)

@@ -37,6 +37,17 @@ angular rate in the world), or at a cue point when one is given (e.g. the other 
 fused estimate of the target, :mod:`mysim_jax.perception.localize`), then a search pattern
 (a raster: the pan turning round at ``search_pan_rate``, 1.25 turns per row, the rows 0.7
 fields of view apart in tilt from the last tilt outwards) until the target is found again.
+
+Data association (:func:`associate`). A detector can fire on things that are not the target
+(a teammate, the net), and pointing the camera at such a thing keeps the real target out
+of view. So before a camera's detections reach its tracker, each is checked against where
+the target should be: the point where the other cameras' detection rays meet best (the
+closest-meeting pair, :func:`_consensus_point`) when at least two of them see something, else (before this camera has first seen the target) the start cue.
+Detections whose bearing is farther from that point's than ``TrackerConfig.gate_deg`` plus
+the target's angular radius there (the box of a partly hidden target is off its centre) are
+dropped, and the rest are ordered nearest first. With no reference point the detector's
+order stands. A camera whose detections are all dropped recovers as above, steered by the
+teammates' cue.
 """
 
 from __future__ import annotations
@@ -204,6 +215,8 @@ class TrackerConfig:
     predict_s: float = 1.0                  # s pointing along the predicted bearing (or a cue) after that
     search_pan_rate: float = 3.0            # rad/s, the search turns the pan round at this rate
     search_rows: int = 5                    # raster rows of the search: the last tilt, then above and below
+    gate_deg: float | None = 5.0            # deg, detections farther than this plus the target's angular
+                                            # radius from the team's point are dropped (module doc; None: no gate)
 
     def __post_init__(self):
         for name in ("kp", "max_rate", "search_pan_rate", "search_rows"):
@@ -212,6 +225,8 @@ class TrackerConfig:
         for name in ("ki", "integral_limit", "predict_s"):
             if not getattr(self, name) >= 0:
                 raise PerceptionError(f"TrackerConfig.{name} must be >= 0, got {getattr(self, name)}")
+        if self.gate_deg is not None and not 0 < self.gate_deg <= 180:
+            raise PerceptionError(f"TrackerConfig.gate_deg must be in (0, 180] deg or None, got {self.gate_deg}")
         if self.tilt_limits is not None and not self.tilt_limits[0] < self.tilt_limits[1]:
             raise PerceptionError(f"TrackerConfig.tilt_limits must be (low, high) with low < high, got {self.tilt_limits}")
 
@@ -429,6 +444,58 @@ def _team_point(frames, detections, intr, radius) -> np.ndarray | None:
         return None
 
 
+def _consensus_point(frames, detections, intr) -> np.ndarray | None:
+    """(3,) m: where the rays of the cameras' detections meet best, or None. Each pair of rays
+    is triangulated (the midpoint of their closest approach); the pair whose rays pass
+    closest to each other, as an angle seen from the cameras, wins, so one camera on a false
+    detection does not move the point (unlike a least-squares fit of all rays)."""
+    origins = np.array([np.asarray(f.p, float) for f in frames])
+    rays = []
+    for f, det in zip(frames, detections):
+        u, v = box_centre(det.box)
+        r = f.R @ np.array([(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, 1.0])
+        rays.append(r / np.linalg.norm(r))
+    best = None
+    for i in range(len(rays)):
+        for j in range(i + 1, len(rays)):
+            a, b, w = rays[i], rays[j], origins[j] - origins[i]
+            c = a @ b
+            if 1 - c * c < 1e-9:        # parallel rays do not fix a point
+                continue
+            si = (w @ a - c * (w @ b)) / (1 - c * c)
+            sj = (c * (w @ a) - w @ b) / (1 - c * c)
+            if si <= 0 or sj <= 0:      # they meet behind a camera
+                continue
+            pi, pj = origins[i] + si * a, origins[j] + sj * b
+            miss = np.linalg.norm(pi - pj) / min(si, sj)
+            if best is None or miss < best[0]:
+                best = (miss, 0.5 * (pi + pj))
+    return None if best is None else best[1]
+
+
+def associate(detections: Sequence, frame: Frame, point, gate_deg: float | None, intr: Intrinsics,
+              radius: float = 0.0) -> list:
+    """``detections`` of ``frame`` whose bearing is within ``gate_deg`` plus the angular radius
+    of a target of ``radius`` m at ``point`` ((3,) m, world) of the direction to ``point``,
+    nearest first; all of them, in their order, when ``point`` or ``gate_deg`` is None (see
+    the module doc)."""
+    if point is None or gate_deg is None or not len(detections):
+        return list(detections)
+    d = np.asarray(point, float) - np.asarray(frame.p, float)
+    if not np.linalg.norm(d) > 1e-9:
+        return list(detections)
+    gate = gate_deg + np.degrees(np.arcsin(min(1.0, radius / np.linalg.norm(d))))
+    d /= np.linalg.norm(d)
+    scored = []
+    for det in detections:
+        u, v = box_centre(det.box)
+        ray = frame.R @ np.array([(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, 1.0])
+        angle = np.degrees(np.arccos(np.clip(ray @ d / np.linalg.norm(ray), -1.0, 1.0)))
+        if angle <= gate:
+            scored.append((angle, det))
+    return [det for _, det in sorted(scored, key=lambda x: x[0])]
+
+
 def _point_at_start(config, scene, state):
     """A copy of ``config`` whose gimbal cameras start pointed at the target's start position."""
     bi = {n: i for i, n in enumerate(scene.body_names)}
@@ -553,6 +620,16 @@ def run_tracking(config, detector: FrameDetector | None = None, intr: Intrinsics
             frames.append(frame)
             dets.append(found)
             uav_Rs.append(uR)
+        if tracker_config.gate_deg is not None:
+            raw = [list(d) for d in dets]
+            for g in range(G):
+                others = [s for s in range(G) if s != g and raw[s]]
+                ref = None
+                if len(others) >= 2:
+                    ref = _consensus_point([frames[s] for s in others], [raw[s][0] for s in others], intr)
+                if ref is None and initial_cue and trackers[g].last_seen_t is None:
+                    ref = cue_point(t)
+                dets[g] = associate(raw[g], frames[g], ref, tracker_config.gate_deg, intr, config.target.radius)
         seen = [g for g in range(G) if dets[g]]
         for g in range(G):
             cue = None
