@@ -42,8 +42,8 @@ Data association (:func:`associate`). A detector can fire on things that are not
 (a teammate, the net), and pointing the camera at such a thing keeps the real target out
 of view. So before a camera's detections reach its tracker, each is checked against where
 the target should be: the point where the other cameras' detection rays meet best (the
-closest-meeting pair, :func:`_consensus_point`) when at least two of them see something, else (before this camera has first seen the target) the start cue.
-Detections whose bearing is farther from that point's than ``TrackerConfig.gate_deg`` plus
+closest-meeting pair, :func:`_consensus_point`) when at least two of them see something,
+else (before this camera has first seen the target) the start cue. Detections whose bearing is farther from that point's than ``TrackerConfig.gate_deg`` plus
 the target's angular radius there (the box of a partly hidden target is off its centre) are
 dropped, and the rest are ordered nearest first. With no reference point the detector's
 order stands. A camera whose detections are all dropped recovers as above, steered by the
@@ -449,12 +449,10 @@ def _consensus_point(frames, detections, intr) -> np.ndarray | None:
     is triangulated (the midpoint of their closest approach); the pair whose rays pass
     closest to each other, as an angle seen from the cameras, wins, so one camera on a false
     detection does not move the point (unlike a least-squares fit of all rays)."""
+    from mysim_jax.perception.localize import pixel_bearings
+
     origins = np.array([np.asarray(f.p, float) for f in frames])
-    rays = []
-    for f, det in zip(frames, detections):
-        u, v = box_centre(det.box)
-        r = f.R @ np.array([(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, 1.0])
-        rays.append(r / np.linalg.norm(r))
+    rays = pixel_bearings(intr, np.array([f.R for f in frames]), np.array([box_centre(d.box) for d in detections]))
     best = None
     for i in range(len(rays)):
         for j in range(i + 1, len(rays)):
@@ -484,16 +482,14 @@ def associate(detections: Sequence, frame: Frame, point, gate_deg: float | None,
     d = np.asarray(point, float) - np.asarray(frame.p, float)
     if not np.linalg.norm(d) > 1e-9:
         return list(detections)
+    from mysim_jax.perception.localize import pixel_bearings
+
     gate = gate_deg + np.degrees(np.arcsin(min(1.0, radius / np.linalg.norm(d))))
     d /= np.linalg.norm(d)
-    scored = []
-    for det in detections:
-        u, v = box_centre(det.box)
-        ray = frame.R @ np.array([(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, 1.0])
-        angle = np.degrees(np.arccos(np.clip(ray @ d / np.linalg.norm(ray), -1.0, 1.0)))
-        if angle <= gate:
-            scored.append((angle, det))
-    return [det for _, det in sorted(scored, key=lambda x: x[0])]
+    rays = pixel_bearings(intr, frame.R, np.array([box_centre(det.box) for det in detections]))
+    angles = np.degrees(np.arccos(np.clip(rays @ d, -1.0, 1.0)))
+    order = [i for i in np.argsort(angles, kind="stable") if angles[i] <= gate]
+    return [detections[i] for i in order]
 
 
 def _point_at_start(config, scene, state):
