@@ -45,6 +45,7 @@ import argparse
 import re
 import sys
 import time
+from pathlib import Path
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -63,6 +64,8 @@ def main(argv=None) -> int:
     parser.add_argument("--detector", choices=("oracle", "learned"), default="oracle",
                         help="--track: the ground-truth box with noise (oracle, default) or the learned detector "
                         "(mysim_jax.perception.detect)")
+    parser.add_argument("--weights", metavar="MSGPACK", help="--track, learned: detector weights written by "
+                        "scripts/train_detector.py (default: the committed docs/detector/detector.msgpack)")
     parser.add_argument("--det-noise", type=float, default=1.0, metavar="PX", help="--track, oracle: box edge noise "
                         "(px, default 1)")
     parser.add_argument("--miss-rate", type=float, default=0.0, help="--track, oracle: probability of a missed "
@@ -156,6 +159,10 @@ def _track(args) -> int:
         if not args.camera_rate > 0:
             raise PerceptionError(f"--camera-rate must be positive, got {args.camera_rate}")
         intr = intrinsics(width=args.size[0], height=args.size[1])
+        if args.weights is not None and args.detector != "learned":
+            raise PerceptionError("--weights is for --detector learned")
+        if args.weights is not None and not Path(args.weights).is_file():
+            raise PerceptionError(f"--weights {args.weights}: no such file; train one with scripts/train_detector.py")
         if args.detector == "oracle":
             detector = OracleDetector(noise_px=args.det_noise, miss_rate=args.miss_rate, seed=args.seed)
         else:
@@ -163,7 +170,7 @@ def _track(args) -> int:
                 from mysim_jax.perception.detect import load_detector
             except ImportError as err:
                 raise PerceptionError(f"the learned detector is not available ({err}); use --detector oracle") from None
-            detector = image_detector(load_detector())
+            detector = image_detector(load_detector(args.weights))
         pose_noise = None
         if args.pose_noise is not None:
             from mysim_jax.perception.localize import PoseNoise

@@ -16,6 +16,9 @@ frames only are rendered):
 
     python scripts/train_detector.py configs/detector.yaml --weights docs/detector/detector.msgpack --out runs/det_eval
 
+``--init FILE`` fine-tunes: training starts from FILE's weights instead of a random init
+(the same ``model.widths``).
+
 ``--eval-seed N`` draws the evaluation frames with seed N instead of ``data.seed`` (fresh frames
 of the same splits; the training frames keep ``data.seed``).
 
@@ -37,6 +40,8 @@ def main(argv=None) -> int:
     parser.add_argument("--cache", help="folder of rendered frames (default OUT/cache)")
     parser.add_argument("--weights", help="evaluate these weights (a detector.msgpack) instead of training, e.g. "
                         "docs/detector/detector.msgpack")
+    parser.add_argument("--init", help="fine-tune: start training from these weights (a detector.msgpack of the "
+                        "config's model.widths) instead of a random init")
     parser.add_argument("--eval-seed", type=int, help="seed of the evaluation frames (default: the config's "
                         "data.eval_seed, else data.seed)")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bars")
@@ -59,6 +64,24 @@ def main(argv=None) -> int:
 
             if not Path(args.weights).is_file():
                 raise OutputError(f"--weights {args.weights}: no such file (a detector.msgpack)")
+            if args.init is not None:
+                raise ConfigError("--init fine-tunes a training run; --weights evaluates without training: "
+                                  "give one of them")
+        if args.init is not None:
+            from pathlib import Path
+
+            from mysim_jax.perception.camera import PerceptionError
+            from mysim_jax.perception.detect.model import CNNDetector
+
+            if not Path(args.init).is_file():
+                raise OutputError(f"--init {args.init}: no such file (a detector.msgpack)")
+            try:
+                widths = CNNDetector.load(args.init).widths
+            except PerceptionError as err:
+                raise OutputError(f"--init: {err}") from None
+            if tuple(widths) != tuple(cfg.model.widths):
+                raise ConfigError(f"--init {args.init}: its network has widths {list(widths)}, the config's "
+                                  f"model.widths are {list(cfg.model.widths)}")
     except (ConfigError, OutputError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
@@ -66,9 +89,10 @@ def main(argv=None) -> int:
     from mysim_jax.perception.detect.train import run
 
     t0 = time.perf_counter()
-    metrics = run(cfg, out, progress=not args.no_progress, cache=cache, weights=args.weights)
+    metrics = run(cfg, out, progress=not args.no_progress, cache=cache, weights=args.weights, init=args.init)
     done = (f"evaluated {args.weights}" if args.weights else
-            f"trained {cfg.train.steps} steps in {metrics['train_seconds']:.0f} s")
+            f"trained {cfg.train.steps} steps{f' from {args.init}' if args.init else ''} in "
+            f"{metrics['train_seconds']:.0f} s")
     print(f"{done}; wrote {out}/ ({time.perf_counter() - t0:.0f} s in all)")
     for key in ("cnn/held_out", "baseline/held_out", "cnn/in_distribution", "baseline/in_distribution"):
         m = metrics[key]

@@ -239,6 +239,14 @@ def test_own_uav_is_not_drawn_unless_asked():
     other = Renderer(CONFIG, INTR).render(cols, "cam1", 0)
     assert other.mask("uav0").sum() > 100 and other.mask("cam0").sum() > 10
     assert not other.mask("cam1").any() and not other.mask("uav1").any()
+    # hide: named bodies are never drawn, from a scene camera or a free one
+    hidden = Renderer(CONFIG, INTR, hide=("uav0",)).render(cols, "cam1", 0)
+    assert not hidden.mask("uav0").any() and hidden.mask("cam0").sum() > 10
+    observer = look_at(np.array([-2.5, 1.0, 4.5]), uav0, cols["time"])
+    assert Renderer(CONFIG, INTR).render(cols, observer, 0).mask("uav0").sum() > 100
+    assert not Renderer(CONFIG, INTR, hide=("uav0",)).render(cols, observer, 0).mask("uav0").any()
+    with pytest.raises(PerceptionError, match="hide: no body 'uav9'"):
+        Renderer(CONFIG, INTR, hide=("uav9",))
 
 
 def test_free_camera_and_drone_target():

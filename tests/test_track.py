@@ -158,6 +158,11 @@ def test_bad_input(small_config, tmp_path):
     assert perceive.main(["--track", "configs/capture_maneuvering_cameras.yaml", "--out", str(tmp_path / "o")]) == 2
     assert perceive.main(["--track", "configs/capture_falling_gimbals.yaml", "--out", str(tmp_path / "o2"),
                           "--pose-noise", "-1", "0"]) == 2
+    assert perceive.main(["--track", "configs/capture_falling_gimbals.yaml", "--out", str(tmp_path / "o3"),
+                          "--detector", "learned", "--weights", str(tmp_path / "none.msgpack")]) == 2
+    assert perceive.main(["--track", "configs/capture_falling_gimbals.yaml", "--out", str(tmp_path / "o4"),
+                          "--weights", "docs/detector/detector.msgpack"]) == 2
+    assert not any((tmp_path / o).exists() for o in ("o", "o2", "o3", "o4"))
 
 
 def test_record_roundtrip_and_single_camera_localisation(closed_loop, tmp_path):

@@ -307,13 +307,14 @@ class Renderer:
     smaller image of the same field of view). ``texture``, ``lighting``, ``ground_z`` (m):
     the world. ``target_style``: ``"sphere"``, ``"drone"`` or ``"auto"`` (a drone for a
     maneuvering target). ``min_line_px``: the narrowest a net line or tether is drawn (px).
-    ``draw_own_uav``: also draw the viewing camera's UAV and its other cameras.
+    ``draw_own_uav``: also draw the viewing camera's UAV and its other cameras. ``hide``:
+    bodies never drawn, whatever the camera (e.g. the UAV a free camera is mounted on).
     """
 
     def __init__(self, config, intr: Intrinsics | None = None, *, texture: GroundTexture | None = None,
                  lighting: Lighting | None = None, ground_z: float = 0.0,
                  target_style: Literal["auto", "sphere", "drone"] = "auto", min_line_px: float = 1.0,
-                 draw_own_uav: bool = False):
+                 draw_own_uav: bool = False, hide: Iterable[str] = ()):
         intr = make_intrinsics() if intr is None else intr
         for name, value in (("width", intr.width), ("height", intr.height)):
             if not isinstance(value, (int, np.integer)) or value < 1:
@@ -334,6 +335,7 @@ class Renderer:
         self.ground_z = float(ground_z)
         self.min_line_px = float(min_line_px)
         self.draw_own_uav = bool(draw_own_uav)
+        self.hide = frozenset(hide)
         self._lut = _background_lut(self.lighting)
 
         names = ["sky", "ground"]
@@ -362,6 +364,9 @@ class Renderer:
                 models.append(camera_model())
                 self.camera_owner[cam.name] = q.body
         names += bodies
+        unknown = sorted(self.hide - set(bodies))
+        if unknown:
+            raise PerceptionError(f"hide: no body {', '.join(map(repr, unknown))} in the scene; bodies: {', '.join(bodies)}")
         self.cameras: tuple[str, ...] = tuple(self.camera_owner)
         self._bodies = bodies
         self._body_columns = [f"{b}_{k}" for b in bodies for k in _POSE]
@@ -519,11 +524,11 @@ class Renderer:
 
     def _hidden(self, name: str) -> set[str]:
         if name not in self.camera_owner:
-            return set()
+            return set(self.hide)
         if self.draw_own_uav:
-            return {name}
+            return {name} | self.hide
         owner = self.camera_owner[name]
-        return {owner} | {c for c, o in self.camera_owner.items() if o == owner}
+        return {owner} | {c for c, o in self.camera_owner.items() if o == owner} | self.hide
 
     def _render(self, columns, name, poses, row) -> Frame:
         intr = self.intr

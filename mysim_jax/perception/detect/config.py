@@ -32,6 +32,7 @@ class DataConfig(StrictModel):
     p_occluder: Prob = 0.25
     p_distractors: Prob = 0.5
     p_drone: Prob = 0.5
+    p_onboard: Prob = 0.0                # frames from a camera under a UAV of the capture formation
     min_visible_px: Annotated[int, Field(ge=1)] = 6
     min_visible_fraction: Prob = 0.3
     workers: Annotated[int, Field(ge=1, le=64)] = 2     # rendering processes

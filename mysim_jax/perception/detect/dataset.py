@@ -17,6 +17,12 @@ free camera (:class:`~mysim_jax.perception.camera.CameraPoses`). Per sample:
   that it hides part of it; otherwise, with ``p_distractors``, the formation or one to three
   UAVs are put elsewhere in view (2-30 m away) as distractors; unused objects are hidden
   under the ground;
+* or, with ``p_onboard``, the camera is a gimbal camera mounted under one UAV of the capture
+  formation (``ONBOARD_OFFSET`` below its centre, as in ``configs/capture_*_gimbals.yaml``;
+  its own UAV is not drawn, as the tracker's images do not show it): its own tether hangs
+  past the lens to the net below (all tethers leaning up to ``ONBOARD_MAX_LEAN_DEG`` from
+  vertical, as when the net trails the formation), and the teammates and the net are
+  around the target;
 * the world: a ground texture seed, sun azimuth/elevation/strength and sky and ground
   colours, from the split's ranges;
 * with ``p_empty`` the target is hidden under the ground (a frame with no target).
@@ -52,6 +58,9 @@ ROOT = Path(__file__).resolve().parents[3]
 SCENE_FILES = {"sphere": ROOT / "configs" / "capture_falling.yaml",
                "drone": ROOT / "configs" / "capture_maneuvering_cameras.yaml"}
 PARK_Z = -100.0                 # m, height of hidden objects (under the ground, which hides them)
+ONBOARD_OFFSET = (0.0, 0.0, -0.04)   # m, an onboard camera below its UAV's centre (UAV frame, level UAV)
+ONBOARD_MIN_HEIGHT = 2.0        # m, lowest onboard camera (the net hangs ~1.4 m below it)
+ONBOARD_MAX_LEAN_DEG = 30.0     # tethers lean up to this from vertical (the net trailing the formation)
 
 
 @dataclass(frozen=True)
@@ -115,7 +124,8 @@ class Sample:
     visible_fraction: float      # visible / unoccluded silhouette pixels
     visible_px: int
     meta: dict = field(default_factory=dict)   # sampled parameters: lighting, texture seed, scene, camera pose
-                                               # (camera_R (3, 3) OpenCV -> world, camera_p (3,) m), target_pos (3,) m
+                                               # (camera_R (3, 3) OpenCV -> world, camera_p (3,) m), target_pos (3,) m,
+                                               # formation (onboard frames: the camera's UAV, tether k, net pose)
 
 
 @lru_cache(maxsize=2)
@@ -198,15 +208,37 @@ class _Columns:
         for a, v in zip("xyz", p):
             self.cols[f"{name}_{a}"] = np.array([float(v)])
 
+    def centre_under(self, k: int, uav_pos, yaw: float, sag: float, lean=(0.0, 0.0)) -> np.ndarray:
+        """(3,) m: the net centre that, laid out by :meth:`net` with ``(centre, yaw, sag, lean)``,
+        puts the UAV of tether ``k`` at ``uav_pos``."""
+        net = self.config.net
+        t = net.tethers
+        i, j = net.tether_knots()[k]
+        g = net.knots
+        a, b = -1 + 2 * j / (g - 1), -1 + 2 * i / (g - 1)
+        x, y = a * net.size / 2, b * net.size / 2
+        c, s = np.cos(yaw), np.sin(yaw)
+        knot = np.array([c * x - s * y, s * x + c * y, -sag * (1 - a * a) * (1 - b * b)])
+        return np.asarray(uav_pos, float) + np.asarray(t.attach, float) - self._tether_vector(lean) - knot
+
+    def _tether_vector(self, lean) -> np.ndarray:
+        """(3,) m: knot -> UAV attach point of a taut tether leaning ``lean`` (2,) m sideways."""
+        length = self.config.net.tethers.length
+        lx, ly = float(lean[0]), float(lean[1])
+        return np.array([lx, ly, np.sqrt(max(length ** 2 - lx * lx - ly * ly, 0.0))])
+
     def net(self, pose):
-        """Lay the net out: ``pose`` = (centre (3,), yaw, sag m) hangs it level with its centre
-        ``sag`` below its edges; None parks it (and its tethers) under the ground."""
+        """Lay the net out: ``pose`` = (centre (3,), yaw, sag m[, lean (2,) m]) hangs it level
+        with its centre ``sag`` below its edges, each UAV above its knot shifted ``lean``
+        sideways (taut tethers; default straight above); None parks it (and its tethers)
+        under the ground."""
         net = self.config.net
         g, size = net.knots, net.size
         if pose is None:
             centre, yaw, sag = np.array([0.0, 0.0, PARK_Z]), 0.0, 0.0
         else:
-            centre, yaw, sag = pose
+            centre, yaw, sag = pose[:3]
+            lean = pose[3] if len(pose) > 3 else (0.0, 0.0)
         c, s = np.cos(yaw), np.sin(yaw)
 
         def point(a, b):      # a, b in [-1, 1]: net coordinates
@@ -232,8 +264,8 @@ class _Columns:
             knot = point(coord(j), coord(i))
             if pose is None:
                 end = knot.copy()
-            else:   # the UAV above its knot, level, the tether taut
-                end = knot + np.array([0.0, 0.0, t.length])
+            else:   # the UAV above its knot (leaning), level, the tether taut
+                end = knot + self._tether_vector(lean)
                 self.body(uav, end - np.asarray(t.attach), _yaw_quat(yaw))
             for m in range(t.n_masses):
                 f = (m + 1) / (t.n_masses + 1)
@@ -253,6 +285,7 @@ class DatasetSpec:
     p_occluder: float = 0.25            # frames with the net formation or a UAV in front of the target
     p_distractors: float = 0.5          # frames with UAVs / the formation elsewhere in view
     p_drone: float = 0.5                # evading-drone target (else the falling sphere)
+    p_onboard: float = 0.0              # frames from a camera under a UAV of the formation
     min_visible_px: int = 6
     min_visible_fraction: float = 0.3
 
@@ -294,9 +327,14 @@ def render_sample(spec: DatasetSpec, index: int) -> Sample:
     offset, (u, v) = _in_view_point(rng, intr, R, np.zeros(3), distance, margin=0.8 * r_px)
     h_target = rng.uniform(*split.target_height_m)
     h_cam = h_target - offset[2]
-    if h_cam < 0.5:                      # looking up at the target: raise both
-        h_target += 0.5 - h_cam
-        h_cam = 0.5
+    # onboard frames draw from their own stream, so p_onboard = 0 leaves every frame as it was
+    rng_onboard = np.random.default_rng([spec.seed, 0 if spec.split == "train" else 1, index, 1])
+    tethers = config.net.tethers if config.net is not None else None
+    onboard = tethers is not None and rng_onboard.random() < spec.p_onboard
+    h_min = ONBOARD_MIN_HEIGHT if onboard else 0.5
+    if h_cam < h_min:                    # looking up at the target (or no room for the net): raise both
+        h_target += h_min - h_cam
+        h_cam = h_min
     p = np.array([0.0, 0.0, h_cam])
     target_pos = p + offset
     cols = _Columns(config)
@@ -312,7 +350,21 @@ def render_sample(spec: DatasetSpec, index: int) -> Sample:
     side = np.cross(los, [0.0, 0.0, 1.0])
     side = side / max(np.linalg.norm(side), 1e-9)
     up = np.cross(side, los)
-    if not empty and rng.random() < spec.p_occluder and distance > 2.0:
+    hide: tuple[str, ...] = ()
+    formation = None
+    if onboard:                      # the camera under tether k's UAV, the formation around it
+        meta_occ = "onboard"
+        k = int(rng_onboard.integers(len(tethers.uavs)))
+        f_yaw, sag = rng_onboard.uniform(0, 2 * np.pi), rng_onboard.uniform(0.0, 0.4)
+        tilt, heading = np.radians(rng_onboard.uniform(0.0, ONBOARD_MAX_LEAN_DEG)), rng_onboard.uniform(0, 2 * np.pi)
+        lean = tethers.length * np.sin(tilt) * np.array([np.cos(heading), np.sin(heading)])
+        uav_pos = p - np.asarray(ONBOARD_OFFSET)
+        centre = cols.centre_under(k, uav_pos, f_yaw, sag, lean)
+        cols.net((centre, f_yaw, sag, lean))
+        hide = (tethers.uavs[k],)
+        formation = dict(uav=tethers.uavs[k], tether=k, centre=centre.tolist(), yaw=float(f_yaw), sag=float(sag),
+                         lean=lean.tolist())
+    elif not empty and rng.random() < spec.p_occluder and distance > 2.0:
         f = rng.uniform(0.3, 0.85)
         at = p + offset * f
         if rng.random() < 0.5:       # the formation, its net across the line of sight
@@ -338,7 +390,7 @@ def render_sample(spec: DatasetSpec, index: int) -> Sample:
                 at[2] = max(at[2], 0.3)
                 cols.body(name, at, _random_quat(rng, 20.0))
 
-    renderer = Renderer(config, intr, texture=_texture(tex_seed), lighting=lighting)
+    renderer = Renderer(config, intr, texture=_texture(tex_seed), lighting=lighting, hide=hide)
     poses = CameraPoses(name="observer", t=np.array([0.0]), R=R[None], p=p[None])
     frame = renderer.render(cols.cols, poses, 0)
     tv = frame.target
@@ -350,7 +402,8 @@ def render_sample(spec: DatasetSpec, index: int) -> Sample:
                 sun_elevation_deg=lighting.sun_elevation_deg, sun_strength=lighting.sun_strength,
                 pitch_deg=float(np.degrees(pitch)), roll_deg=float(np.degrees(roll)), camera_height_m=float(h_cam),
                 scene=meta_occ, pixel=(float(u), float(v)), camera_R=R.tolist(), camera_p=p.tolist(),
-                target_pos=None if empty else target_pos.tolist(), target_radius=float(radius))
+                target_pos=None if empty else target_pos.tolist(), target_radius=float(radius),
+                formation=formation)
     return Sample(image=frame.image, box=box, ignore=bool(ignore), kind=kind,
                   distance=float("nan") if empty else float(distance), visible_fraction=float(fraction),
                   visible_px=int(visible_px), meta=meta)

@@ -47,6 +47,7 @@ def spec_of(cfg: DetectorConfig, which: str) -> DatasetSpec:
     seed = d.seed if which == "train" or d.eval_seed is None else d.eval_seed
     return DatasetSpec(split=SETS[which], n_images=n, seed=seed, width=d.width, height=d.height, p_empty=d.p_empty,
                        p_occluder=d.p_occluder, p_distractors=d.p_distractors, p_drone=d.p_drone,
+                       p_onboard=d.p_onboard,
                        min_visible_px=d.min_visible_px, min_visible_fraction=d.min_visible_fraction)
 
 
@@ -204,12 +205,14 @@ def init_params(cfg: DetectorConfig, seed: int | None = None):
     return model.init(key, normalise(np.zeros((1, C, C, 3), np.uint8)))["params"]
 
 
-def train(cfg: DetectorConfig, images, labels, progress: bool = True, steps: int | None = None, log=None):
-    """Train from scratch; returns (params, loss history as a list of (step, loss))."""
+def train(cfg: DetectorConfig, images, labels, progress: bool = True, steps: int | None = None, log=None,
+          params=None):
+    """Train from scratch, or from ``params`` (fine-tuning); returns (params, loss history as a
+    list of (step, loss))."""
     from tqdm.auto import tqdm
 
     _, opt, step = make_trainer(cfg)
-    params = init_params(cfg)
+    params = init_params(cfg) if params is None else params
     opt_state = opt.init(params)
     rng = np.random.default_rng(cfg.train.seed)
     n = len(labels)
@@ -329,10 +332,11 @@ def plot_pr(path: Path, curves: dict) -> None:
 
 
 def run(cfg: DetectorConfig, out: Path, progress: bool = True, cache: Path | None = None,
-        weights: Path | None = None) -> dict:
+        weights: Path | None = None, init: Path | None = None) -> dict:
     """Render, train, evaluate and write a run into ``out`` (see the module doc); returns the
     metrics. With ``weights`` (a detector.msgpack) nothing is trained: those weights are
-    evaluated (and the training frames are not rendered)."""
+    evaluated (and the training frames are not rendered). With ``init`` (a detector.msgpack of
+    the same ``model.widths``) training starts from those weights instead of a random init."""
     import yaml
 
     from mysim_jax.perception.detect.classical import ColourBlobDetector
@@ -350,9 +354,16 @@ def run(cfg: DetectorConfig, out: Path, progress: bool = True, cache: Path | Non
             "in_distribution": build_set(spec_of(cfg, "eval_in"), cache, "eval_in", first=EVAL_IN_OFFSET, workers=w,
                                          progress=progress)}
     if weights is None:
+        start = None
+        if init is not None:
+            start = CNNDetector.load(init)
+            if tuple(start.widths) != tuple(cfg.model.widths):
+                raise ValueError(f"init weights {init} have widths {list(start.widths)}, the config's model.widths "
+                                 f"are {list(cfg.model.widths)}")
+            start = start.params
         log_lines = []
         t0 = time.time()
-        params, history = train(cfg, train_images, train_labels, progress=progress,
+        params, history = train(cfg, train_images, train_labels, progress=progress, params=start,
                                 log=lambda k, loss, parts: log_lines.append(dict(step=k, loss=loss, **parts)))
         train_s = time.time() - t0
         cnn = CNNDetector(params=params, widths=tuple(cfg.model.widths), input_width=cfg.model.input_width,
@@ -360,7 +371,7 @@ def run(cfg: DetectorConfig, out: Path, progress: bool = True, cache: Path | Non
                           pyramid_band_px=tuple(cfg.model.pyramid_band_px))
         cnn.save(out / "detector.msgpack")
         (out / "train_log.json").write_text(json.dumps(log_lines))
-        metrics = dict(train_seconds=train_s, steps=cfg.train.steps,
+        metrics = dict(train_seconds=train_s, steps=cfg.train.steps, init=None if init is None else str(init),
                        final_loss=float(np.mean([l for _, l in history[-50:]])),
                        weights_bytes=(out / "detector.msgpack").stat().st_size)
     else:
