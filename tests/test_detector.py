@@ -315,12 +315,24 @@ def test_config_errors(raw, message):
         config_from_dict(raw)
 
 
-def test_script_rejects_bad_config_before_work(tmp_path, capsys):
+TINY_CONFIG = ("data: {width: 160, height: 90, train_images: 4, eval_images: 3, workers: 1}\n"
+               "model: {widths: [4, 4, 4, 4, 4], input_width: 128}\n"
+               "train: {steps: 3, batch_size: 2, crop: 64, warmup_steps: 1}\n"
+               "eval: {n_examples: 2}\n")
+
+
+def _train_script():
+    """scripts/train_detector.py as a module (its main(argv) runs in this process)."""
     import importlib.util
 
     spec = importlib.util.spec_from_file_location("train_detector", ROOT / "scripts" / "train_detector.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
+    return module
+
+
+def test_script_rejects_bad_config_before_work(tmp_path, capsys):
+    module = _train_script()
     bad = tmp_path / "bad.yaml"
     bad.write_text("data:\n  train_images: -3\n  colour: red\n")
     assert module.main([str(bad), "--out", str(tmp_path / "out")]) == 2
@@ -334,17 +346,11 @@ def test_script_rejects_bad_config_before_work(tmp_path, capsys):
 def test_script_end_to_end_on_a_tiny_config(tmp_path):
     """The whole pipeline (render, train, evaluate, write) on a tiny config: every output is
     written and the metrics are well-formed (not that they are good: 3 steps train nothing)."""
-    import importlib.util
     import json
 
-    spec = importlib.util.spec_from_file_location("train_detector", ROOT / "scripts" / "train_detector.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = _train_script()
     cfg = tmp_path / "tiny.yaml"
-    cfg.write_text("data: {width: 160, height: 90, train_images: 4, eval_images: 3, workers: 1}\n"
-                   "model: {widths: [4, 4, 4, 4, 4], input_width: 128}\n"
-                   "train: {steps: 3, batch_size: 2, crop: 64, warmup_steps: 1}\n"
-                   "eval: {n_examples: 2}\n")
+    cfg.write_text(TINY_CONFIG)
     out = tmp_path / "run"
     assert module.main([str(cfg), "--out", str(out), "--no-progress"]) == 0
     for name in ("detector.msgpack", "metrics.json", "pr_curve.png", "config.yaml", "train_log.json"):
@@ -371,15 +377,9 @@ def test_script_end_to_end_on_a_tiny_config(tmp_path):
 
 
 def test_script_rejects_bad_init_before_work(tmp_path, capsys):
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("train_detector", ROOT / "scripts" / "train_detector.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = _train_script()
     cfg = tmp_path / "tiny.yaml"
-    cfg.write_text("data: {width: 160, height: 90, train_images: 4, eval_images: 3, workers: 1}\n"
-                   "model: {widths: [4, 4, 4, 4, 4], input_width: 128}\n"
-                   "train: {steps: 3, batch_size: 2, crop: 64}\n")
+    cfg.write_text(TINY_CONFIG)
     out = tmp_path / "out"
     assert module.main([str(cfg), "--out", str(out), "--init", str(tmp_path / "none.msgpack")]) == 2
     assert "--init" in capsys.readouterr().err
