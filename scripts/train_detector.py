@@ -31,6 +31,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from pathlib import Path
 
 
 def main(argv=None) -> int:
@@ -60,28 +61,19 @@ def main(argv=None) -> int:
         out = check_output_dir(args.out)
         cache = None if args.cache is None else check_output_dir(args.cache, flag="--cache")
         if args.weights is not None:
-            from pathlib import Path
-
             if not Path(args.weights).is_file():
                 raise OutputError(f"--weights {args.weights}: no such file (a detector.msgpack)")
             if args.init is not None:
                 raise ConfigError("--init fine-tunes a training run; --weights evaluates without training: "
                                   "give one of them")
         if args.init is not None:
-            from pathlib import Path
-
             from mysim_jax.perception.camera import PerceptionError
-            from mysim_jax.perception.detect.model import CNNDetector
+            from mysim_jax.perception.detect.train import init_from
 
-            if not Path(args.init).is_file():
-                raise OutputError(f"--init {args.init}: no such file (a detector.msgpack)")
             try:
-                widths = CNNDetector.load(args.init).widths
+                init_from(cfg, args.init)
             except PerceptionError as err:
                 raise OutputError(f"--init: {err}") from None
-            if tuple(widths) != tuple(cfg.model.widths):
-                raise ConfigError(f"--init {args.init}: its network has widths {list(widths)}, the config's "
-                                  f"model.widths are {list(cfg.model.widths)}")
     except (ConfigError, OutputError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

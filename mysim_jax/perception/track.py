@@ -43,9 +43,10 @@ Data association (:func:`associate`). A detector can fire on things that are not
 of view. So before a camera's detections reach its tracker, each is checked against where
 the target should be: the point where the other cameras' detection rays meet best (the
 closest-meeting pair, :func:`_consensus_point`) when at least two of them see something,
-else (before this camera has first seen the target) the start cue. Detections whose bearing is farther from that point's than ``TrackerConfig.gate_deg`` plus
-the target's angular radius there (the box of a partly hidden target is off its centre) are
-dropped, and the rest are ordered nearest first. With no reference point the detector's
+else (before this camera has first seen the target) the start cue. Detections whose bearing
+is farther from that point's than ``TrackerConfig.gate_deg`` plus the target's angular
+radius there (the box of a partly hidden target is off its centre) are dropped, and the
+rest are ordered nearest first. With no reference point the detector's
 order stands. A camera whose detections are all dropped recovers as above, steered by the
 teammates' cue.
 """

@@ -212,14 +212,21 @@ class _Columns:
         """(3,) m: the net centre that, laid out by :meth:`net` with ``(centre, yaw, sag, lean)``,
         puts the UAV of tether ``k`` at ``uav_pos``."""
         net = self.config.net
-        t = net.tethers
         i, j = net.tether_knots()[k]
-        g = net.knots
-        a, b = -1 + 2 * j / (g - 1), -1 + 2 * i / (g - 1)
-        x, y = a * net.size / 2, b * net.size / 2
+        knot = self._net_offset(self._coord(j), self._coord(i), yaw, sag)
+        return np.asarray(uav_pos, float) + np.asarray(net.tethers.attach, float) - self._tether_vector(lean) - knot
+
+    def _coord(self, k) -> float:
+        """Net coordinate in [-1, 1] of knot row / column ``k``."""
+        return -1 + 2 * k / (self.config.net.knots - 1)
+
+    def _net_offset(self, a, b, yaw: float, sag: float) -> np.ndarray:
+        """(3,) m: net point at net coordinates ``a``, ``b`` in [-1, 1] from the net centre,
+        the net turned ``yaw`` and its centre ``sag`` below its edges."""
+        size = self.config.net.size
+        x, y = a * size / 2, b * size / 2
         c, s = np.cos(yaw), np.sin(yaw)
-        knot = np.array([c * x - s * y, s * x + c * y, -sag * (1 - a * a) * (1 - b * b)])
-        return np.asarray(uav_pos, float) + np.asarray(t.attach, float) - self._tether_vector(lean) - knot
+        return np.array([c * x - s * y, s * x + c * y, -sag * (1 - a * a) * (1 - b * b)])
 
     def _tether_vector(self, lean) -> np.ndarray:
         """(3,) m: knot -> UAV attach point of a taut tether leaning ``lean`` (2,) m sideways."""
@@ -233,20 +240,17 @@ class _Columns:
         sideways (taut tethers; default straight above); None parks it (and its tethers)
         under the ground."""
         net = self.config.net
-        g, size = net.knots, net.size
+        g = net.knots
         if pose is None:
             centre, yaw, sag = np.array([0.0, 0.0, PARK_Z]), 0.0, 0.0
         else:
             centre, yaw, sag = pose[:3]
             lean = pose[3] if len(pose) > 3 else (0.0, 0.0)
-        c, s = np.cos(yaw), np.sin(yaw)
 
         def point(a, b):      # a, b in [-1, 1]: net coordinates
-            x, y = a * size / 2, b * size / 2
-            z = -sag * (1 - a * a) * (1 - b * b)
-            return centre + np.array([c * x - s * y, s * x + c * y, z])
+            return centre + self._net_offset(a, b, yaw, sag)
 
-        coord = lambda k: -1 + 2 * k / (g - 1)
+        coord = self._coord
         n = net.masses_per_edge
         for i in range(g):
             for j in range(g):

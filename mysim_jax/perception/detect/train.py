@@ -205,6 +205,20 @@ def init_params(cfg: DetectorConfig, seed: int | None = None):
     return model.init(key, normalise(np.zeros((1, C, C, 3), np.uint8)))["params"]
 
 
+def init_from(cfg: DetectorConfig, path: str | Path):
+    """The parameters of the weights file ``path`` to fine-tune from, checked against the
+    config's network (:class:`~mysim_jax.perception.camera.PerceptionError` naming what is
+    wrong: no such file, not a weights file, other ``model.widths``)."""
+    from mysim_jax.perception.camera import PerceptionError
+    from mysim_jax.perception.detect.model import CNNDetector
+
+    start = CNNDetector.load(path)
+    if tuple(start.widths) != tuple(cfg.model.widths):
+        raise PerceptionError(f"{path}: its network has widths {list(start.widths)}, the config's model.widths "
+                              f"are {list(cfg.model.widths)}")
+    return start.params
+
+
 def train(cfg: DetectorConfig, images, labels, progress: bool = True, steps: int | None = None, log=None,
           params=None):
     """Train from scratch, or from ``params`` (fine-tuning); returns (params, loss history as a
@@ -354,13 +368,7 @@ def run(cfg: DetectorConfig, out: Path, progress: bool = True, cache: Path | Non
             "in_distribution": build_set(spec_of(cfg, "eval_in"), cache, "eval_in", first=EVAL_IN_OFFSET, workers=w,
                                          progress=progress)}
     if weights is None:
-        start = None
-        if init is not None:
-            start = CNNDetector.load(init)
-            if tuple(start.widths) != tuple(cfg.model.widths):
-                raise ValueError(f"init weights {init} have widths {list(start.widths)}, the config's model.widths "
-                                 f"are {list(cfg.model.widths)}")
-            start = start.params
+        start = None if init is None else init_from(cfg, init)
         log_lines = []
         t0 = time.time()
         params, history = train(cfg, train_images, train_labels, progress=progress, params=start,
