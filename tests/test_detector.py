@@ -128,6 +128,104 @@ def test_p_onboard_changes_only_the_frames_it_turns_onboard():
     assert 0 < n_onboard < 12
 
 
+def _sphere_silhouette_px(intr, R, p, centre, radius, pad: int) -> int:
+    """Pixels of an image widened by ``pad`` px on every side whose centre's ray hits the
+    sphere: NumPy, independent of the renderer."""
+    u, v = np.meshgrid(np.arange(-pad, intr.width + pad), np.arange(-pad, intr.height + pad))
+    rays = np.stack([(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, np.ones_like(u, float)], -1)
+    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+    c = R.T @ (np.asarray(centre) - np.asarray(p))            # sphere centre, camera frame
+    along = rays @ c
+    miss = np.sum(c * c) - along ** 2                          # squared distance ray -> centre
+    return int(np.sum((miss <= radius ** 2) & (along > 0)))
+
+
+def test_truncation_counts_the_silhouette_beyond_the_border():
+    """Spheres cut by the image border: the whole silhouette (the rendered pixels in the image
+    over 1 - truncation) matches the pixels whose rays hit the sphere in a widened image
+    (NumPy ray test) within 2 %; a sphere inside the image has no truncation; and the
+    counting rule ignores a target with less than min_visible_fraction of it in view."""
+    from mysim_jax.perception.render import Renderer
+
+    spec = DatasetSpec(split="held_out", n_images=60, p_drone=0.0, p_empty=0.0, p_occluder=0.0, p_distractors=0.0,
+                       width=320, height=180)
+    intr = intrinsics(width=320, height=180)
+    cut = inside = ignored = 0
+    for i in range(60):
+        s = render_sample(spec, i)
+        if s.box is None:
+            continue
+        m = s.meta
+        R, p = np.array(m["camera_R"]), np.array(m["camera_p"])
+        ref = _sphere_silhouette_px(intr, R, p, m["target_pos"], m["target_radius"], pad=400)
+        full = s.visible_px / s.visible_fraction
+        if s.truncation == 0.0:
+            inside += 1
+            assert abs(full - ref) <= 0.02 * ref + 2, (i, full, ref)
+        else:
+            cut += 1
+            assert 0.0 < s.truncation < 1.0
+            assert abs(full / (1.0 - s.truncation) - ref) <= 0.02 * ref + 2, (i, s.truncation, full, ref)
+            assert abs(s.truncation - (1.0 - full / ref)) < 0.02, (i, s.truncation, full, ref)
+        counted = s.visible_fraction * (1.0 - s.truncation) >= spec.min_visible_fraction
+        assert s.ignore == (not counted or s.visible_px < spec.min_visible_px), i
+        ignored += s.ignore and s.visible_px >= spec.min_visible_px
+        if cut >= 3 and inside >= 2 and ignored >= 1:
+            break
+    assert cut >= 3 and inside >= 2 and ignored >= 1, (cut, inside, ignored)
+
+
+def test_counting_truncated_targets_keeps_the_in_image_rule():
+    """``truths(count_truncated=True)`` counts a target the border cuts to a sliver (the
+    labels' rule ignores it) but still ignores one hidden by an occluder."""
+    from mysim_jax.perception.detect.train import truths
+
+    cfg = config_from_dict({})
+    box = [0.0, 0.0, 10.0, 10.0]
+    labels = [dict(box=box, ignore=True, visible_fraction=1.0, truncation=0.9, visible_px=100),
+              dict(box=box, ignore=True, visible_fraction=0.1, truncation=0.0, visible_px=100),
+              dict(box=None, ignore=False, visible_fraction=0.0, truncation=0.0, visible_px=0)]
+    assert [g[0][1] if g else None for g in truths(labels)] == [True, True, None]
+    assert [g[0][1] if g else None for g in truths(labels, count_truncated=True, cfg=cfg)] == [False, True, None]
+
+
+def test_crops_cut_targets_as_the_border_does():
+    """With the centre placed beyond the crop's edge, a target the crop shows less than
+    min_visible_fraction of is ignored, one it shows more of is counted; the crop's box is the
+    target's clipped to the crop."""
+    from mysim_jax.perception.detect.train import make_crop
+
+    cfg = config_from_dict({"model": {"input_width": 320}, "data": {"width": 320, "height": 180},
+                            "train": {"crop": 64, "crop_centre_range": [-0.3, 1.3], "scale_range": [1.0, 1.0],
+                                      "p_target_crop": 1.0, "hflip": False, "photometric": 0.0,
+                                      "colour_jitter": 0.0, "gamma": 0.0}})
+    image = np.zeros((180, 320, 3), np.uint8)
+    label = dict(box=[149.5, 69.5, 169.5, 89.5], ignore=False, visible_fraction=1.0, truncation=0.0, visible_px=400)
+    rng = np.random.default_rng(0)
+    seen = set()
+    for _ in range(200):
+        _, boxes = make_crop(image, label, cfg, rng)
+        for b, ignore in boxes:
+            assert np.all(b >= -0.5) and np.all(b <= 63.5)
+            shown = (b[2] - b[0]) * (b[3] - b[1]) / 400.0
+            assert ignore == (shown < 0.3), (b, ignore)
+            seen.add(ignore)
+    assert seen == {True, False}
+
+
+def test_prefetch_keeps_the_order_and_raises_errors():
+    from mysim_jax.perception.detect.train import _prefetch
+
+    counter = iter(range(100))
+    assert list(_prefetch(lambda: next(counter), 7)) == list(range(7))
+
+    def boom():
+        raise ValueError("bad frame")
+
+    with pytest.raises(ValueError, match="bad frame"):
+        list(_prefetch(boom, 3))
+
+
 def test_held_out_split_is_disjoint_from_training():
     from mysim_jax.perception.detect.dataset import HELD_OUT, TRAIN
 
@@ -138,6 +236,32 @@ def test_held_out_split_is_disjoint_from_training():
         assert not overlap(getattr(TRAIN, field), getattr(HELD_OUT, field)), field
     assert TRAIN.texture_seeds[1] <= HELD_OUT.texture_seeds[0]
     assert not set(TRAIN.palettes) & set(HELD_OUT.palettes)
+
+
+def test_random_palettes_stay_away_from_held_out_ones_and_only_in_training():
+    """Random training palettes never put both ground colours within PALETTE_EXCLUSION of a
+    held-out palette's (2000 draws), span dark to light and grey to saturated grounds;
+    p_random_palette changes training frames only (held-out frames are pixel-identical)."""
+    from mysim_jax.perception.detect.dataset import HELD_OUT_PALETTES, PALETTE_EXCLUSION, random_palette
+
+    rng = np.random.default_rng(0)
+    grounds = []
+    for _ in range(2000):
+        q = random_palette(rng)
+        g = np.r_[q.ground_dark, q.ground_light]
+        for h in HELD_OUT_PALETTES:
+            assert np.max(np.abs(g - np.r_[h.ground_dark, h.ground_light])) >= PALETTE_EXCLUSION
+        assert all(0.0 <= c <= 1.0 for c in (*q.zenith, *q.horizon, *g))
+        grounds.append(g)
+    grounds = np.array(grounds)
+    chroma = grounds[:, 3:].max(axis=1) - grounds[:, 3:].min(axis=1)      # of the light ground colour
+    assert grounds[:, :3].max(axis=1).min() < 0.1 and grounds[:, 3:].max(axis=1).max() > 0.85
+    assert chroma.min() < 0.02 and chroma.max() > 0.5
+    for split in ("train", "held_out"):
+        a = DatasetSpec(split=split, n_images=6, width=160, height=90)
+        b = DatasetSpec(split=split, n_images=6, width=160, height=90, p_random_palette=1.0)
+        same = [np.array_equal(render_sample(a, i).image, render_sample(b, i).image) for i in range(3)]
+        assert all(same) if split == "held_out" else not any(same), (split, same)
 
 
 # --- the committed detector -------------------------------------------------------------------
@@ -309,6 +433,8 @@ def test_eval_seed_draws_fresh_evaluation_frames_only():
     ({"model": {"pyramid": []}}, "model.pyramid"),
     ({"model": {"pyramid_band_px": [96, 24]}}, "model.pyramid_band_px"),
     ({"data": {"eval_seed": -1}}, "data.eval_seed"),
+    ({"train": {"crop_centre_range": [1.2, -0.2]}}, "train.crop_centre_range"),
+    ({"train": {"crop_centre_range": [-3.0, 0.5]}}, "train.crop_centre_range"),
 ])
 def test_config_errors(raw, message):
     with pytest.raises(ConfigError, match=message):

@@ -33,6 +33,7 @@ class DataConfig(StrictModel):
     p_distractors: Prob = 0.5
     p_drone: Prob = 0.5
     p_onboard: Prob = 0.0                # frames from a camera under a UAV of the capture formation
+    p_random_palette: Prob = 0.0         # training frames with random sky and ground colours
     min_visible_px: Annotated[int, Field(ge=1)] = 6
     min_visible_fraction: Prob = 0.3
     workers: Annotated[int, Field(ge=1, le=64)] = 2     # rendering processes
@@ -64,17 +65,25 @@ class TrainConfig(StrictModel):
     warmup_steps: Annotated[int, Field(ge=0)] = 50
     weight_decay: Annotated[float, Field(ge=0.0, allow_inf_nan=False)] = 1e-4
     p_target_crop: Prob = 0.7            # crops chosen to contain the target (else anywhere)
+    # where in such a crop its centre falls (fraction of the crop's side, per axis): values
+    # outside [0, 1] put the centre beyond the crop's edge, so the target is cut as by the image border
+    crop_centre_range: tuple[Annotated[float, Field(ge=-1.0, le=2.0)], Annotated[float, Field(ge=-1.0, le=2.0)]] = (0.05, 0.95)
     scale_range: tuple[PosFloat, PosFloat] = (0.6, 1.6)   # random image rescale before cropping
     hflip: bool = True
     photometric: Annotated[float, Field(ge=0.0, lt=1.0)] = 0.5    # brightness gain in [1 - x, 1 + x] (log-uniform)
     colour_jitter: Annotated[float, Field(ge=0.0, lt=1.0)] = 0.1  # per-channel gain in [1 - x, 1 + x]
     gamma: Annotated[float, Field(ge=0.0, le=2.0)] = 0.3          # gamma exp(U(-x, x))
+    contrast: Annotated[float, Field(ge=0.0, lt=1.0)] = 0.0       # contrast gain in [1 - x, 1 + x] (log-uniform)
+    saturation: Annotated[float, Field(ge=0.0, le=1.0)] = 0.0     # saturation gain in [1 - x, 1 + x] (1: down to grey)
     seed: Annotated[int, Field(ge=0)] = 0
 
     @model_validator(mode="after")
     def _scale_order(self):
         if self.scale_range[0] > self.scale_range[1]:
             raise ValueError(f"train.scale_range: low {self.scale_range[0]:g} is above high {self.scale_range[1]:g}")
+        if self.crop_centre_range[0] > self.crop_centre_range[1]:
+            raise ValueError(f"train.crop_centre_range: low {self.crop_centre_range[0]:g} is above high "
+                             f"{self.crop_centre_range[1]:g}")
         return self
 
 

@@ -24,7 +24,9 @@ free camera (:class:`~mysim_jax.perception.camera.CameraPoses`). Per sample:
   vertical, as when the net trails the formation), and the teammates and the net are
   around the target;
 * the world: a ground texture seed, sun azimuth/elevation/strength and sky and ground
-  colours, from the split's ranges;
+  colours, from the split's ranges; with ``p_random_palette`` a training frame's sky and
+  ground colours are random instead (:func:`random_palette`: domain randomisation, never
+  near a held-out palette; held-out frames keep their own);
 * with ``p_empty`` the target is hidden under the ground (a frame with no target).
 
 The ground truth is the renderer's :class:`~mysim_jax.perception.render.TargetView`: ``box``
@@ -35,8 +37,15 @@ target's appearance: ranges, camera pitch, texture seeds and lighting of the hel
 are disjoint from the training split's (see ``docs/detector.md``).
 
 Counting a target. A target showing fewer than ``min_visible_px`` pixels, or less than
-``min_visible_fraction`` of its silhouette, is marked ``ignore``: the metrics neither require
-it to be found nor count a detection of it as false (:mod:`mysim_jax.perception.detect.metrics`).
+``min_visible_fraction`` of its whole silhouette, is marked ``ignore``: the metrics neither
+require it to be found nor count a detection of it as false
+(:mod:`mysim_jax.perception.detect.metrics`). The whole silhouette includes the part beyond
+the image border (KITTI's truncation): a drone cut by the border down to one rotor disc is
+not required. For a target that touches the border it is counted on a second render of the
+same view with the image widened on every side (:func:`whole_silhouette_px`).
+``Sample.visible_fraction`` is the occluded share within the image, ``Sample.truncation``
+the share of the whole silhouette outside it; the counted fraction is
+``visible_fraction * (1 - truncation)``.
 """
 
 from __future__ import annotations
@@ -86,6 +95,34 @@ HELD_OUT_PALETTES = (
 )
 
 
+# a random training palette whose ground colours are all within this of a held-out palette's
+# (RGB in [0, 1], per channel) is drawn again, so held-out ground colours stay unseen
+PALETTE_EXCLUSION = 0.2
+
+
+def random_palette(rng: np.random.Generator) -> Palette:
+    """A random sky and ground (domain randomisation of the training frames): ground of any hue,
+    grey to saturated, its dark and light tones 0-40 deg of hue apart; sky of any hue, mostly
+    pale. Redrawn while both ground colours are within ``PALETTE_EXCLUSION`` of a held-out
+    palette's."""
+    import colorsys
+
+    def hsv(h, s, v):
+        return tuple(float(x) for x in colorsys.hsv_to_rgb(h % 1.0, s, v))
+
+    while True:
+        h = rng.uniform(0, 1)
+        dark = hsv(h, rng.uniform(0, 0.8), rng.uniform(0.06, 0.4))
+        light = hsv(h + rng.uniform(-1, 1) / 9, rng.uniform(0, 0.7), rng.uniform(0.4, 0.9))
+        hs = rng.uniform(0, 1)
+        zenith = hsv(hs, rng.uniform(0, 0.7), rng.uniform(0.35, 0.95))
+        horizon = hsv(hs + rng.uniform(-1, 1) / 12, rng.uniform(0, 0.35), rng.uniform(0.7, 1.0))
+        near = any(np.max(np.abs(np.r_[dark, light] - np.r_[q.ground_dark, q.ground_light])) < PALETTE_EXCLUSION
+                   for q in HELD_OUT_PALETTES)
+        if not near:
+            return Palette(zenith, horizon, dark, light)
+
+
 @dataclass(frozen=True)
 class Split:
     """Sampling ranges of one data split. Each range is a tuple of (low, high) intervals;
@@ -121,8 +158,9 @@ class Sample:
     ignore: bool                 # a target too small or too hidden to count (see the module doc)
     kind: str                    # 'sphere' or 'drone'
     distance: float              # m, camera -> target centre (nan: no target placed)
-    visible_fraction: float      # visible / unoccluded silhouette pixels
+    visible_fraction: float      # visible / unoccluded silhouette pixels within the image
     visible_px: int
+    truncation: float = 0.0      # share of the whole silhouette outside the image (0: none cut by the border)
     meta: dict = field(default_factory=dict)   # sampled parameters: lighting, texture seed, scene, camera pose
                                                # (camera_R (3, 3) OpenCV -> world, camera_p (3,) m), target_pos (3,) m,
                                                # formation (onboard frames: the camera's UAV, tether k, net pose)
@@ -290,8 +328,22 @@ class DatasetSpec:
     p_distractors: float = 0.5          # frames with UAVs / the formation elsewhere in view
     p_drone: float = 0.5                # evading-drone target (else the falling sphere)
     p_onboard: float = 0.0              # frames from a camera under a UAV of the formation
+    p_random_palette: float = 0.0       # training frames with a random sky and ground (random_palette)
     min_visible_px: int = 6
     min_visible_fraction: float = 0.3
+
+
+def whole_silhouette_px(renderer_args: dict, intr, columns, poses, depth: float, radius: float) -> int:
+    """Pixels of the target's unoccluded silhouette in an image of ``intr``'s camera widened on
+    every side by the target's apparent diameter plus 2 px (so none of it is cut), rendered
+    with ``Renderer(**renderer_args)``."""
+    from mysim_jax.perception.camera import Intrinsics
+
+    pad = int(np.ceil(2.0 * intr.fx * radius / max(depth, 1e-3))) + 2
+    wide = Intrinsics(width=intr.width + 2 * pad, height=intr.height + 2 * pad, fx=intr.fx, fy=intr.fy,
+                      cx=intr.cx + pad, cy=intr.cy + pad)
+    tv = Renderer(intr=wide, **renderer_args).render(columns, poses, 0).target
+    return 0 if tv is None else int(tv.full_px)
 
 
 def _in_view_point(rng, intr, R, p, distance, margin=0.0):
@@ -301,6 +353,10 @@ def _in_view_point(rng, intr, R, p, distance, margin=0.0):
     ray = np.array([(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, 1.0])
     ray /= np.linalg.norm(ray)
     return p + R @ ray * distance, (u, v)
+
+
+def _touches_border(box, intr) -> bool:
+    return bool(box[0] <= -0.5 or box[1] <= -0.5 or box[2] >= intr.width - 0.5 or box[3] >= intr.height - 0.5)
 
 
 def render_sample(spec: DatasetSpec, index: int) -> Sample:
@@ -314,6 +370,10 @@ def render_sample(spec: DatasetSpec, index: int) -> Sample:
 
     # world
     palette = split.palettes[rng.integers(len(split.palettes))]
+    # random palettes draw from their own stream, so p_random_palette = 0 leaves every frame as it was
+    rng_palette = np.random.default_rng([spec.seed, 0 if spec.split == "train" else 1, index, 2])
+    if spec.split == "train" and rng_palette.random() < spec.p_random_palette:
+        palette = random_palette(rng_palette)
     jitter = lambda c: tuple(np.clip(np.asarray(c) + rng.uniform(-0.04, 0.04, 3), 0, 1).tolist())
     lighting = Lighting(sun_azimuth_deg=rng.uniform(0, 360), sun_elevation_deg=_draw(rng, split.sun_elevation_deg),
                         sun_strength=_draw(rng, split.sun_strength), zenith=jitter(palette.zenith),
@@ -394,14 +454,20 @@ def render_sample(spec: DatasetSpec, index: int) -> Sample:
                 at[2] = max(at[2], 0.3)
                 cols.body(name, at, _random_quat(rng, 20.0))
 
-    renderer = Renderer(config, intr, texture=_texture(tex_seed), lighting=lighting, hide=hide)
+    renderer_args = dict(config=config, texture=_texture(tex_seed), lighting=lighting, hide=hide)
+    renderer = Renderer(intr=intr, **renderer_args)
     poses = CameraPoses(name="observer", t=np.array([0.0]), R=R[None], p=p[None])
     frame = renderer.render(cols.cols, poses, 0)
     tv = frame.target
     box = None if tv is None or tv.box is None else np.asarray(tv.box, float)
     visible_px = 0 if tv is None else tv.visible_px
     fraction = 0.0 if tv is None else tv.visible_fraction
-    ignore = box is not None and (visible_px < spec.min_visible_px or fraction < spec.min_visible_fraction)
+    truncation = 0.0
+    if tv is not None and tv.full_box is not None and _touches_border(tv.full_box, intr):
+        whole = whole_silhouette_px(renderer_args, intr, cols.cols, poses, tv.depth, radius)
+        truncation = max(0.0, 1.0 - tv.full_px / whole) if whole else 0.0
+    ignore = box is not None and (visible_px < spec.min_visible_px
+                                  or fraction * (1.0 - truncation) < spec.min_visible_fraction)
     meta = dict(texture_seed=tex_seed, sun_azimuth_deg=lighting.sun_azimuth_deg,
                 sun_elevation_deg=lighting.sun_elevation_deg, sun_strength=lighting.sun_strength,
                 pitch_deg=float(np.degrees(pitch)), roll_deg=float(np.degrees(roll)), camera_height_m=float(h_cam),
@@ -410,7 +476,7 @@ def render_sample(spec: DatasetSpec, index: int) -> Sample:
                 formation=formation)
     return Sample(image=frame.image, box=box, ignore=bool(ignore), kind=kind,
                   distance=float("nan") if empty else float(distance), visible_fraction=float(fraction),
-                  visible_px=int(visible_px), meta=meta)
+                  visible_px=int(visible_px), truncation=float(truncation), meta=meta)
 
 
 def iterate(spec: DatasetSpec, start: int = 0) -> Iterator[Sample]:

@@ -7,9 +7,11 @@
    HELD_OUT), with ``data.workers`` processes, into ``.npy`` files read as memory maps;
 2. trains :class:`~mysim_jax.perception.detect.model.CenterNet` with AdamW (linear warm-up,
    cosine decay) on square crops of the training frames (``train.crop`` px; with
-   ``p_target_crop`` placed so they contain the target's centre), augmented by a random
-   rescale (``scale_range``), horizontal flips, a random gamma, brightness gain and offset,
-   and per-channel (white balance) gains;
+   ``p_target_crop`` placed on the target, its centre at ``crop_centre_range`` of the crop,
+   which may be beyond the crop's edge, so the crop cuts it as the image border would),
+   augmented by a random rescale (``scale_range``), horizontal flips, a random gamma,
+   contrast and saturation, brightness gain and offset, and per-channel (white balance) gains;
+   the crops are cut in a background thread while the network trains;
 3. evaluates the CNN and the classical baseline on both evaluation sets (precision, recall,
    mean IoU at ``eval.min_score``; AP@``iou_threshold``; frames per second, median of per-frame
    times) and writes ``OUT/detector.msgpack``, ``OUT/metrics.json``, ``OUT/pr_curve.png``,
@@ -47,13 +49,18 @@ def spec_of(cfg: DetectorConfig, which: str) -> DatasetSpec:
     seed = d.seed if which == "train" or d.eval_seed is None else d.eval_seed
     return DatasetSpec(split=SETS[which], n_images=n, seed=seed, width=d.width, height=d.height, p_empty=d.p_empty,
                        p_occluder=d.p_occluder, p_distractors=d.p_distractors, p_drone=d.p_drone,
-                       p_onboard=d.p_onboard,
+                       p_onboard=d.p_onboard, p_random_palette=d.p_random_palette,
                        min_visible_px=d.min_visible_px, min_visible_fraction=d.min_visible_fraction)
+
+
+# bumped when the labels of a rendered set change meaning, so older cached sets are not reused
+LABELS_VERSION = 2
 
 
 def _label(s) -> dict:
     return dict(box=None if s.box is None else [float(x) for x in s.box], ignore=s.ignore, kind=s.kind,
-                distance=s.distance, visible_fraction=s.visible_fraction, visible_px=s.visible_px, meta=s.meta)
+                distance=s.distance, visible_fraction=s.visible_fraction, visible_px=s.visible_px,
+                truncation=s.truncation, meta=s.meta)
 
 
 def _render_chunk(args):
@@ -76,7 +83,7 @@ def build_set(spec: DatasetSpec, folder: Path, name: str, first: int = 0, worker
     from tqdm.auto import tqdm
 
     folder.mkdir(parents=True, exist_ok=True)
-    key = hashlib.sha1(repr((spec, first)).encode()).hexdigest()[:12]
+    key = hashlib.sha1(repr((spec, first, LABELS_VERSION)).encode()).hexdigest()[:12]
     npy, js = folder / f"{name}_{key}.npy", folder / f"{name}_{key}.json"
     if npy.is_file() and js.is_file():
         return np.load(npy, mmap_mode="r"), json.loads(js.read_text())
@@ -107,9 +114,18 @@ def build_set(spec: DatasetSpec, folder: Path, name: str, first: int = 0, worker
     return np.load(npy, mmap_mode="r"), labels
 
 
-def truths(labels: list[dict]) -> list[list]:
-    """Ground truth per frame as the metrics take it: [(box, ignore)] or []."""
-    return [[] if lab["box"] is None else [(np.asarray(lab["box"]), lab["ignore"])] for lab in labels]
+def truths(labels: list[dict], count_truncated: bool = False, cfg: DetectorConfig | None = None) -> list[list]:
+    """Ground truth per frame as the metrics take it: [(box, ignore)] or [].
+
+    ``count_truncated``: count targets however much of them the image border cuts off (the
+    share of the silhouette within the image decides, not of the whole; ``cfg.data`` gives the
+    thresholds), instead of the labels' ``ignore``."""
+    if not count_truncated:
+        return [[] if lab["box"] is None else [(np.asarray(lab["box"]), lab["ignore"])] for lab in labels]
+    d = cfg.data
+    return [[] if lab["box"] is None else
+            [(np.asarray(lab["box"]), lab["visible_px"] < d.min_visible_px or lab["visible_fraction"] < d.min_visible_fraction)]
+            for lab in labels]
 
 
 # --- crops and augmentation -------------------------------------------------------------------
@@ -131,8 +147,8 @@ def make_crop(image: np.ndarray, label: dict, cfg: DetectorConfig, rng: np.rando
     Hp = img.shape[0]
     if box is not None and rng.random() < t.p_target_crop:
         cx, cy = (box[0] + box[2]) / 2, (box[1] + box[3]) / 2
-        x0 = int(np.clip(cx - rng.uniform(0.05, 0.95) * C, 0, w - C))
-        y0 = int(np.clip(cy - rng.uniform(0.05, 0.95) * C, 0, Hp - C))
+        x0 = int(np.clip(cx - rng.uniform(*t.crop_centre_range) * C, 0, w - C))
+        y0 = int(np.clip(cy - rng.uniform(*t.crop_centre_range) * C, 0, Hp - C))
     else:
         x0, y0 = int(rng.integers(0, w - C + 1)), int(rng.integers(0, Hp - C + 1))
     crop = np.ascontiguousarray(img[y0:y0 + C, x0:x0 + C])
@@ -143,14 +159,22 @@ def make_crop(image: np.ndarray, label: dict, cfg: DetectorConfig, rng: np.rando
         cb = np.clip(b, -0.5, C - 0.5)
         carea = max(cb[2] - cb[0], 0) * max(cb[3] - cb[1], 0)
         if carea > 0:
-            cut = carea < 0.3 * area       # mostly cut off by the crop: neither required nor false
-            boxes.append((cb, bool(label["ignore"]) or cut))
+            # the share of the whole silhouette the crop shows, as the dataset counts targets
+            # (the crop's edge cuts like the image border): too little is neither required nor false
+            shown = label["visible_fraction"] * (1.0 - label.get("truncation", 0.0)) * carea / area
+            boxes.append((cb, bool(label["ignore"]) or shown < cfg.data.min_visible_fraction))
     if t.hflip and rng.random() < 0.5:
         crop = crop[:, ::-1].copy()
         boxes = [(np.array([C - 1 - b[2], b[1], C - 1 - b[0], b[3]]), ig) for b, ig in boxes]
-    if t.photometric > 0 or t.colour_jitter > 0 or t.gamma > 0:
+    if t.photometric > 0 or t.colour_jitter > 0 or t.gamma > 0 or t.contrast > 0 or t.saturation > 0:
         x = crop.astype(np.float32) * (1.0 / 255.0)
         x = x ** np.float32(np.exp(rng.uniform(-t.gamma, t.gamma)))
+        if t.contrast > 0:          # about the crop's mean
+            mean = x.mean()
+            x = mean + (x - mean) * np.float32(np.exp(rng.uniform(np.log(1 - t.contrast), np.log(1 + t.contrast))))
+        if t.saturation > 0:        # about each pixel's grey (Rec. 601 luma); 0 is a grey image
+            grey = x @ np.array([0.299, 0.587, 0.114], np.float32)
+            x = grey[..., None] + (x - grey[..., None]) * np.float32(rng.uniform(1 - t.saturation, 1 + t.saturation))
         gain = np.exp(rng.uniform(np.log(1 - t.photometric), np.log(1 + t.photometric)))
         gain = gain * (1 + rng.uniform(-t.colour_jitter, t.colour_jitter, 3))
         x = x * gain.astype(np.float32) + np.float32(rng.uniform(-0.05, 0.05) if t.photometric > 0 else 0.0)
@@ -219,6 +243,42 @@ def init_from(cfg: DetectorConfig, path: str | Path):
     return start.params
 
 
+def _prefetch(make, n: int, depth: int = 2):
+    """The results of ``n`` calls of ``make()``, made in order by a background thread up to
+    ``depth`` ahead (the crops are cut while the network trains on the previous batch)."""
+    import queue
+    import threading
+
+    q: queue.Queue = queue.Queue(maxsize=depth)
+    stop = threading.Event()
+
+    def work():
+        try:
+            for _ in range(n):
+                item = make()
+                while not stop.is_set():
+                    try:
+                        q.put((item, None), timeout=0.1)
+                        break
+                    except queue.Full:
+                        continue
+                if stop.is_set():
+                    return
+        except BaseException as exc:      # re-raised in the consumer
+            q.put((None, exc))
+
+    thread = threading.Thread(target=work, daemon=True)
+    thread.start()
+    try:
+        for _ in range(n):
+            item, exc = q.get()
+            if exc is not None:
+                raise exc
+            yield item
+    finally:
+        stop.set()
+
+
 def train(cfg: DetectorConfig, images, labels, progress: bool = True, steps: int | None = None, log=None,
           params=None):
     """Train from scratch, or from ``params`` (fine-tuning); returns (params, loss history as a
@@ -234,9 +294,9 @@ def train(cfg: DetectorConfig, images, labels, progress: bool = True, steps: int
     history = []
     bar = tqdm(range(steps), desc="train detector", unit="step", disable=not progress)
     running = None
+    batches = _prefetch(lambda: batch_of(images, labels, rng.integers(0, n, cfg.train.batch_size), cfg, rng), steps)
     for k in bar:
-        idx = rng.integers(0, n, cfg.train.batch_size)
-        x, tg = batch_of(images, labels, idx, cfg, rng)
+        x, tg = next(batches)
         params, opt_state, loss, parts = step(params, opt_state, x, tg)
         loss = float(loss)
         if not np.isfinite(loss):
@@ -273,6 +333,9 @@ def evaluate(detector, images, labels, cfg: DetectorConfig, min_score: float, pr
     out = summary(dets, gts, min_score, cfg.eval.iou_threshold)
     out["fps"] = float(1.0 / np.median(times))
     out["image_size"] = [int(images.shape[2]), int(images.shape[1])]
+    # the same detections if targets however cut by the image border counted (see truths)
+    cut = summary(dets, truths(labels, count_truncated=True, cfg=cfg), min_score, cfg.eval.iou_threshold)
+    out["counting_truncated"] = dict(recall=cut["recall"], n_targets=cut["n_targets"], ap50=cut["ap50"])
     # per distance band and target kind: recall at the operating point
     out["recall_by"] = _recall_by(dets, gts, labels, min_score, cfg.eval.iou_threshold)
     return out, dets
