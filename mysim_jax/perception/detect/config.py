@@ -46,6 +46,7 @@ class ModelConfig(StrictModel):
     # (network px, lo, hi) each level keeps (mysim_jax/perception/detect/model.py)
     pyramid: Annotated[list[Annotated[float, Field(gt=0.0, le=4.0)]], Field(min_length=1, max_length=6)] = [1.0]
     pyramid_band_px: tuple[Annotated[float, Field(ge=0.0)], PosFloat] = (24.0, 96.0)
+    flip_test: bool = False      # also run on the mirrored image and average (twice the work)
 
     @model_validator(mode="after")
     def _pyramid(self):

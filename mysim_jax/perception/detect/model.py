@@ -33,6 +33,12 @@ the boxes whose longer side, in that level's network pixels, lies in ``pyramid_b
 (lo, hi), except that the finest level keeps everything below hi and the coarsest everything
 above lo. The kept boxes of all levels are merged by non-maximum suppression (IoU
 ``PYRAMID_NMS_IOU``), best first. With one level (the default) nothing is dropped or merged.
+
+Flip test (``flip_test``, CenterNet's): each level also runs on the mirrored image, and the
+two passes' heatmaps (probabilities) and log box sizes are averaged cell by cell before
+decoding (the level's width is then rounded to a multiple of ``STRIDE``, so the mirrored
+cells line up with the image's); the centre offsets are the unmirrored pass's. It doubles
+the network's work.
 """
 
 from __future__ import annotations
@@ -202,6 +208,7 @@ class CNNDetector:
     top_k: int = 10
     pyramid: tuple[float, ...] = (1.0,)   # image scales (x input_width) the network runs at; see the module doc
     pyramid_band_px: tuple[float, float] = (24.0, 96.0)   # box sides (network px) a level keeps; see the module doc
+    flip_test: bool = False         # also run each level on the mirrored image and average; see the module doc
 
     def __post_init__(self):
         self.pyramid = tuple(float(s) for s in self.pyramid)
@@ -215,12 +222,35 @@ class CNNDetector:
                                   f"got {self.pyramid_band_px}")
         self.model = CenterNet(widths=tuple(self.widths))
         self._forward = jax.jit(lambda p, x: decode(self.model.apply({"params": p}, normalise(x)), self.top_k))
+        self._forward_flip = jax.jit(self._flip_averaged, static_argnums=3)
 
-    def _prepare(self, image, level: float = 1.0) -> tuple[np.ndarray, float, float]:
-        H, W = image.shape[:2]
+    def _flip_averaged(self, params, x, x_mirrored, cells: int):
+        """Decoded detections of ``x`` with the heatmap and box sizes averaged with those of
+        ``x_mirrored`` (each image mirrored before padding, so its first ``cells`` output
+        columns are the image's, in reverse order); offsets are the unmirrored pass's."""
+        both = self.model.apply({"params": params}, normalise(jnp.concatenate([x, x_mirrored])))
+        out, mirrored = both[: x.shape[0]], both[x.shape[0]:]
+        back = mirrored[:, :, :cells][:, :, ::-1]
+        heat = 0.5 * (jax.nn.sigmoid(out[..., :cells, 0]) + jax.nn.sigmoid(back[..., 0]))
+        heat = jnp.clip(heat, 1e-6, 1 - 1e-6)
+        merged = out[:, :, :cells].at[..., 0].set(jnp.log(heat) - jnp.log1p(-heat))
+        merged = merged.at[..., 1:3].set(0.5 * (out[..., :cells, 1:3] + back[..., 1:3]))
+        out = out.at[:, :, :cells].set(merged)
+        return decode(out, self.top_k)
+
+    def _level_width(self, level: float) -> int:
+        """Network input width (px, before padding) at pyramid ``level``: a multiple of
+        ``STRIDE`` with ``flip_test``, so the mirrored image's output cells line up."""
         w = max(int(round(self.input_width * level)), 8)
+        return max(STRIDE * round(w / STRIDE), STRIDE * 2) if self.flip_test else w
+
+    def _prepare(self, image, level: float = 1.0, mirror: bool = False) -> tuple[np.ndarray, float, float]:
+        H, W = image.shape[:2]
+        w = self._level_width(level)
         h = max(int(round(H * w / W)), 1)
         x = image if (w, h) == (W, H) else cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA if w < W else cv2.INTER_LINEAR)
+        if mirror:
+            x = np.ascontiguousarray(x[:, ::-1])
         ph, pw = -h % PAD_TO, -w % PAD_TO
         if ph or pw:
             x = cv2.copyMakeBorder(x, 0, ph, 0, pw, cv2.BORDER_REPLICATE)
@@ -240,7 +270,12 @@ class CNNDetector:
             keep_lo = -np.inf if level == max(self.pyramid) else lo     # the finest level keeps the smallest
             keep_hi = np.inf if level == min(self.pyramid) else hi      # the coarsest keeps the largest
             prepared = [self._prepare(im, level) for im in images]
-            scores, boxes = self._forward(self.params, np.stack([p[0] for p in prepared]))
+            if self.flip_test:
+                mirrored = np.stack([self._prepare(im, level, mirror=True)[0] for im in images])
+                scores, boxes = self._forward_flip(self.params, np.stack([p[0] for p in prepared]), mirrored,
+                                                   self._level_width(level) // STRIDE)
+            else:
+                scores, boxes = self._forward(self.params, np.stack([p[0] for p in prepared]))
             scores, boxes = np.asarray(scores), np.asarray(boxes, dtype=float)
             for dets, (_, sx, sy), sc, bx in zip(out, prepared, scores, boxes):
                 scale = np.array([sx, sy, sx, sy])
@@ -269,7 +304,7 @@ class CNNDetector:
         path.parent.mkdir(parents=True, exist_ok=True)
         meta = json.dumps(dict(widths=list(self.widths), input_width=self.input_width, min_score=self.min_score,
                                top_k=self.top_k, stride=STRIDE, pyramid=list(self.pyramid),
-                               pyramid_band_px=list(self.pyramid_band_px)))
+                               pyramid_band_px=list(self.pyramid_band_px), flip_test=self.flip_test))
         params = jax.tree.map(lambda a: np.asarray(a, np.float32), self.params)
         path.write_bytes(serialization.msgpack_serialize({"meta": meta, "params": params}))
         return path
@@ -292,4 +327,5 @@ class CNNDetector:
         return cls(params=params, widths=tuple(meta["widths"]), input_width=int(meta["input_width"]),
                    min_score=float(meta["min_score"]), top_k=int(meta["top_k"]),
                    pyramid=tuple(meta.get("pyramid", (1.0,))),
-                   pyramid_band_px=tuple(meta.get("pyramid_band_px", (24.0, 96.0))))
+                   pyramid_band_px=tuple(meta.get("pyramid_band_px", (24.0, 96.0))),
+                   flip_test=bool(meta.get("flip_test", False)))

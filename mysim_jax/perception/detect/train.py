@@ -18,7 +18,8 @@
    ``OUT/examples/*.png`` and ``OUT/config.yaml``.
 
 With ``weights`` given, step 2 is skipped and those weights are evaluated instead, with the
-config's inference settings (``model.pyramid``, ``model.pyramid_band_px``, ``eval.min_score``).
+config's inference settings (``model.pyramid``, ``model.pyramid_band_px``, ``model.flip_test``,
+``eval.min_score``).
 """
 
 from __future__ import annotations
@@ -439,7 +440,7 @@ def run(cfg: DetectorConfig, out: Path, progress: bool = True, cache: Path | Non
         train_s = time.time() - t0
         cnn = CNNDetector(params=params, widths=tuple(cfg.model.widths), input_width=cfg.model.input_width,
                           min_score=cfg.eval.min_score, pyramid=tuple(cfg.model.pyramid),
-                          pyramid_band_px=tuple(cfg.model.pyramid_band_px))
+                          pyramid_band_px=tuple(cfg.model.pyramid_band_px), flip_test=cfg.model.flip_test)
         cnn.save(out / "detector.msgpack")
         (out / "train_log.json").write_text(json.dumps(log_lines))
         metrics = dict(train_seconds=train_s, steps=cfg.train.steps, init=None if init is None else str(init),
@@ -449,7 +450,8 @@ def run(cfg: DetectorConfig, out: Path, progress: bool = True, cache: Path | Non
         cnn = CNNDetector.load(weights)
         cnn = CNNDetector(params=cnn.params, widths=cnn.widths, input_width=cnn.input_width, top_k=cnn.top_k,
                           min_score=cfg.eval.min_score, pyramid=tuple(cfg.model.pyramid),
-                          pyramid_band_px=tuple(cfg.model.pyramid_band_px))   # inference settings: the config's
+                          pyramid_band_px=tuple(cfg.model.pyramid_band_px),
+                          flip_test=cfg.model.flip_test)   # inference settings: the config's
         metrics = dict(weights=str(weights), weights_bytes=Path(weights).stat().st_size)
     baseline = ColourBlobDetector()
     curves = {}
