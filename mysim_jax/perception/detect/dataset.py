@@ -355,6 +355,14 @@ def _in_view_point(rng, intr, R, p, distance, margin=0.0):
     return p + R @ ray * distance, (u, v)
 
 
+def is_ignored(visible_px: int, visible_fraction: float, truncation: float, min_visible_px: int,
+               min_visible_fraction: float) -> bool:
+    """The counting rule (module doc): a target showing fewer than ``min_visible_px`` pixels or
+    less than ``min_visible_fraction`` of its whole silhouette (``visible_fraction`` within the
+    image, ``truncation`` of it outside) is neither required nor a false positive."""
+    return visible_px < min_visible_px or visible_fraction * (1.0 - truncation) < min_visible_fraction
+
+
 def _touches_border(box, intr) -> bool:
     return bool(box[0] <= -0.5 or box[1] <= -0.5 or box[2] >= intr.width - 0.5 or box[3] >= intr.height - 0.5)
 
@@ -466,8 +474,8 @@ def render_sample(spec: DatasetSpec, index: int) -> Sample:
     if tv is not None and tv.full_box is not None and _touches_border(tv.full_box, intr):
         whole = whole_silhouette_px(renderer_args, intr, cols.cols, poses, tv.depth, radius)
         truncation = max(0.0, 1.0 - tv.full_px / whole) if whole else 0.0
-    ignore = box is not None and (visible_px < spec.min_visible_px
-                                  or fraction * (1.0 - truncation) < spec.min_visible_fraction)
+    ignore = box is not None and is_ignored(visible_px, fraction, truncation, spec.min_visible_px,
+                                            spec.min_visible_fraction)
     meta = dict(texture_seed=tex_seed, sun_azimuth_deg=lighting.sun_azimuth_deg,
                 sun_elevation_deg=lighting.sun_elevation_deg, sun_strength=lighting.sun_strength,
                 pitch_deg=float(np.degrees(pitch)), roll_deg=float(np.degrees(roll)), camera_height_m=float(h_cam),

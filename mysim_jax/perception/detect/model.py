@@ -244,17 +244,20 @@ class CNNDetector:
         w = max(int(round(self.input_width * level)), 8)
         return max(STRIDE * round(w / STRIDE), STRIDE * 2) if self.flip_test else w
 
-    def _prepare(self, image, level: float = 1.0, mirror: bool = False) -> tuple[np.ndarray, float, float]:
+    def _prepare(self, image, level: float = 1.0) -> tuple[np.ndarray, float, float, np.ndarray | None]:
+        """The network input at ``level`` (resized, padded), the x and y scales back to the
+        image, and with ``flip_test`` the mirrored input (mirrored before padding)."""
         H, W = image.shape[:2]
         w = self._level_width(level)
         h = max(int(round(H * w / W)), 1)
         x = image if (w, h) == (W, H) else cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA if w < W else cv2.INTER_LINEAR)
-        if mirror:
-            x = np.ascontiguousarray(x[:, ::-1])
         ph, pw = -h % PAD_TO, -w % PAD_TO
-        if ph or pw:
-            x = cv2.copyMakeBorder(x, 0, ph, 0, pw, cv2.BORDER_REPLICATE)
-        return x, W / w, H / h
+
+        def pad(a):
+            return cv2.copyMakeBorder(a, 0, ph, 0, pw, cv2.BORDER_REPLICATE) if ph or pw else a
+
+        mirrored = pad(np.ascontiguousarray(x[:, ::-1])) if self.flip_test else None
+        return pad(x), W / w, H / h, mirrored
 
     def detect_batch(self, images: list[np.ndarray], min_score: float | None = None) -> list[list[Detection]]:
         """:meth:`detect` of several images of one size (one network call)."""
@@ -270,14 +273,14 @@ class CNNDetector:
             keep_lo = -np.inf if level == max(self.pyramid) else lo     # the finest level keeps the smallest
             keep_hi = np.inf if level == min(self.pyramid) else hi      # the coarsest keeps the largest
             prepared = [self._prepare(im, level) for im in images]
+            x = np.stack([p[0] for p in prepared])
             if self.flip_test:
-                mirrored = np.stack([self._prepare(im, level, mirror=True)[0] for im in images])
-                scores, boxes = self._forward_flip(self.params, np.stack([p[0] for p in prepared]), mirrored,
+                scores, boxes = self._forward_flip(self.params, x, np.stack([p[3] for p in prepared]),
                                                    self._level_width(level) // STRIDE)
             else:
-                scores, boxes = self._forward(self.params, np.stack([p[0] for p in prepared]))
+                scores, boxes = self._forward(self.params, x)
             scores, boxes = np.asarray(scores), np.asarray(boxes, dtype=float)
-            for dets, (_, sx, sy), sc, bx in zip(out, prepared, scores, boxes):
+            for dets, (_, sx, sy, _), sc, bx in zip(out, prepared, scores, boxes):
                 scale = np.array([sx, sy, sx, sy])
                 for s, b in zip(sc, bx):
                     if s < floor:

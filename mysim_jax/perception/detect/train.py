@@ -34,7 +34,7 @@ import cv2
 import numpy as np
 
 from mysim_jax.perception.detect.config import DetectorConfig
-from mysim_jax.perception.detect.dataset import DatasetSpec, render_sample
+from mysim_jax.perception.detect.dataset import DatasetSpec, is_ignored, render_sample
 
 SETS = {"train": "train", "eval_in": "train", "eval_held_out": "held_out"}
 # frame indices of the in-distribution evaluation set start here (after any training frame)
@@ -125,7 +125,8 @@ def truths(labels: list[dict], count_truncated: bool = False, cfg: DetectorConfi
         return [[] if lab["box"] is None else [(np.asarray(lab["box"]), lab["ignore"])] for lab in labels]
     d = cfg.data
     return [[] if lab["box"] is None else
-            [(np.asarray(lab["box"]), lab["visible_px"] < d.min_visible_px or lab["visible_fraction"] < d.min_visible_fraction)]
+            [(np.asarray(lab["box"]), is_ignored(lab["visible_px"], lab["visible_fraction"], 0.0, d.min_visible_px,
+                                                 d.min_visible_fraction))]
             for lab in labels]
 
 
@@ -162,8 +163,9 @@ def make_crop(image: np.ndarray, label: dict, cfg: DetectorConfig, rng: np.rando
         if carea > 0:
             # the share of the whole silhouette the crop shows, as the dataset counts targets
             # (the crop's edge cuts like the image border): too little is neither required nor false
-            shown = label["visible_fraction"] * (1.0 - label.get("truncation", 0.0)) * carea / area
-            boxes.append((cb, bool(label["ignore"]) or shown < cfg.data.min_visible_fraction))
+            cut = is_ignored(label["visible_px"], label["visible_fraction"] * carea / area, label.get("truncation", 0.0),
+                             cfg.data.min_visible_px, cfg.data.min_visible_fraction)
+            boxes.append((cb, bool(label["ignore"]) or cut))
     if t.hflip and rng.random() < 0.5:
         crop = crop[:, ::-1].copy()
         boxes = [(np.array([C - 1 - b[2], b[1], C - 1 - b[0], b[3]]), ig) for b, ig in boxes]
