@@ -70,18 +70,24 @@ class TrainConfig(StrictModel):
     # outside [0, 1] put the centre beyond the crop's edge, so the target is cut as by the image border
     crop_centre_range: tuple[Annotated[float, Field(ge=-1.0, le=2.0)], Annotated[float, Field(ge=-1.0, le=2.0)]] = (0.05, 0.95)
     scale_range: tuple[PosFloat, PosFloat] = (0.6, 1.6)   # random image rescale before cropping
+    # random aspect change before cropping: the height is scaled by a further factor in this
+    # range (log-uniform), so boxes of every aspect are seen and the size is read from the pixels
+    aspect_range: tuple[PosFloat, PosFloat] = (1.0, 1.0)
     hflip: bool = True
     photometric: Annotated[float, Field(ge=0.0, lt=1.0)] = 0.5    # brightness gain in [1 - x, 1 + x] (log-uniform)
     colour_jitter: Annotated[float, Field(ge=0.0, lt=1.0)] = 0.1  # per-channel gain in [1 - x, 1 + x]
     gamma: Annotated[float, Field(ge=0.0, le=2.0)] = 0.3          # gamma exp(U(-x, x))
     contrast: Annotated[float, Field(ge=0.0, lt=1.0)] = 0.0       # contrast gain in [1 - x, 1 + x] (log-uniform)
     saturation: Annotated[float, Field(ge=0.0, le=1.0)] = 0.0     # saturation gain in [1 - x, 1 + x] (1: down to grey)
+    size_weight: Annotated[float, Field(ge=0.0, allow_inf_nan=False)] = 0.5   # of the L1 loss on log box size
     seed: Annotated[int, Field(ge=0)] = 0
 
     @model_validator(mode="after")
     def _scale_order(self):
         if self.scale_range[0] > self.scale_range[1]:
             raise ValueError(f"train.scale_range: low {self.scale_range[0]:g} is above high {self.scale_range[1]:g}")
+        if self.aspect_range[0] > self.aspect_range[1]:
+            raise ValueError(f"train.aspect_range: low {self.aspect_range[0]:g} is above high {self.aspect_range[1]:g}")
         if self.crop_centre_range[0] > self.crop_centre_range[1]:
             raise ValueError(f"train.crop_centre_range: low {self.crop_centre_range[0]:g} is above high "
                              f"{self.crop_centre_range[1]:g}")

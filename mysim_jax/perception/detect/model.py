@@ -132,8 +132,8 @@ def encode_targets(boxes: list, shape: tuple[int, int]) -> dict[str, np.ndarray]
     return out
 
 
-def loss_fn(params, model: CenterNet, images, targets) -> tuple[jnp.ndarray, dict]:
-    """Mean loss over a batch: focal heatmap loss + L1 on log size + L1 on offset."""
+def loss_fn(params, model: CenterNet, images, targets, size_weight: float = 0.5) -> tuple[jnp.ndarray, dict]:
+    """Mean loss over a batch: focal heatmap loss + ``size_weight`` * L1 on log size + L1 on offset."""
     out = model.apply({"params": params}, normalise(images))
     B = out.shape[0]
     logit = out[..., 0].reshape(B, -1)
@@ -151,7 +151,7 @@ def loss_fn(params, model: CenterNet, images, targets) -> tuple[jnp.ndarray, dic
     n_box = jnp.maximum(jnp.sum(targets["has"]), 1.0)
     size = jnp.sum(err[:, :2]) / n_box
     offset = jnp.sum(err[:, 2:]) / n_box
-    total = focal + 0.5 * size + offset
+    total = focal + size_weight * size + offset
     return total, dict(focal=focal, size=size, offset=offset)
 
 

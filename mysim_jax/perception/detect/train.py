@@ -139,7 +139,9 @@ def make_crop(image: np.ndarray, label: dict, cfg: DetectorConfig, rng: np.rando
     C = t.crop
     H, W = image.shape[:2]
     s = cfg.model.input_width / W * float(np.exp(rng.uniform(np.log(t.scale_range[0]), np.log(t.scale_range[1]))))
-    w, h = max(int(round(W * s)), C), max(int(round(H * s)), 1)
+    a = 1.0 if t.aspect_range[0] == t.aspect_range[1] == 1.0 else \
+        float(np.exp(rng.uniform(np.log(t.aspect_range[0]), np.log(t.aspect_range[1]))))
+    w, h = max(int(round(W * s)), C), max(int(round(H * s * a)), 1)
     sx, sy = w / W, h / H
     img = cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA if sx < 1 else cv2.INTER_LINEAR)
     # pad right / bottom by repeating edges, as inference pads to multiples of 32
@@ -214,7 +216,7 @@ def make_trainer(cfg: DetectorConfig):
 
     @jax.jit
     def step(params, opt_state, images, targets):
-        (loss, parts), grads = jax.value_and_grad(loss_fn, has_aux=True)(params, model, images, targets)
+        (loss, parts), grads = jax.value_and_grad(loss_fn, has_aux=True)(params, model, images, targets, t.size_weight)
         updates, opt_state = opt.update(grads, opt_state, params)
         return optax.apply_updates(params, updates), opt_state, loss, parts
 
