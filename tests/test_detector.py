@@ -481,6 +481,15 @@ def test_eval_seed_draws_fresh_evaluation_frames_only():
     assert spec_of(config_from_dict({"data": {"seed": 3}}), "eval_held_out").seed == 3
 
 
+def test_train_p_occluder_changes_the_training_frames_only():
+    from mysim_jax.perception.detect.train import spec_of
+
+    cfg = config_from_dict({"data": {"p_occluder": 0.25, "train_p_occluder": 0.6}})
+    assert spec_of(cfg, "train").p_occluder == 0.6
+    assert spec_of(cfg, "eval_in").p_occluder == 0.25 and spec_of(cfg, "eval_held_out").p_occluder == 0.25
+    assert spec_of(config_from_dict({"data": {"p_occluder": 0.25}}), "train").p_occluder == 0.25
+
+
 @pytest.mark.parametrize("raw, message", [
     ({"data": {"train_images": 0}}, "data.train_images"),
     ({"data": {"width": -640}}, "data.width"),
@@ -501,6 +510,7 @@ def test_eval_seed_draws_fresh_evaluation_frames_only():
     ({"train": {"aspect_range": [1.4, 0.7]}}, "train.aspect_range"),
     ({"train": {"aspect_range": [0.0, 1.0]}}, "train.aspect_range"),
     ({"train": {"size_weight": -1.0}}, "train.size_weight"),
+    ({"data": {"train_p_occluder": 1.5}}, "data.train_p_occluder"),
 ])
 def test_config_errors(raw, message):
     with pytest.raises(ConfigError, match=message):

@@ -30,6 +30,8 @@ class DataConfig(StrictModel):
     eval_seed: Annotated[int, Field(ge=0)] | None = None   # evaluation frames' seed (default: seed)
     p_empty: Prob = 0.1
     p_occluder: Prob = 0.25
+    # training frames' occluder probability, if not p_occluder (evaluation sets keep p_occluder)
+    train_p_occluder: Prob | None = None
     p_distractors: Prob = 0.5
     p_drone: Prob = 0.5
     p_onboard: Prob = 0.0                # frames from a camera under a UAV of the capture formation

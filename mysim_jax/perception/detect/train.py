@@ -48,8 +48,9 @@ def spec_of(cfg: DetectorConfig, which: str) -> DatasetSpec:
     d = cfg.data
     n = d.train_images if which == "train" else d.eval_images
     seed = d.seed if which == "train" or d.eval_seed is None else d.eval_seed
+    p_occluder = d.train_p_occluder if which == "train" and d.train_p_occluder is not None else d.p_occluder
     return DatasetSpec(split=SETS[which], n_images=n, seed=seed, width=d.width, height=d.height, p_empty=d.p_empty,
-                       p_occluder=d.p_occluder, p_distractors=d.p_distractors, p_drone=d.p_drone,
+                       p_occluder=p_occluder, p_distractors=d.p_distractors, p_drone=d.p_drone,
                        p_onboard=d.p_onboard, p_random_palette=d.p_random_palette,
                        min_visible_px=d.min_visible_px, min_visible_fraction=d.min_visible_fraction)
 
