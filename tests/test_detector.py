@@ -219,8 +219,8 @@ def test_aspect_jitter_stretches_the_image_and_its_box_alike():
     by that factor while its width does not."""
     from mysim_jax.perception.detect.train import make_crop
 
-    base = {"crop": 64, "scale_range": [1.0, 1.0], "p_target_crop": 1.0, "crop_centre_range": [0.5, 0.5], "hflip": False, "photometric": 0.0,
-            "colour_jitter": 0.0, "gamma": 0.0}
+    base = {"crop": 64, "scale_range": [1.0, 1.0], "p_target_crop": 1.0, "crop_centre_range": [0.5, 0.5],
+            "hflip": False, "photometric": 0.0, "colour_jitter": 0.0, "gamma": 0.0}
     image = np.zeros((180, 320, 3), np.uint8)
     image[70:90, 150:170] = 255                          # pixels 150..169 x 70..89: edges 149.5 .. 169.5
     label = dict(box=[149.5, 69.5, 169.5, 89.5], ignore=False, visible_fraction=1.0, truncation=0.0, visible_px=400)
@@ -232,7 +232,8 @@ def test_aspect_jitter_stretches_the_image_and_its_box_alike():
         (b, ignore), = boxes
         assert not ignore
         rows, cols = np.nonzero(crop[..., 0] > 127)
-        np.testing.assert_allclose([cols.min() - 0.5, rows.min() - 0.5, cols.max() + 0.5, rows.max() + 0.5], b, atol=1.0)
+        pixels = [cols.min() - 0.5, rows.min() - 0.5, cols.max() + 0.5, rows.max() + 0.5]
+        np.testing.assert_allclose(pixels, b, atol=1.0)
         sides[aspect] = (b[2] - b[0], b[3] - b[1])
     for aspect in (0.6, 1.5):
         assert sides[aspect][0] == pytest.approx(sides[1.0][0])
@@ -463,8 +464,8 @@ def test_committed_weights_match_their_recipe():
     the recipe has their network (so each can start from the one before)."""
     from mysim_jax.perception.detect.config import load_config
 
-    stages = [load_config(ROOT / "configs" / f"{n}.yaml")
-              for n in ("detector", "detector_onboard", "detector_palettes", "detector_aspect", "detector_aspect_seed2")]
+    names = ("detector", "detector_onboard", "detector_palettes", "detector_aspect", "detector_aspect_seed2")
+    stages = [load_config(ROOT / "configs" / f"{n}.yaml") for n in names]
     committed = load_detector()
     last = stages[-1].model
     assert list(committed.widths) == last.widths and all(c.model.widths == last.widths for c in stages)

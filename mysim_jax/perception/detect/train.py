@@ -140,6 +140,7 @@ def make_crop(image: np.ndarray, label: dict, cfg: DetectorConfig, rng: np.rando
     C = t.crop
     H, W = image.shape[:2]
     s = cfg.model.input_width / W * float(np.exp(rng.uniform(np.log(t.scale_range[0]), np.log(t.scale_range[1]))))
+    # no draw without aspect jitter, so recipes without it get the same crops as before it existed
     a = 1.0 if t.aspect_range[0] == t.aspect_range[1] == 1.0 else \
         float(np.exp(rng.uniform(np.log(t.aspect_range[0]), np.log(t.aspect_range[1]))))
     w, h = max(int(round(W * s)), C), max(int(round(H * s * a)), 1)
@@ -166,8 +167,8 @@ def make_crop(image: np.ndarray, label: dict, cfg: DetectorConfig, rng: np.rando
         if carea > 0:
             # the share of the whole silhouette the crop shows, as the dataset counts targets
             # (the crop's edge cuts like the image border): too little is neither required nor false
-            cut = is_ignored(label["visible_px"], label["visible_fraction"] * carea / area, label.get("truncation", 0.0),
-                             cfg.data.min_visible_px, cfg.data.min_visible_fraction)
+            cut = is_ignored(label["visible_px"], label["visible_fraction"] * carea / area,
+                             label.get("truncation", 0.0), cfg.data.min_visible_px, cfg.data.min_visible_fraction)
             boxes.append((cb, bool(label["ignore"]) or cut))
     if t.hflip and rng.random() < 0.5:
         crop = crop[:, ::-1].copy()
