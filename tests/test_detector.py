@@ -205,7 +205,8 @@ def test_crops_cut_targets_as_the_border_does():
     seen = set()
     for _ in range(200):
         _, boxes = make_crop(image, label, cfg, rng)
-        for b, ignore in boxes:
+        for b, ignore, weight in boxes:
+            assert weight == 1.0
             assert np.all(b >= -0.5) and np.all(b <= 63.5)
             shown = (b[2] - b[0]) * (b[3] - b[1]) / 400.0
             assert ignore == (shown < 0.3), (b, ignore)
@@ -229,7 +230,7 @@ def test_aspect_jitter_stretches_the_image_and_its_box_alike():
         cfg = config_from_dict({"model": {"input_width": 320}, "data": {"width": 320, "height": 180},
                                 "train": {**base, "aspect_range": [aspect, aspect]}})
         crop, boxes = make_crop(image, label, cfg, np.random.default_rng(1))
-        (b, ignore), = boxes
+        (b, ignore, _), = boxes
         assert not ignore
         rows, cols = np.nonzero(crop[..., 0] > 127)
         pixels = [cols.min() - 0.5, rows.min() - 0.5, cols.max() + 0.5, rows.max() + 0.5]
@@ -238,6 +239,51 @@ def test_aspect_jitter_stretches_the_image_and_its_box_alike():
     for aspect in (0.6, 1.5):
         assert sides[aspect][0] == pytest.approx(sides[1.0][0])
         assert sides[aspect][1] == pytest.approx(aspect * sides[1.0][1], rel=0.02)
+
+
+def test_hidden_weight_weighs_targets_by_what_the_crop_hides():
+    """With train.hidden_weight h, a crop's box weighs 1 + h * (1 - shown), where shown is the
+    share of the silhouette visible (occlusion, label's visible_fraction) times the share the
+    crop's edge leaves; without it every box weighs 1. In the focal loss a positive of weight
+    2 counts twice: the loss of a one-box batch goes up by its positive term."""
+    from mysim_jax.perception.detect.model import CenterNet, encode_targets, loss_fn
+    from mysim_jax.perception.detect.train import init_params, make_crop
+
+    base = {"crop": 64, "scale_range": [1.0, 1.0], "p_target_crop": 1.0, "hflip": False, "photometric": 0.0,
+            "colour_jitter": 0.0, "gamma": 0.0}
+    image = np.zeros((180, 320, 3), np.uint8)
+    label = dict(box=[149.5, 69.5, 169.5, 89.5], ignore=False, visible_fraction=0.6, truncation=0.0, visible_px=240)
+    # whole in the crop: only the occluder hides it
+    cfg = config_from_dict({"model": {"input_width": 320}, "data": {"width": 320, "height": 180},
+                            "train": {**base, "crop_centre_range": [0.5, 0.5], "hidden_weight": 2.0}})
+    (_, ignore, weight), = make_crop(image, label, cfg, np.random.default_rng(0))[1]
+    assert not ignore and weight == pytest.approx(1.0 + 2.0 * 0.4)
+    # the crop's edge cuts it too
+    cfg = config_from_dict({"model": {"input_width": 320}, "data": {"width": 320, "height": 180},
+                            "train": {**base, "crop_centre_range": [-0.05, 1.05], "hidden_weight": 2.0}})
+    rng = np.random.default_rng(1)
+    for _ in range(50):
+        for b, ignore, weight in make_crop(image, label, cfg, rng)[1]:
+            shown = 0.6 * (b[2] - b[0]) * (b[3] - b[1]) / 400.0
+            assert weight == pytest.approx(1.0 + 2.0 * (1.0 - shown), abs=1e-9)
+    # the loss: a weight-2 positive adds its focal term once more
+    cfg = config_from_dict({"model": {"widths": [4, 4, 4, 4, 4], "input_width": 640}, "train": {"crop": 64}})
+    params = init_params(cfg)
+    images = np.full((1, 64, 64, 3), 90, np.uint8)
+    box = np.array([19.5, 19.5, 31.5, 31.5])
+    one, two = (encode_targets([(box, False, w)], (64, 64)) for w in (1.0, 2.0))
+    assert two["pos_weight"].sum() == pytest.approx(one["pos_weight"].sum() + 1.0)
+    batch = [{k: v[None] for k, v in t.items()} for t in (one, two)]
+    model = CenterNet(widths=(4, 4, 4, 4, 4))
+    (l1, p1), (l2, p2) = (loss_fn(params, model, images, b) for b in batch)
+    unweighted = {k: v for k, v in batch[0].items() if k != "pos_weight"}
+    np.testing.assert_allclose(float(loss_fn(params, model, images, unweighted)[0]), float(l1), rtol=1e-6)
+    import jax
+    out = model.apply({"params": params}, np.asarray(images, np.float32) / 255.0 - 0.5)
+    i = int(one["index"])
+    logit = float(out.reshape(-1, 5)[i, 0])
+    pos_term = -(1 - jax.nn.sigmoid(logit)) ** 2 * jax.nn.log_sigmoid(logit)
+    assert float(p2["focal"]) - float(p1["focal"]) == pytest.approx(float(pos_term), rel=1e-4)
 
 
 def test_prefetch_keeps_the_order_and_raises_errors():
@@ -512,6 +558,7 @@ def test_train_p_occluder_changes_the_training_frames_only():
     ({"train": {"aspect_range": [0.0, 1.0]}}, "train.aspect_range"),
     ({"train": {"size_weight": -1.0}}, "train.size_weight"),
     ({"data": {"train_p_occluder": 1.5}}, "data.train_p_occluder"),
+    ({"train": {"hidden_weight": -0.5}}, "train.hidden_weight"),
 ])
 def test_config_errors(raw, message):
     with pytest.raises(ConfigError, match=message):

@@ -82,6 +82,9 @@ class TrainConfig(StrictModel):
     contrast: Annotated[float, Field(ge=0.0, lt=1.0)] = 0.0       # contrast gain in [1 - x, 1 + x] (log-uniform)
     saturation: Annotated[float, Field(ge=0.0, le=1.0)] = 0.0     # saturation gain in [1 - x, 1 + x] (1: down to grey)
     size_weight: Annotated[float, Field(ge=0.0, allow_inf_nan=False)] = 0.5   # of the L1 loss on log box size
+    # a target's heatmap positive weighs 1 + hidden_weight * (share of its silhouette the crop
+    # does not show: occluded, or cut by the image border or the crop's edge)
+    hidden_weight: Annotated[float, Field(ge=0.0, le=100.0, allow_inf_nan=False)] = 0.0
     seed: Annotated[int, Field(ge=0)] = 0
 
     @model_validator(mode="after")

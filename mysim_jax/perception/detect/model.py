@@ -15,7 +15,8 @@ is its positive in the heatmap, with a Gaussian of the box's size around it.
 Training target and loss (:func:`encode_targets`, :func:`loss_fn`): the CenterNet focal loss
 on the heatmap (alpha 2, beta 4), normalised by the number of boxes, plus L1 losses on the
 log size and the offset at the centre cell. A target marked ``ignore`` adds no positive and
-masks the heatmap loss over its box.
+masks the heatmap loss over its box. A box may carry a weight of its positive's focal term
+(default 1; training uses it to weigh targets that occluders or the crop's edge hide in part).
 
 Decoding (:func:`decode`): sigmoid heatmap, local maxima in 3 x 3 windows, the ``top_k``
 highest with their boxes.
@@ -103,18 +104,20 @@ def normalise(images: np.ndarray | jnp.ndarray):
 def encode_targets(boxes: list, shape: tuple[int, int]) -> dict[str, np.ndarray]:
     """Heatmap, regression targets and masks of one image of input size ``shape`` (H, W) px.
 
-    ``boxes``: list of ((4,) renderer box in input px, ignore flag). Returns arrays at the
-    output resolution (h, w) = (H / 4, W / 4): ``heat`` (h, w) Gaussian peaks in [0, 1],
-    ``weight`` (h, w) heatmap-loss weight (0 over ignored boxes), ``index`` () flat centre cell
+    ``boxes``: list of ((4,) renderer box in input px, ignore flag[, weight of its positive]).
+    Returns arrays at the output resolution (h, w) = (H / 4, W / 4): ``heat`` (h, w) Gaussian
+    peaks in [0, 1], ``weight`` (h, w) heatmap-loss weight (0 over ignored boxes), ``pos_weight``
+    (h, w) weight of the positive at each box's centre cell (1 elsewhere), ``index`` () flat centre cell
     of the first counted box, ``reg`` (4,) its log w, log h, offset x, y, ``has`` () 1 if it exists.
     """
     H, W = shape
     h, w = H // STRIDE, W // STRIDE
     heat = np.zeros((h, w), np.float32)
     weight = np.ones((h, w), np.float32)
-    out = dict(heat=heat, weight=weight, index=np.int32(0), reg=np.zeros(4, np.float32), has=np.float32(0))
+    pos_weight = np.ones((h, w), np.float32)
+    out = dict(heat=heat, weight=weight, pos_weight=pos_weight, index=np.int32(0), reg=np.zeros(4, np.float32), has=np.float32(0))
     ys, xs = np.mgrid[0:h, 0:w]
-    for box, ignore in boxes:
+    for box, ignore, *extra in boxes:
         x0, y0, x1, y1 = (np.asarray(box, float) + 0.5) / STRIDE        # edge coordinates, cells
         if ignore:
             weight[max(int(np.floor(y0)), 0):int(np.ceil(y1)) + 1, max(int(np.floor(x0)), 0):int(np.ceil(x1)) + 1] = 0
@@ -126,6 +129,7 @@ def encode_targets(boxes: list, shape: tuple[int, int]) -> dict[str, np.ndarray]
         g = np.exp(-((xs - j) ** 2 + (ys - i) ** 2) / (2 * sigma ** 2))
         np.maximum(heat, g.astype(np.float32), out=heat)
         heat[i, j] = 1.0
+        pos_weight[i, j] = float(extra[0]) if extra else 1.0
         if not out["has"]:
             out.update(index=np.int32(i * w + j), reg=np.array([np.log(bw), np.log(bh), cx - j, cy - i], np.float32),
                        has=np.float32(1))
@@ -133,7 +137,8 @@ def encode_targets(boxes: list, shape: tuple[int, int]) -> dict[str, np.ndarray]
 
 
 def loss_fn(params, model: CenterNet, images, targets, size_weight: float = 0.5) -> tuple[jnp.ndarray, dict]:
-    """Mean loss over a batch: focal heatmap loss + ``size_weight`` * L1 on log size + L1 on offset."""
+    """Mean loss over a batch: focal heatmap loss (each positive times ``targets['pos_weight']``
+    if given) + ``size_weight`` * L1 on log size + L1 on offset."""
     out = model.apply({"params": params}, normalise(images))
     B = out.shape[0]
     logit = out[..., 0].reshape(B, -1)
@@ -142,7 +147,8 @@ def loss_fn(params, model: CenterNet, images, targets, size_weight: float = 0.5)
     p = jax.nn.sigmoid(logit)
     log_p, log_1p = jax.nn.log_sigmoid(logit), jax.nn.log_sigmoid(-logit)
     pos = (heat >= 1.0).astype(jnp.float32)
-    pos_loss = -pos * (1 - p) ** 2 * log_p
+    pos_weight = targets["pos_weight"].reshape(B, -1) if "pos_weight" in targets else 1.0
+    pos_loss = -pos * pos_weight * (1 - p) ** 2 * log_p
     neg_loss = -(1 - pos) * (1 - heat) ** 4 * p ** 2 * log_1p
     n_pos = jnp.maximum(jnp.sum(pos), 1.0)
     focal = jnp.sum(weight * (pos_loss + neg_loss)) / n_pos

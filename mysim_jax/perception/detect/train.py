@@ -135,7 +135,10 @@ def truths(labels: list[dict], count_truncated: bool = False, cfg: DetectorConfi
 
 
 def make_crop(image: np.ndarray, label: dict, cfg: DetectorConfig, rng: np.random.Generator):
-    """One augmented square training crop of a frame: (crop, crop, 3) uint8 and its [(box, ignore)]."""
+    """One augmented square training crop of a frame: (crop, crop, 3) uint8 and its
+    [(box, ignore, weight)]: the weight of the box's heatmap positive is
+    1 + ``train.hidden_weight`` * (the share of the target's silhouette the crop does not show:
+    occluded, beyond the image border or the crop's edge)."""
     t = cfg.train
     C = t.crop
     H, W = image.shape[:2]
@@ -167,12 +170,15 @@ def make_crop(image: np.ndarray, label: dict, cfg: DetectorConfig, rng: np.rando
         if carea > 0:
             # the share of the whole silhouette the crop shows, as the dataset counts targets
             # (the crop's edge cuts like the image border): too little is neither required nor false
-            cut = is_ignored(label["visible_px"], label["visible_fraction"] * carea / area,
-                             label.get("truncation", 0.0), cfg.data.min_visible_px, cfg.data.min_visible_fraction)
-            boxes.append((cb, bool(label["ignore"]) or cut))
+            shown = label["visible_fraction"] * carea / area
+            truncation = label.get("truncation", 0.0)
+            cut = is_ignored(label["visible_px"], shown, truncation, cfg.data.min_visible_px,
+                             cfg.data.min_visible_fraction)
+            hidden = float(np.clip(1.0 - shown * (1.0 - truncation), 0.0, 1.0))
+            boxes.append((cb, bool(label["ignore"]) or cut, 1.0 + t.hidden_weight * hidden))
     if t.hflip and rng.random() < 0.5:
         crop = crop[:, ::-1].copy()
-        boxes = [(np.array([C - 1 - b[2], b[1], C - 1 - b[0], b[3]]), ig) for b, ig in boxes]
+        boxes = [(np.array([C - 1 - b[2], b[1], C - 1 - b[0], b[3]]), ig, wt) for b, ig, wt in boxes]
     if t.photometric > 0 or t.colour_jitter > 0 or t.gamma > 0 or t.contrast > 0 or t.saturation > 0:
         x = crop.astype(np.float32) * (1.0 / 255.0)
         x = x ** np.float32(np.exp(rng.uniform(-t.gamma, t.gamma)))
