@@ -286,6 +286,33 @@ def test_hidden_weight_weighs_targets_by_what_the_crop_hides():
     assert float(p2["focal"]) - float(p1["focal"]) == pytest.approx(float(pos_term), rel=1e-4)
 
 
+def test_target_rows_name_the_best_box_and_agree_with_the_metrics(tmp_path):
+    """Per-target rows: the best box is the most overlapping detection of any score, a hit
+    needs that overlap at a score >= min_score, and the hits are the metrics' true
+    positives; the misses are drawn."""
+    from mysim_jax.perception.detect import Detection
+    from mysim_jax.perception.detect.metrics import summary
+    from mysim_jax.perception.detect.train import plot_misses, target_rows, truths
+
+    box = [100.0, 50.0, 120.0, 70.0]
+    lab = lambda b, ignore=False: dict(box=b, ignore=ignore, kind="drone", distance=10.0, visible_fraction=1.0,
+                                       meta=dict(scene="none"))
+    labels = [lab(box), lab(box), lab(box, ignore=True), lab(None), lab(box)]
+    near, off = np.array([101.0, 51.0, 121.0, 71.0]), np.array([95.0, 45.0, 112.0, 62.0])
+    dets = [[Detection(off, 0.9), Detection(near, 0.2)],       # the right box scores too low: missed
+            [Detection(off, 0.2), Detection(near, 0.5)],       # found
+            [Detection(near, 0.9)], [Detection(off, 0.9)], []]
+    rows = target_rows(dets, labels, 0.3, 0.5)
+    assert [r["frame"] for r in rows] == [0, 1, 4] and [r["hit"] for r in rows] == [False, True, False]
+    assert rows[0]["best_box"] == near.tolist() and rows[0]["best_score"] == 0.2
+    assert rows[2]["best_box"] is None and rows[2]["best_iou"] == 0.0
+    m = summary(dets, truths(labels), 0.3, 0.5)
+    assert sum(r["hit"] for r in rows) == m["true_positives"] and len(rows) == m["n_targets"]
+    images = np.zeros((5, 120, 160, 3), np.uint8)
+    assert plot_misses(tmp_path / "misses.png", images, rows) == 2
+    assert (tmp_path / "misses.png").is_file()
+
+
 def test_prefetch_keeps_the_order_and_raises_errors():
     from mysim_jax.perception.detect.train import _prefetch
 
@@ -609,6 +636,11 @@ def test_script_end_to_end_on_a_tiny_config(tmp_path):
     metrics = json.loads((out / "metrics.json").read_text())
     for key in ("cnn/held_out", "baseline/held_out", "cnn/in_distribution", "baseline/in_distribution"):
         assert metrics[key]["n_images"] == 3 and metrics[key]["fps"] > 0
+    for name in ("held_out", "in_distribution"):     # per-target rows agree with the metrics
+        rows = json.loads((out / "targets" / f"{name}.json").read_text())
+        assert len(rows) == metrics[f"cnn/{name}"]["n_targets"]
+        assert sum(r["hit"] for r in rows) == metrics[f"cnn/{name}"]["true_positives"]
+        assert (out / "targets" / f"misses_{name}.png").is_file() == any(not r["hit"] for r in rows)
     det = load_detector(out / "detector.msgpack")
     assert det.input_width == 128 and isinstance(det.detect(np.zeros((90, 160, 3), np.uint8), min_score=0.0), list)
 

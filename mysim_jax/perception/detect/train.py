@@ -15,7 +15,9 @@
 3. evaluates the CNN and the classical baseline on both evaluation sets (precision, recall,
    mean IoU at ``eval.min_score``; AP@``iou_threshold``; frames per second, median of per-frame
    times) and writes ``OUT/detector.msgpack``, ``OUT/metrics.json``, ``OUT/pr_curve.png``,
-   ``OUT/examples/*.png`` and ``OUT/config.yaml``.
+   ``OUT/examples/*.png``, ``OUT/config.yaml``, and per target of each set the CNN's best
+   box and whether it was found (``OUT/targets/SET.json``, :func:`target_rows`) with the
+   missed ones drawn (``OUT/targets/misses_SET.png``, :func:`plot_misses`).
 
 With ``weights`` given, step 2 is skipped and those weights are evaluated instead, with the
 config's inference settings (``model.pyramid``, ``model.pyramid_band_px``, ``model.flip_test``,
@@ -372,6 +374,70 @@ def _recall_by(dets, gts, labels, min_score, thr) -> dict:
     return out
 
 
+def target_rows(dets, labels, min_score: float, iou_threshold: float) -> list[dict]:
+    """One row per counted target of a set (frames hold at most one): its frame, kind,
+    distance (m), scene, visible fraction and box (px); the detection of any score that
+    overlaps it most (``best_box``, ``best_iou``, ``best_score``; None, 0, 0 if none does);
+    and ``hit``: a detection scoring >= ``min_score`` overlaps it at IoU >= ``iou_threshold``
+    (a true positive of :func:`~mysim_jax.perception.detect.metrics.match`)."""
+    from mysim_jax.perception.detect.metrics import iou
+
+    rows = []
+    for i, lab in enumerate(labels):
+        if lab["box"] is None or lab["ignore"]:
+            continue
+        scored = [(iou(d.box, lab["box"]), d) for d in dets[i]]
+        best_iou, best = max(scored, key=lambda x: x[0], default=(0.0, None))
+        rows.append(dict(frame=i, kind=lab["kind"], distance=round(float(lab["distance"]), 3),
+                         scene=lab["meta"]["scene"], visible_fraction=round(float(lab["visible_fraction"]), 3),
+                         box=[round(float(x), 2) for x in lab["box"]],
+                         best_box=None if best is None else [round(float(x), 2) for x in best.box],
+                         best_iou=round(float(best_iou), 4), best_score=0.0 if best is None else round(best.score, 4),
+                         hit=any(o >= iou_threshold and d.score >= min_score for o, d in scored)))
+    return rows
+
+
+def plot_misses(path: Path, images, rows: list[dict], n: int = 24, tile: int = 200) -> int:
+    """A grid of the missed targets (rows with ``hit`` false, at most ``n``), each zoomed to
+    ``tile`` px around its box: green the ground truth, red the detection overlapping it most,
+    with frame, distance, scene, that detection's IoU and score. Returns how many are shown."""
+    missed = [r for r in rows if not r["hit"]][:n]
+    if not missed:
+        return 0
+    tiles = []
+    for r in missed:
+        img = np.ascontiguousarray(np.asarray(images[r["frame"]])[..., ::-1])
+        H, W = img.shape[:2]
+        g = np.asarray(r["box"])
+        half = max(g[2] - g[0], g[3] - g[1]) * 1.2 + 6
+        cx, cy = (g[0] + g[2]) / 2, (g[1] + g[3]) / 2
+        x0, y0 = int(max(cx - half, 0)), int(max(cy - half, 0))
+        x1, y1 = int(min(cx + half, W)), int(min(cy + half, H))
+        z = (tile - 20) / max(x1 - x0, y1 - y0, 1)
+        crop = cv2.resize(img[y0:y1, x0:x1], None, fx=z, fy=z, interpolation=cv2.INTER_NEAREST)
+
+        def rect(b, colour):
+            p0 = ((np.asarray(b[:2]) + 0.5 - [x0, y0]) * z).astype(int)
+            p1 = ((np.asarray(b[2:]) + 0.5 - [x0, y0]) * z).astype(int) - 1
+            cv2.rectangle(crop, tuple(int(v) for v in p0), tuple(int(v) for v in p1), colour, 1)
+
+        rect(g, (0, 200, 0))
+        if r["best_box"] is not None:
+            rect(r["best_box"], (0, 0, 255))
+        t = np.zeros((tile, tile, 3), np.uint8)
+        t[:min(crop.shape[0], tile - 20), :min(crop.shape[1], tile)] = crop[:tile - 20, :tile]
+        cv2.putText(t, f"#{r['frame']} {r['kind']} {r['distance']:.0f} m {r['scene']}", (2, tile - 11),
+                    cv2.FONT_HERSHEY_SIMPLEX, 0.33, (255, 255, 255), 1, cv2.LINE_AA)
+        cv2.putText(t, f"IoU {r['best_iou']:.2f} score {r['best_score']:.2f}", (2, tile - 2),
+                    cv2.FONT_HERSHEY_SIMPLEX, 0.33, (255, 255, 255), 1, cv2.LINE_AA)
+        tiles.append(t)
+    cols = min(6, len(tiles))
+    tiles += [np.zeros_like(tiles[0])] * (-len(tiles) % cols)
+    grid = np.vstack([np.hstack(tiles[k:k + cols]) for k in range(0, len(tiles), cols)])
+    cv2.imwrite(str(path), grid)
+    return len(missed)
+
+
 def write_examples(folder: Path, images, labels, results: dict, n: int) -> None:
     """Frames (spheres and drones in turn, and one without a target) with the ground truth
     (green), CNN (red) and baseline (blue) best boxes and scores."""
@@ -473,6 +539,11 @@ def run(cfg: DetectorConfig, out: Path, progress: bool = True, cache: Path | Non
             m, dets = evaluate(det, images, labels, cfg, thr, progress=progress, name=f"{det_name} {set_name}")
             metrics[f"{det_name}/{set_name}"] = m
             results[det_name] = dets
+            if det_name == "cnn":     # per-target diagnostics: which targets are missed, and how
+                rows = target_rows(dets, labels, thr, cfg.eval.iou_threshold)
+                (out / "targets").mkdir(exist_ok=True)
+                (out / "targets" / f"{set_name}.json").write_text(json.dumps(rows))
+                plot_misses(out / "targets" / f"misses_{set_name}.png", images, rows)
             curves[f"{det_name}, {set_name.replace('_', '-')}"] = pr_curve(match(dets, truths(labels), cfg.eval.iou_threshold))
         if cfg.eval.n_examples:
             write_examples(out / "examples" / set_name, images, labels, results, cfg.eval.n_examples)
