@@ -246,6 +246,8 @@ def test_hidden_weight_weighs_targets_by_what_the_crop_hides():
     share of the silhouette visible (occlusion, label's visible_fraction) times the share the
     crop's edge leaves; without it every box weighs 1. In the focal loss a positive of weight
     2 counts twice: the loss of a one-box batch goes up by its positive term."""
+    import jax
+
     from mysim_jax.perception.detect.model import CenterNet, encode_targets, loss_fn
     from mysim_jax.perception.detect.train import init_params, make_crop
 
@@ -278,7 +280,6 @@ def test_hidden_weight_weighs_targets_by_what_the_crop_hides():
     (l1, p1), (l2, p2) = (loss_fn(params, model, images, b) for b in batch)
     unweighted = {k: v for k, v in batch[0].items() if k != "pos_weight"}
     np.testing.assert_allclose(float(loss_fn(params, model, images, unweighted)[0]), float(l1), rtol=1e-6)
-    import jax
     out = model.apply({"params": params}, np.asarray(images, np.float32) / 255.0 - 0.5)
     i = int(one["index"])
     logit = float(out.reshape(-1, 5)[i, 0])

@@ -115,7 +115,8 @@ def encode_targets(boxes: list, shape: tuple[int, int]) -> dict[str, np.ndarray]
     heat = np.zeros((h, w), np.float32)
     weight = np.ones((h, w), np.float32)
     pos_weight = np.ones((h, w), np.float32)
-    out = dict(heat=heat, weight=weight, pos_weight=pos_weight, index=np.int32(0), reg=np.zeros(4, np.float32), has=np.float32(0))
+    out = dict(heat=heat, weight=weight, pos_weight=pos_weight, index=np.int32(0), reg=np.zeros(4, np.float32),
+               has=np.float32(0))
     ys, xs = np.mgrid[0:h, 0:w]
     for box, ignore, *extra in boxes:
         x0, y0, x1, y1 = (np.asarray(box, float) + 0.5) / STRIDE        # edge coordinates, cells

@@ -329,9 +329,10 @@ def train(cfg: DetectorConfig, images, labels, progress: bool = True, steps: int
 
 
 def evaluate(detector, images, labels, cfg: DetectorConfig, min_score: float, progress: bool = True,
-             name: str = "") -> dict:
+             name: str = "") -> tuple[dict, list, list[dict]]:
     """Metrics of ``detector`` on a set (detections down to score 0.01 for AP) and its speed:
-    median over frames of one ``detect`` call, frames/s."""
+    median over frames of one ``detect`` call, frames/s. Returns the metrics, the detections
+    per frame and the per-target rows (:func:`target_rows`)."""
     from tqdm.auto import tqdm
 
     from mysim_jax.perception.detect.metrics import summary
@@ -352,26 +353,20 @@ def evaluate(detector, images, labels, cfg: DetectorConfig, min_score: float, pr
     cut = summary(dets, truths(labels, count_truncated=True, cfg=cfg), min_score, cfg.eval.iou_threshold)
     out["counting_truncated"] = dict(recall=cut["recall"], n_targets=cut["n_targets"], ap50=cut["ap50"])
     # per distance band and target kind: recall at the operating point
-    out["recall_by"] = _recall_by(dets, gts, labels, min_score, cfg.eval.iou_threshold)
-    return out, dets
+    rows = target_rows(dets, labels, min_score, cfg.eval.iou_threshold)
+    out["recall_by"] = _recall_by(rows, labels)
+    return out, dets, rows
 
 
-def _recall_by(dets, gts, labels, min_score, thr) -> dict:
-    from mysim_jax.perception.detect.metrics import match
-
-    groups: dict[str, list[int]] = {}
-    for i, lab in enumerate(labels):
-        if lab["box"] is None or lab["ignore"]:
-            continue
-        d = lab["distance"]
+def _recall_by(rows: list[dict], labels: list[dict]) -> dict:
+    """Recall of the per-target ``rows`` by kind, distance band, both, and scene."""
+    groups: dict[str, list[bool]] = {}
+    for r in rows:
+        d = labels[r["frame"]]["distance"]
         band = "d<3" if d < 3 else "3<=d<10" if d < 10 else "10<=d<25" if d < 25 else "d>=25"
-        for key in (lab["kind"], band, f"{lab['kind']}, {band}", f"scene={lab['meta']['scene']}"):
-            groups.setdefault(key, []).append(i)
-    out = {}
-    for key, idx in sorted(groups.items()):
-        m = match([[x for x in dets[i] if x.score >= min_score] for i in idx], [gts[i] for i in idx], thr)
-        out[key] = dict(recall=float(m.tp.sum() / m.n_gt), n=m.n_gt)
-    return out
+        for key in (r["kind"], band, f"{r['kind']}, {band}", f"scene={r['scene']}"):
+            groups.setdefault(key, []).append(r["hit"])
+    return {key: dict(recall=float(np.mean(hits)), n=len(hits)) for key, hits in sorted(groups.items())}
 
 
 def target_rows(dets, labels, min_score: float, iou_threshold: float) -> list[dict]:
@@ -536,11 +531,11 @@ def run(cfg: DetectorConfig, out: Path, progress: bool = True, cache: Path | Non
     for set_name, (images, labels) in sets.items():
         results = {}
         for det_name, det, thr in (("cnn", cnn, cfg.eval.min_score), ("baseline", baseline, 0.3)):
-            m, dets = evaluate(det, images, labels, cfg, thr, progress=progress, name=f"{det_name} {set_name}")
+            m, dets, rows = evaluate(det, images, labels, cfg, thr, progress=progress,
+                                     name=f"{det_name} {set_name}")
             metrics[f"{det_name}/{set_name}"] = m
             results[det_name] = dets
             if det_name == "cnn":     # per-target diagnostics: which targets are missed, and how
-                rows = target_rows(dets, labels, thr, cfg.eval.iou_threshold)
                 (out / "targets").mkdir(exist_ok=True)
                 (out / "targets" / f"{set_name}.json").write_text(json.dumps(rows))
                 plot_misses(out / "targets" / f"misses_{set_name}.png", images, rows)
