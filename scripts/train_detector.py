@@ -17,7 +17,13 @@ frames only are rendered):
     python scripts/train_detector.py configs/detector.yaml --weights docs/detector/detector.msgpack --out runs/det_eval
 
 ``--init FILE`` fine-tunes: training starts from FILE's weights instead of a random init
-(the same ``model.widths``).
+(the same ``model.widths``). A config with a ``refine:`` section also trains the second stage
+(mysim_jax/perception/detect/refine.py) on the trained first stage's candidates in the
+training frames; with ``train.steps: 0`` the first stage is FILE's as it is, and only the
+second stage is trained:
+
+    python scripts/train_detector.py configs/detector_refine.yaml --init docs/detector/detector.msgpack \
+        --out runs/detector_refine
 
 ``--eval-seed N`` draws the evaluation frames with seed N instead of ``data.seed`` (fresh frames
 of the same splits; the training frames keep ``data.seed``).
@@ -66,6 +72,9 @@ def main(argv=None) -> int:
             if args.init is not None:
                 raise ConfigError("--init fine-tunes a training run; --weights evaluates without training: "
                                   "give one of them")
+        if cfg.train.steps == 0 and args.init is None and args.weights is None:
+            raise ConfigError("train.steps is 0, so no first stage is trained: give the weights it starts from "
+                              "with --init (e.g. docs/detector/detector.msgpack)")
         if args.init is not None:
             from mysim_jax.perception.camera import PerceptionError
             from mysim_jax.perception.detect.train import init_from
@@ -84,7 +93,8 @@ def main(argv=None) -> int:
     metrics = run(cfg, out, progress=not args.no_progress, cache=cache, weights=args.weights, init=args.init)
     done = (f"evaluated {args.weights}" if args.weights else
             f"trained {cfg.train.steps} steps{f' from {args.init}' if args.init else ''} in "
-            f"{metrics['train_seconds']:.0f} s")
+            f"{metrics['train_seconds']:.0f} s" +
+            (f", the second stage {cfg.refine.steps} steps in {metrics['refine_seconds']:.0f} s" if cfg.refine else ""))
     print(f"{done}; wrote {out}/ ({time.perf_counter() - t0:.0f} s in all)")
     for key in ("cnn/held_out", "baseline/held_out", "cnn/in_distribution", "baseline/in_distribution"):
         m = metrics[key]

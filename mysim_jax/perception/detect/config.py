@@ -8,7 +8,7 @@ Unknown keys, booleans given for numbers, non-positive sizes or counts, probabil
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
 from pydantic import Field, ValidationError, model_validator
 
@@ -61,7 +61,7 @@ class ModelConfig(StrictModel):
 
 
 class TrainConfig(StrictModel):
-    steps: PosInt = 5000
+    steps: Annotated[int, Field(ge=0)] = 5000   # 0: the first stage is not trained (its weights: --init)
     batch_size: PosInt = 16
     crop: Annotated[int, Field(ge=64, le=4096, multiple_of=32)] = 160   # px, square training crops
     learning_rate: PosFloat = 3e-3
@@ -99,6 +99,41 @@ class TrainConfig(StrictModel):
         return self
 
 
+class RefineConfig(StrictModel):
+    """The second stage (:mod:`mysim_jax.perception.detect.refine`): its network, how it is
+    applied, and its training (:mod:`mysim_jax.perception.detect.refine_train`)."""
+
+    widths: Annotated[list[PosInt], Field(min_length=2, max_length=6)] = [24, 32, 48, 64, 96]  # strides 1, 2, 4, ...
+    hidden: PosInt = 128                 # units of the dense layer
+    size: Annotated[int, Field(ge=16, le=256, multiple_of=16)] = 64    # px, resized window side
+    context: Annotated[float, Field(ge=1.0, le=8.0, allow_inf_nan=False)] = 2.5   # window side / candidate's longer side
+    min_window_px: Annotated[float, Field(ge=4.0, le=1024.0, allow_inf_nan=False)] = 16.0
+    candidate_min_score: Annotated[float, Field(gt=0.0, lt=1.0)] = 0.02   # first-stage candidates looked at
+    max_candidates: Annotated[int, Field(ge=1, le=100)] = 16            # per image, best first
+    flip_test: bool = True               # also look at the mirrored window and average
+    score: Literal["refined", "geometric"] = "geometric"   # detection score: p2, or sqrt(p1 * p2)
+    # training
+    steps: PosInt = 4000
+    batch_size: PosInt = 64
+    learning_rate: PosFloat = 1e-3
+    warmup_steps: Annotated[int, Field(ge=0)] = 100
+    weight_decay: Annotated[float, Field(ge=0.0, allow_inf_nan=False)] = 1e-4
+    box_weight: Annotated[float, Field(ge=0.0, allow_inf_nan=False)] = 5.0    # of the L1 on edges (window units)
+    p_positive: Prob = 0.35              # samples that are positive candidates
+    p_synthetic: Prob = 0.2              # samples that are the target's box moved at random
+    synthetic_jitter: Annotated[float, Field(ge=0.0, le=1.0)] = 0.15    # box sides / log scale, std
+    jitter: Annotated[float, Field(ge=0.0, le=1.0)] = 0.05              # every sample's box, std
+    p_low_res: Prob = 0.5                # samples cut at a lower resolution
+    low_res_max: Annotated[float, Field(ge=1.0, le=8.0)] = 2.0          # up to this many times fewer pixels
+    seed: Annotated[int, Field(ge=0)] = 0
+
+    @model_validator(mode="after")
+    def _shares(self):
+        if self.p_positive + self.p_synthetic > 1.0:
+            raise ValueError(f"refine: p_positive + p_synthetic = {self.p_positive + self.p_synthetic:g} is above 1")
+        return self
+
+
 class EvalConfig(StrictModel):
     min_score: Annotated[float, Field(ge=0.0, lt=1.0)] = 0.3     # operating point of precision / recall
     iou_threshold: Annotated[float, Field(gt=0.0, lt=1.0)] = 0.5
@@ -110,6 +145,7 @@ class DetectorConfig(StrictModel):
     data: DataConfig = DataConfig()
     model: ModelConfig = ModelConfig()
     train: TrainConfig = TrainConfig()
+    refine: RefineConfig | None = None   # the second stage; none: the first stage alone
     eval: EvalConfig = EvalConfig()
 
     @model_validator(mode="after")

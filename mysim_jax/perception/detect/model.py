@@ -40,6 +40,12 @@ two passes' heatmaps (probabilities) and log box sizes are averaged cell by cell
 decoding (the level's width is then rounded to a multiple of ``STRIDE``, so the mirrored
 cells line up with the image's); the centre offsets are the unmirrored pass's. It doubles
 the network's work.
+
+Second stage (``refiner``, :mod:`~mysim_jax.perception.detect.refine`). With one, the
+network above only proposes: its merged boxes scoring at least the refiner's
+``candidate_min_score`` are each looked at again in a window scaled to a fixed size, and the
+detections are the second stage's boxes and probabilities, merged by non-maximum
+suppression (IoU ``PYRAMID_NMS_IOU``) and cut at the score floor.
 """
 
 from __future__ import annotations
@@ -216,6 +222,7 @@ class CNNDetector:
     pyramid: tuple[float, ...] = (1.0,)   # image scales (x input_width) the network runs at; see the module doc
     pyramid_band_px: tuple[float, float] = (24.0, 96.0)   # box sides (network px) a level keeps; see the module doc
     flip_test: bool = False         # also run each level on the mirrored image and average; see the module doc
+    refiner: object | None = None   # the second stage (refine.Refiner); None: the first stage alone
 
     def __post_init__(self):
         self.pyramid = tuple(float(s) for s in self.pyramid)
@@ -272,6 +279,9 @@ class CNNDetector:
         if len({im.shape for im in images}) > 1:
             raise PerceptionError("detect_batch takes images of one size")
         floor = self.min_score if min_score is None else min_score
+        final_floor = floor
+        if self.refiner is not None:       # the first stage proposes, the second decides
+            floor = self.refiner.settings.candidate_min_score
         H, W = images[0].shape[:2]
         several = len(self.pyramid) > 1
         lo, hi = self.pyramid_band_px
@@ -299,7 +309,10 @@ class CNNDetector:
                     box = np.clip(box, -0.5, [W - 0.5, H - 0.5, W - 0.5, H - 0.5])
                     if box[2] > box[0] and box[3] > box[1]:
                         dets.append(Detection(box=box, score=float(s)))
-        return [_suppress(d) for d in out] if several else out
+        out = [_suppress(d) for d in out] if several else out
+        if self.refiner is not None:
+            out = [[d for d in _suppress(r) if d.score >= final_floor] for r in self.refiner.refine(images, out)]
+        return out
 
     def detect(self, image: np.ndarray, min_score: float | None = None) -> list[Detection]:
         """Detections in ``image`` ((H, W, 3) uint8 RGB, any size), best first, scores >= ``min_score``
@@ -314,9 +327,13 @@ class CNNDetector:
         path.parent.mkdir(parents=True, exist_ok=True)
         meta = json.dumps(dict(widths=list(self.widths), input_width=self.input_width, min_score=self.min_score,
                                top_k=self.top_k, stride=STRIDE, pyramid=list(self.pyramid),
-                               pyramid_band_px=list(self.pyramid_band_px), flip_test=self.flip_test))
-        params = jax.tree.map(lambda a: np.asarray(a, np.float32), self.params)
-        path.write_bytes(serialization.msgpack_serialize({"meta": meta, "params": params}))
+                               pyramid_band_px=list(self.pyramid_band_px), flip_test=self.flip_test,
+                               refine=None if self.refiner is None else self.refiner.settings.to_dict()))
+        as_np = lambda tree: jax.tree.map(lambda a: np.asarray(a, np.float32), tree)
+        blob = {"meta": meta, "params": as_np(self.params)}
+        if self.refiner is not None:
+            blob["refine_params"] = as_np(self.refiner.params)
+        path.write_bytes(serialization.msgpack_serialize(blob))
         return path
 
     @classmethod
@@ -334,7 +351,12 @@ class CNNDetector:
             raise PerceptionError(f"{path} is not a detector weights file ({type(exc).__name__}: {exc})") from None
         if meta.get("stride") != STRIDE:
             raise PerceptionError(f"{path} was written for output stride {meta.get('stride')}, this code uses {STRIDE}")
-        return cls(params=params, widths=tuple(meta["widths"]), input_width=int(meta["input_width"]),
+        refiner = None
+        if meta.get("refine") is not None:
+            from mysim_jax.perception.detect.refine import Refiner, RefineSettings
+
+            refiner = Refiner(blob["refine_params"], RefineSettings.from_dict(meta["refine"]))
+        return cls(refiner=refiner, params=params, widths=tuple(meta["widths"]), input_width=int(meta["input_width"]),
                    min_score=float(meta["min_score"]), top_k=int(meta["top_k"]),
                    pyramid=tuple(meta.get("pyramid", (1.0,))),
                    pyramid_band_px=tuple(meta.get("pyramid_band_px", (24.0, 96.0))),

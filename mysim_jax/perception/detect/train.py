@@ -181,20 +181,27 @@ def make_crop(image: np.ndarray, label: dict, cfg: DetectorConfig, rng: np.rando
     if t.hflip and rng.random() < 0.5:
         crop = crop[:, ::-1].copy()
         boxes = [(np.array([C - 1 - b[2], b[1], C - 1 - b[0], b[3]]), ig, wt) for b, ig, wt in boxes]
-    if t.photometric > 0 or t.colour_jitter > 0 or t.gamma > 0 or t.contrast > 0 or t.saturation > 0:
-        x = crop.astype(np.float32) * (1.0 / 255.0)
-        x = x ** np.float32(np.exp(rng.uniform(-t.gamma, t.gamma)))
-        if t.contrast > 0:          # about the crop's mean
-            mean = x.mean()
-            x = mean + (x - mean) * np.float32(np.exp(rng.uniform(np.log(1 - t.contrast), np.log(1 + t.contrast))))
-        if t.saturation > 0:        # about each pixel's grey (Rec. 601 luma); 0 is a grey image
-            grey = x @ np.array([0.299, 0.587, 0.114], np.float32)
-            x = grey[..., None] + (x - grey[..., None]) * np.float32(rng.uniform(1 - t.saturation, 1 + t.saturation))
-        gain = np.exp(rng.uniform(np.log(1 - t.photometric), np.log(1 + t.photometric)))
-        gain = gain * (1 + rng.uniform(-t.colour_jitter, t.colour_jitter, 3))
-        x = x * gain.astype(np.float32) + np.float32(rng.uniform(-0.05, 0.05) if t.photometric > 0 else 0.0)
-        crop = np.clip(x * 255.0 + 0.5, 0, 255).astype(np.uint8)
-    return crop, boxes
+    return photometric(crop, t, rng), boxes
+
+
+def photometric(crop: np.ndarray, t, rng: np.random.Generator) -> np.ndarray:
+    """``crop`` (uint8 RGB) with the photometric augmentation of the train settings ``t``: a
+    random gamma, contrast (about the mean) and saturation (about each pixel's grey), a
+    brightness gain and offset and per-channel (white balance) gains."""
+    if not (t.photometric > 0 or t.colour_jitter > 0 or t.gamma > 0 or t.contrast > 0 or t.saturation > 0):
+        return crop
+    x = crop.astype(np.float32) * (1.0 / 255.0)
+    x = x ** np.float32(np.exp(rng.uniform(-t.gamma, t.gamma)))
+    if t.contrast > 0:          # about the crop's mean
+        mean = x.mean()
+        x = mean + (x - mean) * np.float32(np.exp(rng.uniform(np.log(1 - t.contrast), np.log(1 + t.contrast))))
+    if t.saturation > 0:        # about each pixel's grey (Rec. 601 luma); 0 is a grey image
+        grey = x @ np.array([0.299, 0.587, 0.114], np.float32)
+        x = grey[..., None] + (x - grey[..., None]) * np.float32(rng.uniform(1 - t.saturation, 1 + t.saturation))
+    gain = np.exp(rng.uniform(np.log(1 - t.photometric), np.log(1 + t.photometric)))
+    gain = gain * (1 + rng.uniform(-t.colour_jitter, t.colour_jitter, 3))
+    x = x * gain.astype(np.float32) + np.float32(rng.uniform(-0.05, 0.05) if t.photometric > 0 else 0.0)
+    return np.clip(x * 255.0 + 0.5, 0, 255).astype(np.uint8)
 
 
 def batch_of(images, labels, idx, cfg: DetectorConfig, rng):
@@ -323,6 +330,33 @@ def train(cfg: DetectorConfig, images, labels, progress: bool = True, steps: int
             if log is not None:
                 log(k, loss, {key: float(v) for key, v in parts.items()})
     return params, history
+
+
+def refine_settings(cfg: DetectorConfig):
+    """The second stage's settings of ``cfg.refine``."""
+    from mysim_jax.perception.detect.refine import RefineSettings
+
+    r = cfg.refine
+    return RefineSettings(widths=tuple(r.widths), hidden=r.hidden, size=r.size, context=r.context,
+                          min_window_px=r.min_window_px, candidate_min_score=r.candidate_min_score,
+                          max_candidates=r.max_candidates, flip_test=r.flip_test, score=r.score)
+
+
+def train_refine_stage(cfg: DetectorConfig, first_stage, images, labels, spec, cache: Path, progress: bool = True,
+                       log=None):
+    """Train the second stage on ``first_stage``'s candidates in the training frames (``spec``'s;
+    the candidates are cached in ``cache``). Returns (Refiner, loss history)."""
+    import jax
+
+    from mysim_jax.perception.detect.refine import Refiner
+    from mysim_jax.perception.detect.refine_train import SamplePool, cached_candidates, train_refiner
+
+    weights_bytes = b"".join(np.asarray(a, np.float32).tobytes() for a in jax.tree.leaves(first_stage.params))
+    candidates = cached_candidates(first_stage, weights_bytes, images, repr((spec, LABELS_VERSION)),
+                                   cfg.refine.candidate_min_score, cache, progress=progress)
+    pool = SamplePool(labels, candidates)
+    params, history = train_refiner(cfg, images, pool, progress=progress, log=log)
+    return Refiner(params, refine_settings(cfg)), history
 
 
 # --- evaluation -------------------------------------------------------------------------------
@@ -506,26 +540,47 @@ def run(cfg: DetectorConfig, out: Path, progress: bool = True, cache: Path | Non
                                          progress=progress)}
     if weights is None:
         start = None if init is None else init_from(cfg, init)
+        if start is None and cfg.train.steps == 0:
+            raise ValueError("train.steps 0 trains no first stage: give the weights to start from (init)")
         log_lines = []
         t0 = time.time()
-        params, history = train(cfg, train_images, train_labels, progress=progress, params=start,
-                                log=lambda k, loss, parts: log_lines.append(dict(step=k, loss=loss, **parts)))
+        params, history = start, []
+        if cfg.train.steps > 0:
+            params, history = train(cfg, train_images, train_labels, progress=progress, params=start,
+                                    log=lambda k, loss, parts: log_lines.append(dict(step=k, loss=loss, **parts)))
         train_s = time.time() - t0
         cnn = CNNDetector(params=params, widths=tuple(cfg.model.widths), input_width=cfg.model.input_width,
                           min_score=cfg.eval.min_score, pyramid=tuple(cfg.model.pyramid),
                           pyramid_band_px=tuple(cfg.model.pyramid_band_px), flip_test=cfg.model.flip_test)
+        metrics = dict(train_seconds=train_s, steps=cfg.train.steps, init=None if init is None else str(init),
+                       final_loss=float(np.mean([l for _, l in history[-50:]])) if history else None)
+        if cfg.refine is not None:
+            t0 = time.time()
+            cnn.refiner, refine_history = train_refine_stage(
+                cfg, cnn, train_images, train_labels, spec_of(cfg, "train"), cache, progress=progress,
+                log=lambda k, loss, parts: log_lines.append(dict(stage="refine", step=k, loss=loss, **parts)))
+            metrics.update(refine_seconds=time.time() - t0, refine_steps=cfg.refine.steps,
+                           refine_final_loss=float(np.mean([l for _, l in refine_history[-50:]])))
         cnn.save(out / "detector.msgpack")
         (out / "train_log.json").write_text(json.dumps(log_lines))
-        metrics = dict(train_seconds=train_s, steps=cfg.train.steps, init=None if init is None else str(init),
-                       final_loss=float(np.mean([l for _, l in history[-50:]])),
-                       weights_bytes=(out / "detector.msgpack").stat().st_size)
+        metrics["weights_bytes"] = (out / "detector.msgpack").stat().st_size
     else:
         cnn = CNNDetector.load(weights)
+        refiner = cnn.refiner
+        if refiner is not None and cfg.refine is not None:       # inference settings: the config's
+            from dataclasses import replace
+
+            from mysim_jax.perception.detect.refine import Refiner
+
+            r = cfg.refine
+            refiner = Refiner(refiner.params, replace(refiner.settings, candidate_min_score=r.candidate_min_score,
+                                                      max_candidates=r.max_candidates, flip_test=r.flip_test, score=r.score))
         cnn = CNNDetector(params=cnn.params, widths=cnn.widths, input_width=cnn.input_width, top_k=cnn.top_k,
                           min_score=cfg.eval.min_score, pyramid=tuple(cfg.model.pyramid),
                           pyramid_band_px=tuple(cfg.model.pyramid_band_px),
-                          flip_test=cfg.model.flip_test)   # inference settings: the config's
-        metrics = dict(weights=str(weights), weights_bytes=Path(weights).stat().st_size)
+                          flip_test=cfg.model.flip_test, refiner=refiner)   # inference settings: the config's
+        metrics = dict(weights=str(weights), weights_bytes=Path(weights).stat().st_size,
+                       refine=refiner is not None)
     baseline = ColourBlobDetector()
     curves = {}
     for set_name, (images, labels) in sets.items():

@@ -1,0 +1,261 @@
+"""The detector's second stage: each candidate box of the first stage is looked at again.
+
+The first stage (:class:`~mysim_jax.perception.detect.model.CenterNet`) sees the whole
+image at a few fixed scales, so a target 8 px across gets a handful of output cells, and an
+occluder in front of it (the net's lines, a UAV) can cost it its score or its box. The
+second stage (:class:`RefineNet`) takes a square *window* around each candidate, scaled to
+``size`` x ``size`` px whatever the candidate's size (:func:`cut_windows`), and says whether
+a target is there (a logit) and where its box is (the box's edges, as a change of the
+candidate's, in window units). In the window every target has about the same size, so the
+second stage need not learn sizes, and a far target is seen as large as a near one.
+
+Windows (:func:`windows_of`). A candidate box of sides (w, h) px centred at c gets the
+square window of side ``max(context * max(w, h), min_px)`` centred at c, rounded to whole
+pixels; parts beyond the image repeat its edge pixels (as the first stage pads). The
+window is resized to ``size`` px (area averaging when it shrinks, bilinear when it grows).
+
+Coordinates. A box in window units is its edge coordinates (see
+:mod:`~mysim_jax.perception.detect.model`) relative to the window's left / top edge,
+divided by the window's side: the window spans [0, 1] x [0, 1].
+
+Training samples (:func:`sample_labels`). A candidate on a frame with a counted target is a
+positive if its IoU with the target's box is at least ``POS_IOU``, and then its box target
+is the target's box; a candidate overlapping an ignored target (too hidden or too small to
+count) by more than ``IGNORE_IOU``, or a counted one by an IoU between ``IGNORE_IOU`` and
+``POS_IOU``, is neither (no classification loss); the rest are negatives. Loss
+(:func:`loss_fn`): binary cross-entropy of the logit plus ``box_weight`` x L1 of the
+positives' edges in window units.
+
+Scores (``score``). ``"refined"``: a detection's score is the second stage's probability
+alone; ``"geometric"``: the geometric mean of both stages' probabilities, sqrt(p1 * p2), so
+a window the second stage likes but the first stage barely proposed (a background patch
+that looks like a drone at 8 px) is not put above a target both stages see.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import partial
+
+import cv2
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+POS_IOU = 0.25       # a candidate at least this IoU with a counted target is a positive
+IGNORE_IOU = 0.1     # below POS_IOU but above this (or above this with an ignored target): no label
+
+
+class RefineNet(nn.Module):
+    """(N, S, S, 3) windows in [-0.5, 0.5] -> (N, 5): target logit and the box's edge changes
+    (u_min, v_min, u_max, v_max; window units) from the candidate's."""
+
+    widths: tuple[int, ...] = (24, 32, 48, 64, 96)    # channels at strides 1, 2, 4, 8, 16
+    hidden: int = 128
+
+    @nn.compact
+    def __call__(self, x):
+        conv = partial(nn.Conv, kernel_size=(3, 3), padding="SAME", kernel_init=nn.initializers.he_normal())
+        for k, c in enumerate(self.widths):
+            x = nn.relu(conv(c, strides=(1, 1) if k == 0 else (2, 2), name=f"down{k}")(x))
+            if k > 0:
+                x = nn.relu(conv(c, name=f"body{k}")(x))
+        x = x.reshape(x.shape[0], -1)
+        x = nn.relu(nn.Dense(self.hidden, kernel_init=nn.initializers.he_normal(), name="fc")(x))
+        logit = nn.Dense(1, bias_init=nn.initializers.constant(-2.0), name="logit")(x)
+        delta = nn.Dense(4, kernel_init=nn.initializers.normal(1e-3), name="box")(x)
+        return jnp.concatenate([logit, delta], axis=-1)
+
+
+# --- windows ----------------------------------------------------------------------------------
+
+
+def windows_of(boxes: np.ndarray, context: float, min_px: float) -> np.ndarray:
+    """(N, 4) renderer boxes (px) -> (N, 3) integer windows (x0, y0, side) px: the left / top
+    edge (edge coordinates) and the side of the square around each box (see the module doc)."""
+    boxes = np.asarray(boxes, float).reshape(-1, 4)
+    e = boxes + 0.5                                          # edge coordinates
+    cx, cy = (e[:, 0] + e[:, 2]) / 2, (e[:, 1] + e[:, 3]) / 2
+    side = np.ceil(np.maximum(context * np.maximum(e[:, 2] - e[:, 0], e[:, 3] - e[:, 1]), min_px))
+    return np.stack([np.round(cx - side / 2), np.round(cy - side / 2), side], axis=-1).astype(np.int64)
+
+
+def cut_windows(image: np.ndarray, windows: np.ndarray, size: int) -> np.ndarray:
+    """(N, size, size, 3) uint8: each (x0, y0, side) window of ``image`` resized to ``size`` px;
+    the image's edge pixels repeat beyond it."""
+    H, W = image.shape[:2]
+    out = np.empty((len(windows), size, size, 3), np.uint8)
+    for n, (x0, y0, side) in enumerate(np.asarray(windows, np.int64)):
+        x1, y1 = x0 + side, y0 + side
+        a = image[max(y0, 0):max(min(y1, H), 0), max(x0, 0):max(min(x1, W), 0)]
+        if a.size == 0:            # wholly outside: the nearest edge pixel
+            a = image[int(np.clip(y0, 0, H - 1)):int(np.clip(y0, 0, H - 1)) + 1,
+                      int(np.clip(x0, 0, W - 1)):int(np.clip(x0, 0, W - 1)) + 1]
+            a = np.broadcast_to(a, (side, side, 3))
+        else:
+            pads = (max(-y0, 0), max(y1 - H, 0), max(-x0, 0), max(x1 - W, 0))
+            if any(pads):
+                a = cv2.copyMakeBorder(np.ascontiguousarray(a), *pads, cv2.BORDER_REPLICATE)
+        out[n] = cv2.resize(np.ascontiguousarray(a), (size, size),
+                            interpolation=cv2.INTER_AREA if side > size else cv2.INTER_LINEAR)
+    return out
+
+
+def to_window(boxes: np.ndarray, windows: np.ndarray) -> np.ndarray:
+    """(N, 4) renderer boxes (px) -> window units of their (N, 3) windows."""
+    boxes, windows = np.asarray(boxes, float), np.asarray(windows, float)
+    origin = np.concatenate([windows[:, :2], windows[:, :2]], axis=-1)
+    return (boxes + 0.5 - origin) / windows[:, 2:3]
+
+
+def from_window(boxes: np.ndarray, windows: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`to_window`."""
+    boxes, windows = np.asarray(boxes, float), np.asarray(windows, float)
+    origin = np.concatenate([windows[:, :2], windows[:, :2]], axis=-1)
+    return boxes * windows[:, 2:3] + origin - 0.5
+
+
+def mirror_window_boxes(boxes):
+    """Window-unit boxes of the horizontally mirrored windows."""
+    return jnp.stack([1.0 - boxes[..., 2], boxes[..., 1], 1.0 - boxes[..., 0], boxes[..., 3]], axis=-1)
+
+
+def apply(model: RefineNet, params, windows_u8, prior, flip: bool = False):
+    """Probabilities (N,) and boxes (N, 4) in window units of ``windows_u8`` (N, S, S, 3) uint8
+    whose candidates are ``prior`` (N, 4) window units. ``flip``: also run on the mirrored
+    windows and average the two passes' probabilities and boxes."""
+    from mysim_jax.perception.detect.model import normalise
+
+    out = model.apply({"params": params}, normalise(windows_u8))
+    p = jax.nn.sigmoid(out[:, 0])
+    box = prior + out[:, 1:]
+    if flip:
+        m = model.apply({"params": params}, normalise(windows_u8[:, :, ::-1]))
+        p = 0.5 * (p + jax.nn.sigmoid(m[:, 0]))
+        box = 0.5 * (box + mirror_window_boxes(mirror_window_boxes(prior) + m[:, 1:]))
+    return p, box
+
+
+# --- labels and loss --------------------------------------------------------------------------
+
+
+def sample_labels(candidates: np.ndarray, truth: list) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Labels of one frame's (N, 4) candidate boxes against its ground truth [(box, ignore)]:
+    (N,) label 1 / 0, (N,) weight 1 / 0 (no label), (N, 4) target box (px; the candidate's own
+    where there is none). See the module doc."""
+    from mysim_jax.perception.detect.metrics import iou
+
+    n = len(candidates)
+    label, weight = np.zeros(n, np.float32), np.ones(n, np.float32)
+    target = np.asarray(candidates, float).copy()
+    for k, c in enumerate(candidates):
+        for box, ignore in truth:
+            o = iou(c, box)
+            if ignore:
+                if o > IGNORE_IOU:
+                    weight[k] = 0.0
+            elif o >= POS_IOU:
+                label[k], target[k] = 1.0, box
+            elif o > IGNORE_IOU:
+                weight[k] = 0.0
+    return label, weight, target
+
+
+def loss_fn(params, model: RefineNet, windows_u8, prior, label, weight, target, box_weight: float):
+    """BCE of the target logit (where ``weight``) + ``box_weight`` x L1 of the edges (positives)."""
+    from mysim_jax.perception.detect.model import normalise
+
+    out = model.apply({"params": params}, normalise(windows_u8))
+    logit = out[:, 0]
+    bce = -(label * jax.nn.log_sigmoid(logit) + (1 - label) * jax.nn.log_sigmoid(-logit))
+    cls = jnp.sum(weight * bce) / jnp.maximum(jnp.sum(weight), 1.0)
+    pos = label * weight
+    l1 = jnp.sum(pos[:, None] * jnp.abs(prior + out[:, 1:] - target)) / jnp.maximum(jnp.sum(pos), 1.0)
+    return cls + box_weight * l1, dict(cls=cls, box=l1)
+
+
+# --- inference --------------------------------------------------------------------------------
+
+
+SCORES = ("refined", "geometric")    # how a detection's score is made; see the module doc
+
+
+@dataclass(frozen=True)
+class RefineSettings:
+    """The second stage's network and how it is applied (see the module doc)."""
+
+    widths: tuple[int, ...] = (24, 32, 48, 64, 96)   # channels at strides 1, 2, 4, 8, 16 of the window
+    hidden: int = 128                 # units of the dense layer
+    size: int = 64                    # px, side of the resized window
+    context: float = 2.5              # window side / the candidate's longer side
+    min_window_px: float = 16.0       # px, smallest window side (in the image)
+    candidate_min_score: float = 0.02     # first-stage candidates scoring below this are not looked at
+    max_candidates: int = 16          # per image, best first
+    flip_test: bool = True            # also look at the mirrored window and average
+    score: str = "geometric"          # "refined": the second stage's probability; "geometric": sqrt(p1 * p2)
+
+    def __post_init__(self):
+        if self.score not in SCORES:
+            raise ValueError(f"refine score {self.score!r}: one of {', '.join(SCORES)}")
+
+    def to_dict(self) -> dict:
+        return dict(widths=list(self.widths), hidden=self.hidden, size=self.size, context=self.context,
+                    min_window_px=self.min_window_px, candidate_min_score=self.candidate_min_score,
+                    max_candidates=self.max_candidates, flip_test=self.flip_test, score=self.score)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "RefineSettings":
+        return cls(widths=tuple(int(w) for w in d["widths"]), hidden=int(d["hidden"]), size=int(d["size"]),
+                   context=float(d["context"]), min_window_px=float(d["min_window_px"]),
+                   candidate_min_score=float(d["candidate_min_score"]), max_candidates=int(d["max_candidates"]),
+                   flip_test=bool(d["flip_test"]), score=str(d.get("score", "refined")))
+
+
+BUCKET = 16     # windows are refined in batches padded to a multiple of this (few compiled shapes)
+
+
+class Refiner:
+    """The second stage with its parameters: ``refine(images, candidates)``."""
+
+    def __init__(self, params, settings: RefineSettings = RefineSettings()):
+        self.params = params
+        self.settings = settings
+        self.model = RefineNet(widths=tuple(settings.widths), hidden=settings.hidden)
+        self._apply = jax.jit(partial(apply, self.model, flip=settings.flip_test))
+
+    def windows(self, boxes: np.ndarray) -> np.ndarray:
+        s = self.settings
+        return windows_of(boxes, s.context, s.min_window_px)
+
+    def refine(self, images: list[np.ndarray], candidates: list[list]) -> list[list]:
+        """Per image, its candidates (Detections, best first) looked at again: Detections with
+        the second stage's box and score (``settings.score``), best first, before suppression."""
+        from mysim_jax.perception.detect import Detection
+
+        s = self.settings
+        picked = [c[: s.max_candidates] for c in candidates]
+        owner = [i for i, c in enumerate(picked) for _ in c]
+        if not owner:
+            return [[] for _ in images]
+        boxes = np.array([d.box for c in picked for d in c], float)
+        first = np.array([d.score for c in picked for d in c], float)
+        windows = self.windows(boxes)
+        owner = np.asarray(owner)                         # image of each candidate, in order
+        cut = np.concatenate([cut_windows(images[i], windows[owner == i], s.size) for i in np.unique(owner)])
+        prior = to_window(boxes, windows)
+        n = len(owner)
+        pad = -n % BUCKET
+        if pad:
+            cut = np.concatenate([cut, np.zeros((pad,) + cut.shape[1:], np.uint8)])
+            prior = np.concatenate([prior, np.tile([[0.3, 0.3, 0.7, 0.7]], (pad, 1))])
+        p, box = self._apply(self.params, cut, prior.astype(np.float32))
+        p, box = np.asarray(p[:n], float), from_window(np.asarray(box[:n], float), windows)
+        if s.score == "geometric":
+            p = np.sqrt(p * first)
+        out = [[] for _ in images]
+        for k in range(n):
+            b = box[k]
+            if b[2] > b[0] and b[3] > b[1]:
+                out[owner[k]].append(Detection(box=b, score=float(p[k])))
+        return [sorted(d, key=lambda x: -x.score) for d in out]

@@ -1,0 +1,186 @@
+"""Training of the detector's second stage (:mod:`~mysim_jax.perception.detect.refine`).
+
+The second stage learns from what the first stage proposes: :func:`collect_candidates` runs
+the trained first stage over training frames and keeps every candidate box scoring at least
+``refine.candidate_min_score`` (a cached file per frames and weights, as the frames are).
+Each training sample (:func:`make_sample`) is then one window:
+
+* a candidate that is a positive (:func:`~mysim_jax.perception.detect.refine.sample_labels`),
+  with probability ``p_positive``;
+* the frame's counted target box moved and resized at random (``synthetic_jitter``: the
+  standard deviation of the shift, in box sides, and of the log of each side's scale), with
+  probability ``p_synthetic``, so the second stage also sees candidates the first stage
+  placed worse than it usually does;
+* otherwise a candidate that is not (a negative).
+
+Every chosen box is jittered a little more (``jitter``) and labelled again against the
+frame's ground truth; the window is cut around it, at a random lower resolution with
+probability ``p_low_res`` (as if the target were up to ``low_res_max`` times farther: the
+window is cut at that many times fewer pixels and enlarged back), mirrored with probability
+0.5, and given the first stage's photometric augmentation (``train.gamma``,
+``train.photometric``, ...).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from mysim_jax.perception.detect.config import DetectorConfig
+
+
+def collect_candidates(detector, images, floor: float, progress: bool = True, name: str = "") -> list[list]:
+    """Per frame, the first stage's candidates: [(box (4,) px, score)] scoring >= ``floor``, best first."""
+    from tqdm.auto import tqdm
+
+    out = []
+    for i in tqdm(range(len(images)), desc=f"candidates {name}", unit="frame", disable=not progress):
+        dets = detector.detect(np.asarray(images[i]), min_score=floor)
+        out.append([([float(x) for x in d.box], float(d.score)) for d in dets])
+    return out
+
+
+def cached_candidates(detector, weights_bytes: bytes, images, set_key: str, floor: float, folder: Path,
+                      progress: bool = True, name: str = "train") -> list[list]:
+    """:func:`collect_candidates`, read from ``folder`` if it holds them for these weights,
+    frames (``set_key``) and floor, else computed and written there (``name``: of the frames,
+    for the progress bar)."""
+    key = hashlib.sha1(weights_bytes + repr((set_key, floor, detector.pyramid, detector.pyramid_band_px,
+                                             detector.flip_test, detector.input_width)).encode()).hexdigest()[:12]
+    path = Path(folder) / f"candidates_{key}.json"
+    if path.is_file():
+        return json.loads(path.read_text())
+    cands = collect_candidates(detector, images, floor, progress=progress, name=name)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".part")
+    tmp.write_text(json.dumps(cands))
+    tmp.rename(path)
+    return cands
+
+
+def _jitter(box: np.ndarray, sigma: float, rng: np.random.Generator) -> np.ndarray:
+    """``box`` (px) shifted by N(0, sigma) box sides and each side scaled by exp(N(0, sigma))."""
+    e = np.asarray(box, float) + 0.5
+    w, h = max(e[2] - e[0], 1.0), max(e[3] - e[1], 1.0)
+    cx = (e[0] + e[2]) / 2 + rng.normal(0, sigma) * w
+    cy = (e[1] + e[3]) / 2 + rng.normal(0, sigma) * h
+    w, h = w * np.exp(rng.normal(0, sigma)), h * np.exp(rng.normal(0, sigma))
+    return np.array([cx - w / 2, cy - h / 2, cx + w / 2, cy + h / 2]) - 0.5
+
+
+class SamplePool:
+    """The training frames' candidates sorted into positives and negatives (unjittered)."""
+
+    def __init__(self, labels: list[dict], candidates: list[list]):
+        from mysim_jax.perception.detect.refine import sample_labels
+        from mysim_jax.perception.detect.train import truths
+
+        self.truths = truths(labels)
+        self.positives, self.negatives = [], []
+        for i, (cands, truth) in enumerate(zip(candidates, self.truths)):
+            if not cands:
+                continue
+            lab, wt, _ = sample_labels(np.array([c[0] for c in cands], float), truth)
+            for k in range(len(cands)):
+                if wt[k] > 0:
+                    (self.positives if lab[k] else self.negatives).append((i, k))
+        self.counted = [i for i, t in enumerate(self.truths) if any(not ign for _, ign in t)]
+        self.candidates = candidates
+
+    def __repr__(self) -> str:
+        return (f"SamplePool({len(self.positives)} positives, {len(self.negatives)} negatives, "
+                f"{len(self.counted)} frames with a counted target)")
+
+
+def make_sample(images, pool: SamplePool, cfg: DetectorConfig, rng: np.random.Generator):
+    """One training window: (S, S, 3) uint8, prior (4,) and target (4,) window units, label, weight."""
+    from mysim_jax.perception.detect.refine import RefineSettings, sample_labels, to_window, windows_of
+    from mysim_jax.perception.detect.train import photometric
+
+    r = cfg.refine
+    u = rng.random()
+    if u < r.p_synthetic and pool.counted:
+        i = pool.counted[rng.integers(len(pool.counted))]
+        box = next(np.asarray(b, float) for b, ign in pool.truths[i] if not ign)
+        box = _jitter(box, r.synthetic_jitter, rng)
+    else:
+        group = pool.positives if (u < r.p_synthetic + r.p_positive and pool.positives) or not pool.negatives \
+            else pool.negatives
+        i, k = group[rng.integers(len(group))]
+        box = np.asarray(pool.candidates[i][k][0], float)
+    box = _jitter(box, r.jitter, rng)
+    label, weight, target = sample_labels(box[None], pool.truths[i])
+    settings = RefineSettings(size=r.size, context=r.context, min_window_px=r.min_window_px)
+    window = windows_of(box[None], settings.context, settings.min_window_px)
+    image = np.asarray(images[i])
+    side = int(window[0, 2])
+    res = r.size
+    if rng.random() < r.p_low_res:
+        f = float(np.exp(rng.uniform(0.0, np.log(r.low_res_max))))
+        res = int(np.clip(round(min(side, r.size) / f), 4, r.size))
+    from mysim_jax.perception.detect.refine import cut_windows
+
+    cut = cut_windows(image, window, res)[0]
+    if res != r.size:
+        cut = cv2.resize(cut, (r.size, r.size), interpolation=cv2.INTER_LINEAR)
+    prior, tgt = to_window(box[None], window)[0], to_window(target, window)[0]
+    if rng.random() < 0.5:
+        cut = np.ascontiguousarray(cut[:, ::-1])
+        prior = np.array([1 - prior[2], prior[1], 1 - prior[0], prior[3]])
+        tgt = np.array([1 - tgt[2], tgt[1], 1 - tgt[0], tgt[3]])
+    return photometric(cut, cfg.train, rng), prior, tgt, float(label[0]), float(weight[0])
+
+
+def batch_of(images, pool: SamplePool, cfg: DetectorConfig, rng: np.random.Generator):
+    samples = [make_sample(images, pool, cfg, rng) for _ in range(cfg.refine.batch_size)]
+    cut, prior, target, label, weight = zip(*samples)
+    return (np.stack(cut), np.array(prior, np.float32), np.array(target, np.float32), np.array(label, np.float32),
+            np.array(weight, np.float32))
+
+
+def train_refiner(cfg: DetectorConfig, images, pool: SamplePool, progress: bool = True, log=None, params=None):
+    """Train the second stage from scratch (or from ``params``); returns (params, [(step, loss)])."""
+    import jax
+    import optax
+    from tqdm.auto import tqdm
+
+    from mysim_jax.perception.detect.refine import RefineNet, loss_fn
+    from mysim_jax.perception.detect.train import _prefetch
+
+    r = cfg.refine
+    model = RefineNet(widths=tuple(r.widths), hidden=r.hidden)
+    if params is None:
+        params = model.init(jax.random.PRNGKey(r.seed), np.zeros((1, r.size, r.size, 3), np.float32))["params"]
+    warmup = max(min(r.warmup_steps, r.steps - 1), 1)
+    schedule = optax.warmup_cosine_decay_schedule(0.0, r.learning_rate, warmup, max(r.steps, warmup + 1),
+                                                  end_value=0.02 * r.learning_rate)
+    opt = optax.chain(optax.clip_by_global_norm(5.0), optax.adamw(schedule, weight_decay=r.weight_decay))
+    opt_state = opt.init(params)
+
+    @jax.jit
+    def step(params, opt_state, cut, prior, target, label, weight):
+        (loss, parts), grads = jax.value_and_grad(loss_fn, has_aux=True)(params, model, cut, prior, label, weight,
+                                                                         target, r.box_weight)
+        updates, opt_state = opt.update(grads, opt_state, params)
+        return optax.apply_updates(params, updates), opt_state, loss, parts
+
+    rng = np.random.default_rng(r.seed)
+    history, running = [], None
+    bar = tqdm(range(r.steps), desc="train refiner", unit="step", disable=not progress)
+    batches = _prefetch(lambda: batch_of(images, pool, cfg, rng), r.steps)
+    for k in bar:
+        params, opt_state, loss, parts = step(params, opt_state, *next(batches))
+        loss = float(loss)
+        if not np.isfinite(loss):
+            raise FloatingPointError(f"refiner training loss became {loss} at step {k}; lower refine.learning_rate")
+        running = loss if running is None else 0.95 * running + 0.05 * loss
+        history.append((k, loss))
+        if k % 20 == 0:
+            bar.set_postfix(loss=f"{running:.3f}", cls=f"{float(parts['cls']):.3f}", box=f"{float(parts['box']):.4f}")
+            if log is not None:
+                log(k, loss, {key: float(v) for key, v in parts.items()})
+    return params, history
