@@ -26,7 +26,8 @@ second stage is trained:
         --out runs/detector_refine
 
 ``--eval-seed N`` draws the evaluation frames with seed N instead of ``data.seed`` (fresh frames
-of the same splits; the training frames keep ``data.seed``).
+of the same splits; the training frames keep ``data.seed``); ``--eval-images N`` makes each
+evaluation set N frames instead of ``data.eval_images`` (a larger draw, a tighter estimate).
 
 A bad config (unknown keys, negative sizes, zero images, ...) or an unusable OUT is a
 one-line-per-problem error and exit code 2 before anything is rendered or compiled.
@@ -51,6 +52,8 @@ def main(argv=None) -> int:
                         "config's model.widths) instead of a random init")
     parser.add_argument("--eval-seed", type=int, help="seed of the evaluation frames (default: the config's "
                         "data.eval_seed, else data.seed)")
+    parser.add_argument("--eval-images", type=int, help="frames per evaluation set (default: the config's "
+                        "data.eval_images)")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bars")
     args = parser.parse_args(argv)
 
@@ -64,6 +67,10 @@ def main(argv=None) -> int:
             if args.eval_seed < 0:
                 raise ConfigError(f"--eval-seed {args.eval_seed}: a seed is a whole number >= 0")
             cfg = cfg.model_copy(update={"data": cfg.data.model_copy(update={"eval_seed": args.eval_seed})})
+        if args.eval_images is not None:
+            if args.eval_images < 1:
+                raise ConfigError(f"--eval-images {args.eval_images}: give at least 1 frame per evaluation set")
+            cfg = cfg.model_copy(update={"data": cfg.data.model_copy(update={"eval_images": args.eval_images})})
         out = check_output_dir(args.out)
         cache = None if args.cache is None else check_output_dir(args.cache, flag="--cache")
         if args.weights is not None:

@@ -246,10 +246,14 @@ def test_script_trains_and_evaluates_both_stages_on_a_tiny_config(tmp_path, caps
     cfg.write_text(TINY_REFINE.replace("candidate_min_score: 0.01,", "candidate_min_score: 0.5, score: refined,"))
     again = tmp_path / "eval"
     assert module.main([str(cfg), "--out", str(again), "--weights", str(out / "detector.msgpack"), "--no-progress",
-                        "--cache", str(out / "cache")]) == 0
-    assert json.loads((again / "metrics.json").read_text())["refine"] is True
+                        "--cache", str(out / "cache"), "--eval-images", "2"]) == 0
+    evaluated = json.loads((again / "metrics.json").read_text())
+    assert evaluated["refine"] is True and evaluated["cnn/held_out"]["n_images"] == 2
 
     cfg.write_text(TINY_REFINE.replace("steps: 2,", "steps: 0,"))
     capsys.readouterr()
     assert module.main([str(cfg), "--out", str(tmp_path / "none"), "--no-progress"]) == 2
     assert "train.steps is 0" in capsys.readouterr().err and not (tmp_path / "none").exists()
+    assert module.main([str(cfg), "--out", str(tmp_path / "none"), "--weights", str(out / "detector.msgpack"),
+                        "--eval-images", "0"]) == 2
+    assert "--eval-images 0" in capsys.readouterr().err and not (tmp_path / "none").exists()
