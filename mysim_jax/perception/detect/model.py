@@ -44,8 +44,9 @@ the network's work.
 Second stage (``refiner``, :mod:`~mysim_jax.perception.detect.refine`). With one, the
 network above only proposes: its merged boxes scoring at least the refiner's
 ``candidate_min_score`` are each looked at again in a window scaled to a fixed size, and the
-detections are the second stage's boxes and probabilities, merged by non-maximum
-suppression (IoU ``PYRAMID_NMS_IOU``) and cut at the score floor.
+detections are the second stage's boxes with its scores (by default the geometric mean of
+both stages' probabilities), merged by non-maximum suppression (IoU ``PYRAMID_NMS_IOU``)
+and cut at the score floor.
 """
 
 from __future__ import annotations
