@@ -592,6 +592,15 @@ def test_train_p_occluder_changes_the_training_frames_only():
     ({"train": {"size_weight": -1.0}}, "train.size_weight"),
     ({"data": {"train_p_occluder": 1.5}}, "data.train_p_occluder"),
     ({"train": {"hidden_weight": -0.5}}, "train.hidden_weight"),
+    ({"refine": {"score": "max"}}, "refine.score"),
+    ({"refine": {"size": 40}}, "refine.size"),
+    ({"refine": {"context": 0.5}}, "refine.context"),
+    ({"refine": {"candidate_min_score": 0.0}}, "refine.candidate_min_score"),
+    ({"refine": {"p_positive": 0.8, "p_synthetic": 0.4}}, "p_positive \\+ p_synthetic"),
+    ({"refine": {"steps": 0}}, "refine.steps"),
+    ({"refine": {"widths": [8]}}, "refine.widths"),
+    ({"refine": {"colour": 1}}, "refine.colour: unknown key"),
+    ({"train": {"steps": -1}}, "train.steps"),
 ])
 def test_config_errors(raw, message):
     with pytest.raises(ConfigError, match=message):

@@ -1,14 +1,13 @@
 """The detector's second stage (mysim_jax/perception/detect/refine.py, refine_train.py):
 windows against hand-placed pixels, labels by hand, learning on a few steps, the two-stage
-detector's interface, files and config errors."""
+detector's interface and files, and the training script on a tiny config (the refine: config errors are
+in test_detector.py's test_config_errors)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from mysim_jax.config_base import ConfigError
-from mysim_jax.perception.detect.config import config_from_dict
 from mysim_jax.perception.detect.refine import (IGNORE_IOU, POS_IOU, cut_windows, from_window, sample_labels,
                                                 to_window, windows_of)
 
@@ -186,39 +185,12 @@ def test_geometric_score_is_the_mean_of_both_stages():
         assert g.score != pytest.approx(r.score, rel=1e-3)
 
 
-@pytest.mark.parametrize("raw, message", [
-    ({"refine": {"score": "max"}}, "refine.score"),
-    ({"refine": {"size": 40}}, "refine.size"),
-    ({"refine": {"context": 0.5}}, "refine.context"),
-    ({"refine": {"candidate_min_score": 0.0}}, "refine.candidate_min_score"),
-    ({"refine": {"p_positive": 0.8, "p_synthetic": 0.4}}, "p_positive \\+ p_synthetic"),
-    ({"refine": {"steps": 0}}, "refine.steps"),
-    ({"refine": {"widths": [8]}}, "refine.widths"),
-    ({"refine": {"colour": 1}}, "refine.colour: unknown key"),
-    ({"train": {"steps": -1}}, "train.steps"),
-])
-def test_refine_config_errors(raw, message):
-    with pytest.raises(ConfigError, match=message):
-        config_from_dict(raw)
-
-
 TINY_REFINE = ("data: {width: 160, height: 90, train_images: 4, eval_images: 3, workers: 1}\n"
                "model: {widths: [4, 4, 4, 4, 4], input_width: 128}\n"
                "train: {steps: 2, batch_size: 2, crop: 64, warmup_steps: 1}\n"
                "refine: {steps: 3, batch_size: 4, widths: [4, 4, 4], hidden: 8, size: 32, candidate_min_score: 0.01,"
                " warmup_steps: 1}\n"
                "eval: {n_examples: 0}\n")
-
-
-def _train_script():
-    import importlib.util
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parents[1] / "scripts" / "train_detector.py"
-    spec = importlib.util.spec_from_file_location("train_detector", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def test_script_trains_and_evaluates_both_stages_on_a_tiny_config(tmp_path, capsys):
@@ -229,6 +201,7 @@ def test_script_trains_and_evaluates_both_stages_on_a_tiny_config(tmp_path, caps
     import json
 
     from mysim_jax.perception.detect import load_detector
+    from test_detector import _train_script
 
     module = _train_script()
     cfg = tmp_path / "tiny.yaml"

@@ -118,7 +118,7 @@ def from_window(boxes: np.ndarray, windows: np.ndarray) -> np.ndarray:
 
 def mirror_window_boxes(boxes):
     """Window-unit boxes of the horizontally mirrored windows."""
-    return jnp.stack([1.0 - boxes[..., 2], boxes[..., 1], 1.0 - boxes[..., 0], boxes[..., 3]], axis=-1)
+    return boxes[..., [2, 1, 0, 3]] * np.array([-1.0, 1.0, -1.0, 1.0]) + np.array([1.0, 0.0, 1.0, 0.0])
 
 
 def apply(model: RefineNet, params, windows_u8, prior, flip: bool = False):

@@ -98,7 +98,7 @@ class SamplePool:
 
 def make_sample(images, pool: SamplePool, cfg: DetectorConfig, rng: np.random.Generator):
     """One training window: (S, S, 3) uint8, prior (4,) and target (4,) window units, label, weight."""
-    from mysim_jax.perception.detect.refine import RefineSettings, sample_labels, to_window, windows_of
+    from mysim_jax.perception.detect.refine import cut_windows, mirror_window_boxes, sample_labels, to_window, windows_of
     from mysim_jax.perception.detect.train import photometric
 
     r = cfg.refine
@@ -114,24 +114,20 @@ def make_sample(images, pool: SamplePool, cfg: DetectorConfig, rng: np.random.Ge
         box = np.asarray(pool.candidates[i][k][0], float)
     box = _jitter(box, r.jitter, rng)
     label, weight, target = sample_labels(box[None], pool.truths[i])
-    settings = RefineSettings(size=r.size, context=r.context, min_window_px=r.min_window_px)
-    window = windows_of(box[None], settings.context, settings.min_window_px)
+    window = windows_of(box[None], r.context, r.min_window_px)
     image = np.asarray(images[i])
     side = int(window[0, 2])
     res = r.size
     if rng.random() < r.p_low_res:
         f = float(np.exp(rng.uniform(0.0, np.log(r.low_res_max))))
         res = int(np.clip(round(min(side, r.size) / f), 4, r.size))
-    from mysim_jax.perception.detect.refine import cut_windows
-
     cut = cut_windows(image, window, res)[0]
     if res != r.size:
         cut = cv2.resize(cut, (r.size, r.size), interpolation=cv2.INTER_LINEAR)
     prior, tgt = to_window(box[None], window)[0], to_window(target, window)[0]
     if rng.random() < 0.5:
         cut = np.ascontiguousarray(cut[:, ::-1])
-        prior = np.array([1 - prior[2], prior[1], 1 - prior[0], prior[3]])
-        tgt = np.array([1 - tgt[2], tgt[1], 1 - tgt[0], tgt[3]])
+        prior, tgt = mirror_window_boxes(prior), mirror_window_boxes(tgt)
     return photometric(cut, cfg.train, rng), prior, tgt, float(label[0]), float(weight[0])
 
 
@@ -146,10 +142,9 @@ def train_refiner(cfg: DetectorConfig, images, pool: SamplePool, progress: bool 
     """Train the second stage from scratch (or from ``params``); returns (params, [(step, loss)])."""
     import jax
     import optax
-    from tqdm.auto import tqdm
 
     from mysim_jax.perception.detect.refine import RefineNet, loss_fn
-    from mysim_jax.perception.detect.train import _prefetch
+    from mysim_jax.perception.detect.train import _prefetch, run_steps
 
     r = cfg.refine
     model = RefineNet(widths=tuple(r.widths), hidden=r.hidden)
@@ -169,18 +164,6 @@ def train_refiner(cfg: DetectorConfig, images, pool: SamplePool, progress: bool 
         return optax.apply_updates(params, updates), opt_state, loss, parts
 
     rng = np.random.default_rng(r.seed)
-    history, running = [], None
-    bar = tqdm(range(r.steps), desc="train refiner", unit="step", disable=not progress)
     batches = _prefetch(lambda: batch_of(images, pool, cfg, rng), r.steps)
-    for k in bar:
-        params, opt_state, loss, parts = step(params, opt_state, *next(batches))
-        loss = float(loss)
-        if not np.isfinite(loss):
-            raise FloatingPointError(f"refiner training loss became {loss} at step {k}; lower refine.learning_rate")
-        running = loss if running is None else 0.95 * running + 0.05 * loss
-        history.append((k, loss))
-        if k % 20 == 0:
-            bar.set_postfix(loss=f"{running:.3f}", cls=f"{float(parts['cls']):.3f}", box=f"{float(parts['box']):.4f}")
-            if log is not None:
-                log(k, loss, {key: float(v) for key, v in parts.items()})
-    return params, history
+    return run_steps(step, params, opt_state, batches, r.steps, "train refiner", "refine.learning_rate",
+                     ("cls", "box"), progress=progress, log=log)

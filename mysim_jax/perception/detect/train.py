@@ -301,35 +301,43 @@ def _prefetch(make, n: int, depth: int = 2):
         stop.set()
 
 
+def run_steps(step, params, opt_state, batches, steps: int, desc: str, rate_key: str, shown: tuple[str, ...],
+              progress: bool = True, log=None):
+    """The training loop of both stages: ``params, opt_state, loss, parts = step(params,
+    opt_state, *batch)`` for each of ``steps`` batches (an iterator of tuples), a progress bar
+    showing the running loss and the ``shown`` parts, ``log(step, loss, parts)`` every 20
+    steps. A non-finite loss stops it with an error naming ``rate_key``. Returns (params,
+    [(step, loss)])."""
+    from tqdm.auto import tqdm
+
+    history, running = [], None
+    bar = tqdm(range(steps), desc=desc, unit="step", disable=not progress)
+    for k in bar:
+        params, opt_state, loss, parts = step(params, opt_state, *next(batches))
+        loss = float(loss)
+        if not np.isfinite(loss):
+            raise FloatingPointError(f"{desc}: the loss became {loss} at step {k}; lower {rate_key}")
+        running = loss if running is None else 0.95 * running + 0.05 * loss
+        history.append((k, loss))
+        if k % 20 == 0:
+            bar.set_postfix(loss=f"{running:.3f}", **{key: f"{float(parts[key]):.4f}" for key in shown})
+            if log is not None:
+                log(k, loss, {key: float(v) for key, v in parts.items()})
+    return params, history
+
+
 def train(cfg: DetectorConfig, images, labels, progress: bool = True, steps: int | None = None, log=None,
           params=None):
     """Train from scratch, or from ``params`` (fine-tuning); returns (params, loss history as a
     list of (step, loss))."""
-    from tqdm.auto import tqdm
-
     _, opt, step = make_trainer(cfg)
     params = init_params(cfg) if params is None else params
-    opt_state = opt.init(params)
     rng = np.random.default_rng(cfg.train.seed)
     n = len(labels)
     steps = cfg.train.steps if steps is None else steps
-    history = []
-    bar = tqdm(range(steps), desc="train detector", unit="step", disable=not progress)
-    running = None
     batches = _prefetch(lambda: batch_of(images, labels, rng.integers(0, n, cfg.train.batch_size), cfg, rng), steps)
-    for k in bar:
-        x, tg = next(batches)
-        params, opt_state, loss, parts = step(params, opt_state, x, tg)
-        loss = float(loss)
-        if not np.isfinite(loss):
-            raise FloatingPointError(f"training loss became {loss} at step {k}; lower train.learning_rate")
-        running = loss if running is None else 0.95 * running + 0.05 * loss
-        history.append((k, loss))
-        if k % 20 == 0:
-            bar.set_postfix(loss=f"{running:.3f}", focal=f"{float(parts['focal']):.3f}")
-            if log is not None:
-                log(k, loss, {key: float(v) for key, v in parts.items()})
-    return params, history
+    return run_steps(step, params, opt.init(params), batches, steps, "train detector", "train.learning_rate",
+                     ("focal",), progress=progress, log=log)
 
 
 def refine_settings(cfg: DetectorConfig):
