@@ -598,6 +598,7 @@ def test_train_p_occluder_changes_the_training_frames_only():
     ({"refine": {"candidate_min_score": 0.0}}, "refine.candidate_min_score"),
     ({"refine": {"p_positive": 0.8, "p_synthetic": 0.4}}, "p_positive \\+ p_synthetic"),
     ({"refine": {"steps": 0}}, "refine.steps"),
+    ({"refine": {"members": 0}}, "refine.members"),
     ({"refine": {"widths": [8]}}, "refine.widths"),
     ({"refine": {"colour": 1}}, "refine.colour: unknown key"),
     ({"train": {"steps": -1}}, "train.steps"),

@@ -70,15 +70,15 @@ def test_labels_by_hand():
     np.testing.assert_array_equal(weight, [1, 1, 1, 1])
 
 
-def _tiny_refiner(seed: int = 0, flip: bool = True, score: str = "geometric"):
+def _tiny_refiner(seed: int = 0, flip: bool = True, score: str = "geometric", members: int = 1):
     import jax
 
     from mysim_jax.perception.detect.refine import RefineNet, Refiner, RefineSettings
 
-    settings = RefineSettings(widths=(4, 8, 8), hidden=8, size=32, flip_test=flip, score=score)
-    params = RefineNet(widths=settings.widths, hidden=settings.hidden).init(
-        jax.random.PRNGKey(seed), np.zeros((1, 32, 32, 3), np.float32))["params"]
-    return Refiner(params, settings)
+    settings = RefineSettings(widths=(4, 8, 8), hidden=8, size=32, flip_test=flip, score=score, members=members)
+    net = RefineNet(widths=settings.widths, hidden=settings.hidden)
+    return Refiner([net.init(jax.random.PRNGKey(seed + k), np.zeros((1, 32, 32, 3), np.float32))["params"]
+                    for k in range(members)], settings)
 
 
 def test_refiner_flip_test_is_mirror_symmetric():
@@ -92,12 +92,12 @@ def test_refiner_flip_test_is_mirror_symmetric():
     rng = np.random.default_rng(0)
     windows = rng.integers(0, 255, (5, 32, 32, 3)).astype(np.uint8)
     prior = np.tile(np.array([[0.3, 0.35, 0.7, 0.6]], np.float32), (5, 1))
-    p, box = apply(refiner.model, refiner.params, windows, prior, flip=True)
-    pm, boxm = apply(refiner.model, refiner.params, windows[:, :, ::-1], np.asarray(mirror_window_boxes(prior)),
+    p, box = apply(refiner.model, refiner.members[0], windows, prior, flip=True)
+    pm, boxm = apply(refiner.model, refiner.members[0], windows[:, :, ::-1], np.asarray(mirror_window_boxes(prior)),
                      flip=True)
     np.testing.assert_allclose(p, pm, atol=1e-6)
     np.testing.assert_allclose(box, mirror_window_boxes(boxm), atol=1e-6)
-    p1, _ = apply(refiner.model, refiner.params, windows, prior, flip=False)
+    p1, _ = apply(refiner.model, refiner.members[0], windows, prior, flip=False)
     assert not np.allclose(p1, p)       # the flip test does change the answer of an asymmetric network
     assert jax.numpy.all((p >= 0) & (p <= 1))
 
@@ -138,16 +138,17 @@ def test_a_few_refiner_steps_lower_the_loss():
 
 
 def test_two_stage_detector_saves_loads_and_scores_by_the_second_stage(tmp_path):
-    """A detector with a second stage: its detections are the second stage's (scores and boxes
-    of :meth:`Refiner.refine` on the first stage's candidates, suppressed, above the floor);
-    saved and loaded it gives the same detections; a file without one loads without one."""
+    """A detector with a second stage (of two networks): its detections are the second stage's
+    (scores and boxes of :meth:`Refiner.refine` on the first stage's candidates, suppressed,
+    above the floor); saved and loaded it gives the same detections; a file without one loads
+    without one."""
     import jax
 
     from mysim_jax.perception.detect.model import CenterNet, CNNDetector, _suppress
 
     params = CenterNet(widths=(4, 4, 4, 4, 4)).init(jax.random.PRNGKey(0), np.zeros((1, 64, 64, 3), np.float32))["params"]
     first = CNNDetector(params=params, widths=(4, 4, 4, 4, 4), input_width=128, min_score=0.0)
-    refiner = _tiny_refiner()
+    refiner = _tiny_refiner(members=2)
     two = CNNDetector(params=params, widths=(4, 4, 4, 4, 4), input_width=128, min_score=0.0, refiner=refiner)
     image = np.random.default_rng(1).integers(0, 255, (72, 128, 3)).astype(np.uint8)
     floor = refiner.settings.candidate_min_score
@@ -159,6 +160,7 @@ def test_two_stage_detector_saves_loads_and_scores_by_the_second_stage(tmp_path)
     assert all(np.allclose(a.box, b.box) and a.score == pytest.approx(b.score) for a, b in zip(got, expected))
     loaded = CNNDetector.load(two.save(tmp_path / "two.msgpack"))
     assert loaded.refiner is not None and loaded.refiner.settings == refiner.settings
+    assert len(loaded.refiner.members) == 2
     again = loaded.detect(image, min_score=0.1)
     assert all(np.allclose(a.box, b.box, atol=1e-4) and a.score == pytest.approx(b.score, abs=1e-5)
                for a, b in zip(again, got)) and len(again) == len(got)
@@ -185,11 +187,40 @@ def test_geometric_score_is_the_mean_of_both_stages():
         assert g.score != pytest.approx(r.score, rel=1e-3)
 
 
+def test_an_ensemble_averages_its_networks():
+    """A second stage of two networks gives each candidate the mean of the probabilities and
+    boxes the two networks give alone; a list of the wrong length is refused."""
+    from dataclasses import replace
+
+    from mysim_jax.perception.camera import PerceptionError
+    from mysim_jax.perception.detect import Detection
+    from mysim_jax.perception.detect.refine import Refiner
+
+    rng = np.random.default_rng(4)
+    image = rng.integers(0, 255, (60, 90, 3)).astype(np.uint8)
+    candidates = [Detection(box=np.array([10.0, 12.0, 30.0, 28.0]), score=0.64),
+                  Detection(box=np.array([50.0, 5.0, 58.0, 14.0]), score=0.09)]
+    both = _tiny_refiner(seed=5, score="refined", members=2)
+    alone = [Refiner([m], replace(both.settings, members=1)) for m in both.members]
+    mean = both.refine([image], [candidates])[0]
+    each = [r.refine([image], [candidates])[0] for r in alone]
+    assert len(mean) == len(each[0]) == len(each[1]) == 2
+    for cand in candidates:            # pair each output with its candidate by the box's centre
+        pick = lambda dets: min(dets, key=lambda d: np.abs(d.box - cand.box).sum())
+        m, a, b = pick(mean), pick(each[0]), pick(each[1])
+        assert m.score == pytest.approx(0.5 * (a.score + b.score), rel=1e-5) and a.score != pytest.approx(b.score)
+        np.testing.assert_allclose(m.box, 0.5 * (a.box + b.box), atol=1e-4)
+    with pytest.raises(PerceptionError, match="2 network"):
+        Refiner(both.members[:1], both.settings)
+    with pytest.raises(PerceptionError, match="one parameter tree"):
+        Refiner(both.members[0], alone[0].settings)
+
+
 TINY_REFINE = ("data: {width: 160, height: 90, train_images: 4, eval_images: 3, workers: 1}\n"
                "model: {widths: [4, 4, 4, 4, 4], input_width: 128}\n"
                "train: {steps: 2, batch_size: 2, crop: 64, warmup_steps: 1}\n"
                "refine: {steps: 3, batch_size: 4, widths: [4, 4, 4], hidden: 8, size: 32, candidate_min_score: 0.01,"
-               " warmup_steps: 1}\n"
+               " warmup_steps: 1, members: 2}\n"
                "eval: {n_examples: 0}\n")
 
 
@@ -199,6 +230,8 @@ def test_script_trains_and_evaluates_both_stages_on_a_tiny_config(tmp_path, caps
     ``--weights`` takes the config's inference settings; ``train.steps: 0`` without ``--init``
     is refused before any work."""
     import json
+
+    import jax
 
     from mysim_jax.perception.detect import load_detector
     from test_detector import _train_script
@@ -211,9 +244,11 @@ def test_script_trains_and_evaluates_both_stages_on_a_tiny_config(tmp_path, caps
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["refine_steps"] == 3 and np.isfinite(metrics["refine_final_loss"])
     log = json.loads((out / "train_log.json").read_text())
-    assert sum(r.get("stage") == "refine" for r in log) >= 1
+    assert {r["member"] for r in log if r.get("stage") == "refine"} == {0, 1}      # both networks trained
     det = load_detector(out / "detector.msgpack")
     assert det.refiner is not None and det.refiner.settings.size == 32 and det.refiner.settings.score == "geometric"
+    a, b = (np.concatenate([np.ravel(x) for x in jax.tree.leaves(m)]) for m in det.refiner.members)
+    assert a.shape == b.shape and not np.allclose(a, b)         # from seeds refine.seed and refine.seed + 1
     assert isinstance(det.detect(np.zeros((90, 160, 3), np.uint8), min_score=0.0), list)
 
     cfg.write_text(TINY_REFINE.replace("candidate_min_score: 0.01,", "candidate_min_score: 0.5, score: refined,"))

@@ -112,6 +112,7 @@ class RefineConfig(StrictModel):
     max_candidates: Annotated[int, Field(ge=1, le=100)] = 16            # per image, best first
     flip_test: bool = True               # also look at the mirrored window and average
     score: Literal["refined", "geometric"] = "geometric"   # detection score: p2, or sqrt(p1 * p2)
+    members: Annotated[int, Field(ge=1, le=8)] = 1   # networks averaged, trained with seeds seed, seed + 1, ...
     # training
     steps: PosInt = 4000
     batch_size: PosInt = 64

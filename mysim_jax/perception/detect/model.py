@@ -332,8 +332,9 @@ class CNNDetector:
                                refine=None if self.refiner is None else self.refiner.settings.to_dict()))
         as_np = lambda tree: jax.tree.map(lambda a: np.asarray(a, np.float32), tree)
         blob = {"meta": meta, "params": as_np(self.params)}
-        if self.refiner is not None:
-            blob["refine_params"] = as_np(self.refiner.params)
+        if self.refiner is not None:      # the second stage's networks: refine_params, refine_params_1, ...
+            for k, member in enumerate(self.refiner.members):
+                blob["refine_params" if k == 0 else f"refine_params_{k}"] = as_np(member)
         path.write_bytes(serialization.msgpack_serialize(blob))
         return path
 
@@ -356,7 +357,12 @@ class CNNDetector:
         if meta.get("refine") is not None:
             from mysim_jax.perception.detect.refine import Refiner, RefineSettings
 
-            refiner = Refiner(blob["refine_params"], RefineSettings.from_dict(meta["refine"]))
+            settings = RefineSettings.from_dict(meta["refine"])
+            try:
+                members = [blob["refine_params" if k == 0 else f"refine_params_{k}"] for k in range(settings.members)]
+            except KeyError as exc:
+                raise PerceptionError(f"{path} lacks the second stage's network {exc}") from None
+            refiner = Refiner(members, settings)
         return cls(refiner=refiner, params=params, widths=tuple(meta["widths"]), input_width=int(meta["input_width"]),
                    min_score=float(meta["min_score"]), top_k=int(meta["top_k"]),
                    pyramid=tuple(meta.get("pyramid", (1.0,))),

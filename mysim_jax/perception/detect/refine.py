@@ -26,6 +26,10 @@ count) by more than ``IGNORE_IOU``, or a counted one by an IoU between ``IGNORE_
 (:func:`loss_fn`): binary cross-entropy of the logit plus ``box_weight`` x L1 of the
 positives' edges in window units.
 
+Ensembles (``members``). The second stage may be several networks of the same shape trained
+alike but from different seeds (``refine.seed``, ``seed + 1``, ...): each looks at the same
+windows, and their probabilities and boxes are averaged (:func:`apply_members`).
+
 Scores (``score``). ``"refined"``: a detection's score is the second stage's probability
 alone; ``"geometric"``: the geometric mean of both stages' probabilities, sqrt(p1 * p2), so
 a window the second stage likes but the first stage barely proposed (a background patch
@@ -137,6 +141,12 @@ def apply(model: RefineNet, params, windows_u8, prior, flip: bool = False):
     return p, box
 
 
+def apply_members(model: RefineNet, members, windows_u8, prior, flip: bool = False):
+    """:func:`apply` of each network of ``members`` (a sequence of parameters), averaged."""
+    outs = [apply(model, params, windows_u8, prior, flip=flip) for params in members]
+    return sum(o[0] for o in outs) / len(outs), sum(o[1] for o in outs) / len(outs)
+
+
 # --- labels and loss --------------------------------------------------------------------------
 
 
@@ -194,35 +204,47 @@ class RefineSettings:
     max_candidates: int = 16          # per image, best first
     flip_test: bool = True            # also look at the mirrored window and average
     score: str = "geometric"          # "refined": the second stage's probability; "geometric": sqrt(p1 * p2)
+    members: int = 1                  # networks averaged (an ensemble of seeds); see the module doc
 
     def __post_init__(self):
         if self.score not in SCORES:
             raise ValueError(f"refine score {self.score!r}: one of {', '.join(SCORES)}")
+        if self.members < 1:
+            raise ValueError(f"refine members {self.members}: at least one network")
 
     def to_dict(self) -> dict:
         return dict(widths=list(self.widths), hidden=self.hidden, size=self.size, context=self.context,
                     min_window_px=self.min_window_px, candidate_min_score=self.candidate_min_score,
-                    max_candidates=self.max_candidates, flip_test=self.flip_test, score=self.score)
+                    max_candidates=self.max_candidates, flip_test=self.flip_test, score=self.score,
+                    members=self.members)
 
     @classmethod
     def from_dict(cls, d: dict) -> "RefineSettings":
         return cls(widths=tuple(int(w) for w in d["widths"]), hidden=int(d["hidden"]), size=int(d["size"]),
                    context=float(d["context"]), min_window_px=float(d["min_window_px"]),
                    candidate_min_score=float(d["candidate_min_score"]), max_candidates=int(d["max_candidates"]),
-                   flip_test=bool(d["flip_test"]), score=str(d.get("score", "refined")))
+                   flip_test=bool(d["flip_test"]), score=str(d.get("score", "refined")),
+                   members=int(d.get("members", 1)))
 
 
 BUCKET = 16     # windows are refined in batches padded to a multiple of this (few compiled shapes)
 
 
 class Refiner:
-    """The second stage with its parameters: ``refine(images, candidates)``."""
+    """The second stage with its networks' parameters (``members``: a sequence of
+    ``settings.members`` parameter trees): ``refine(images, candidates)``."""
 
-    def __init__(self, params, settings: RefineSettings = RefineSettings()):
-        self.params = params
+    def __init__(self, members, settings: RefineSettings = RefineSettings()):
+        from mysim_jax.perception.camera import PerceptionError
+
+        if isinstance(members, dict) or len(members) != settings.members:
+            got = "one parameter tree" if isinstance(members, dict) else f"{len(members)}"
+            raise PerceptionError(f"the second stage has {settings.members} network(s) (settings.members), "
+                                  f"got {got}: pass a list of parameter trees, one per network")
+        self.members = tuple(members)
         self.settings = settings
         self.model = RefineNet(widths=tuple(settings.widths), hidden=settings.hidden)
-        self._apply = jax.jit(partial(apply, self.model, flip=settings.flip_test))
+        self._apply = jax.jit(partial(apply_members, self.model, flip=settings.flip_test))
 
     def windows(self, boxes: np.ndarray) -> np.ndarray:
         s = self.settings
@@ -249,7 +271,7 @@ class Refiner:
         if pad:
             cut = np.concatenate([cut, np.zeros((pad,) + cut.shape[1:], np.uint8)])
             prior = np.concatenate([prior, np.tile([[0.3, 0.3, 0.7, 0.7]], (pad, 1))])
-        p, box = self._apply(self.params, cut, prior.astype(np.float32))
+        p, box = self._apply(self.members, cut, prior.astype(np.float32))
         p, box = np.asarray(p[:n], float), from_window(np.asarray(box[:n], float), windows)
         if s.score == "geometric":
             p = np.sqrt(p * first)

@@ -138,7 +138,8 @@ def batch_of(images, pool: SamplePool, cfg: DetectorConfig, rng: np.random.Gener
             np.array(weight, np.float32))
 
 
-def train_refiner(cfg: DetectorConfig, images, pool: SamplePool, progress: bool = True, log=None, params=None):
+def train_refiner(cfg: DetectorConfig, images, pool: SamplePool, progress: bool = True, log=None, params=None,
+                  desc: str = "train refiner"):
     """Train the second stage from scratch (or from ``params``); returns (params, [(step, loss)])."""
     import jax
     import optax
@@ -165,5 +166,5 @@ def train_refiner(cfg: DetectorConfig, images, pool: SamplePool, progress: bool 
 
     rng = np.random.default_rng(r.seed)
     batches = _prefetch(lambda: batch_of(images, pool, cfg, rng), r.steps)
-    return run_steps(step, params, opt_state, batches, r.steps, "train refiner", "refine.learning_rate",
+    return run_steps(step, params, opt_state, batches, r.steps, desc, "refine.learning_rate",
                      ("cls", "box"), progress=progress, log=log)

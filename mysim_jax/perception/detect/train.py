@@ -347,7 +347,8 @@ def refine_settings(cfg: DetectorConfig):
     r = cfg.refine
     return RefineSettings(widths=tuple(r.widths), hidden=r.hidden, size=r.size, context=r.context,
                           min_window_px=r.min_window_px, candidate_min_score=r.candidate_min_score,
-                          max_candidates=r.max_candidates, flip_test=r.flip_test, score=r.score)
+                          max_candidates=r.max_candidates, flip_test=r.flip_test, score=r.score,
+                          members=r.members)
 
 
 def train_refine_stage(cfg: DetectorConfig, first_stage, images, labels, spec, cache: Path, progress: bool = True,
@@ -363,8 +364,16 @@ def train_refine_stage(cfg: DetectorConfig, first_stage, images, labels, spec, c
     candidates = cached_candidates(first_stage, weights_bytes, images, repr((spec, LABELS_VERSION)),
                                    cfg.refine.candidate_min_score, cache, progress=progress)
     pool = SamplePool(labels, candidates)
-    params, history = train_refiner(cfg, images, pool, progress=progress, log=log)
-    return Refiner(params, refine_settings(cfg)), history
+    r = cfg.refine
+    members, history = [], []
+    for k in range(r.members):       # an ensemble: the same training from seeds seed, seed + 1, ...
+        member_cfg = cfg.model_copy(update={"refine": r.model_copy(update={"seed": r.seed + k})})
+        member_log = None if log is None else (lambda step, loss, parts, k=k: log(step, loss, dict(parts, member=k)))
+        params, h = train_refiner(member_cfg, images, pool, progress=progress, log=member_log,
+                                  desc="train refiner" + (f" {k + 1}/{r.members}" if r.members > 1 else ""))
+        members.append(params)
+        history += h
+    return Refiner(members, refine_settings(cfg)), history
 
 
 # --- evaluation -------------------------------------------------------------------------------
@@ -581,7 +590,7 @@ def run(cfg: DetectorConfig, out: Path, progress: bool = True, cache: Path | Non
             from mysim_jax.perception.detect.refine import Refiner
 
             r = cfg.refine
-            refiner = Refiner(refiner.params, replace(refiner.settings, candidate_min_score=r.candidate_min_score,
+            refiner = Refiner(refiner.members, replace(refiner.settings, candidate_min_score=r.candidate_min_score,
                                                       max_candidates=r.max_candidates, flip_test=r.flip_test, score=r.score))
         cnn = CNNDetector(params=cnn.params, widths=cnn.widths, input_width=cnn.input_width, top_k=cnn.top_k,
                           min_score=cfg.eval.min_score, pyramid=tuple(cfg.model.pyramid),
