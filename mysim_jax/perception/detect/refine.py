@@ -38,6 +38,7 @@ that looks like a drone at 8 px) is not put above a target both stages see.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import partial
 
@@ -237,8 +238,8 @@ class Refiner:
     def __init__(self, members, settings: RefineSettings = RefineSettings()):
         from mysim_jax.perception.camera import PerceptionError
 
-        if isinstance(members, dict) or len(members) != settings.members:
-            got = "one parameter tree" if isinstance(members, dict) else f"{len(members)}"
+        if isinstance(members, Mapping) or len(members) != settings.members:
+            got = "one parameter tree" if isinstance(members, Mapping) else f"{len(members)}"
             raise PerceptionError(f"the second stage has {settings.members} network(s) (settings.members), "
                                   f"got {got}: pass a list of parameter trees, one per network")
         self.members = tuple(members)
