@@ -20,7 +20,7 @@ frames only are rendered):
 (the same ``model.widths``). A config with a ``refine:`` section also trains the second stage
 (mysim_jax/perception/detect/refine.py) on the trained first stage's candidates in the
 training frames; with ``train.steps: 0`` the first stage is FILE's as it is, and only the
-second stage is trained:
+second stage is trained (from FILE's second stage with ``refine.fine_tune: true``):
 
     python scripts/train_detector.py configs/detector_refine.yaml --init docs/detector/detector.msgpack \
         --out runs/detector_refine
@@ -79,15 +79,19 @@ def main(argv=None) -> int:
             if args.init is not None:
                 raise ConfigError("--init fine-tunes a training run; --weights evaluates without training: "
                                   "give one of them")
+        if cfg.refine is not None and cfg.refine.fine_tune and args.init is None:
+            raise ConfigError("refine.fine_tune starts the second stage from the --init weights: give them with --init "
+                              "(e.g. docs/detector/detector.msgpack)")
         if cfg.train.steps == 0 and args.init is None and args.weights is None:
             raise ConfigError("train.steps is 0, so no first stage is trained: give the weights it starts from "
                               "with --init (e.g. docs/detector/detector.msgpack)")
         if args.init is not None:
             from mysim_jax.perception.camera import PerceptionError
-            from mysim_jax.perception.detect.train import init_from
+            from mysim_jax.perception.detect.train import init_from, refine_init_from
 
             try:
                 init_from(cfg, args.init)
+                refine_init_from(cfg, args.init)
             except PerceptionError as err:
                 raise OutputError(f"--init: {err}") from None
     except (ConfigError, OutputError) as err:

@@ -599,6 +599,7 @@ def test_train_p_occluder_changes_the_training_frames_only():
     ({"refine": {"p_positive": 0.8, "p_synthetic": 0.4}}, "p_positive \\+ p_synthetic"),
     ({"refine": {"steps": 0}}, "refine.steps"),
     ({"refine": {"members": 0}}, "refine.members"),
+    ({"refine": {"p_occluded": 1.5}}, "refine.p_occluded"),
     ({"refine": {"widths": [8]}}, "refine.widths"),
     ({"refine": {"colour": 1}}, "refine.colour: unknown key"),
     ({"train": {"steps": -1}}, "train.steps"),

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import yaml
 
 from mysim_jax.perception.detect.refine import (IGNORE_IOU, POS_IOU, cut_windows, from_window, sample_labels,
                                                 to_window, windows_of)
@@ -216,6 +217,33 @@ def test_an_ensemble_averages_its_networks():
         Refiner(both.members[0], alone[0].settings)
 
 
+def test_p_occluded_draws_positives_from_hidden_targets_at_its_rate():
+    """With ``p_occluded``, positive and synthetic windows come from frames whose target is
+    behind the net or a UAV at that rate (here 1 frame of 4 is such a frame); unset, at the
+    rate the frames give (each frame here has one positive candidate)."""
+    from mysim_jax.perception.detect.config import DetectorConfig
+    from mysim_jax.perception.detect.refine_train import SamplePool, make_sample
+
+    scenes = ["net", "none", "distractors", "onboard"]
+    labels = [dict(box=[10.0, 10.0, 20.0, 20.0], ignore=False, meta=dict(scene=s)) for s in scenes]
+    candidates = [[([10.0, 10.0, 20.0, 20.0], 0.9), ([40.0, 5.0, 50.0, 15.0], 0.1)] for _ in scenes]
+    images = np.full((4, 32, 64, 3), 100, np.uint8)
+    pool = SamplePool(labels, candidates)
+    assert len(pool.positives_by[0]) == 1 and len(pool.counted_by[0]) == 1 and "1 hidden" in repr(pool)
+
+    def hidden_share(p_occluded, n=800):
+        cfg = DetectorConfig.model_validate({"refine": {"size": 32, "p_positive": 0.6, "p_synthetic": 0.4,
+                                                        "p_occluded": p_occluded, "p_low_res": 0.0}})
+        rng = np.random.default_rng(0)
+        # every sample is positive or synthetic; the hidden target's frame is the black one
+        return np.mean([make_sample(images, pool, cfg, rng)[0].max() < 40 for _ in range(n)])   # others: >= 50
+
+    images[0] = 0
+    assert abs(hidden_share(None) - 0.25) < 0.05       # binomial std 0.015 at n = 800
+    assert abs(hidden_share(0.6) - 0.6) < 0.06
+    assert hidden_share(1.0) == 1.0
+
+
 TINY_REFINE = ("data: {width: 160, height: 90, train_images: 4, eval_images: 3, workers: 1}\n"
                "model: {widths: [4, 4, 4, 4, 4], input_width: 128}\n"
                "train: {steps: 2, batch_size: 2, crop: 64, warmup_steps: 1}\n"
@@ -257,6 +285,29 @@ def test_script_trains_and_evaluates_both_stages_on_a_tiny_config(tmp_path, caps
                         "--cache", str(out / "cache"), "--eval-images", "2"]) == 0
     evaluated = json.loads((again / "metrics.json").read_text())
     assert evaluated["refine"] is True and evaluated["cnn/held_out"]["n_images"] == 2
+
+    # refine.fine_tune: the second stage starts from the --init file's, which must match the config's
+    from mysim_jax.perception.camera import PerceptionError
+    from mysim_jax.perception.detect.config import config_from_dict
+    from mysim_jax.perception.detect.train import refine_init_from
+
+    tuned = config_from_dict(yaml.safe_load(TINY_REFINE.replace("members: 2}", "members: 2, fine_tune: true}")))
+    start = refine_init_from(tuned, out / "detector.msgpack")
+    for mine, theirs in zip(start, det.refiner.members):
+        assert all(np.array_equal(x, y) for x, y in zip(jax.tree.leaves(mine), jax.tree.leaves(theirs)))
+    assert refine_init_from(config_from_dict(yaml.safe_load(TINY_REFINE)), out / "detector.msgpack") is None
+    with pytest.raises(PerceptionError, match="members"):
+        refine_init_from(config_from_dict(yaml.safe_load(TINY_REFINE.replace("members: 2}", "fine_tune: true}"))),
+                         out / "detector.msgpack")
+    first_only = tmp_path / "first_only.msgpack"
+    det.refiner = None
+    det.save(first_only)
+    cfg.write_text(TINY_REFINE.replace("members: 2}", "members: 2, fine_tune: true}"))
+    capsys.readouterr()
+    assert module.main([str(cfg), "--out", str(tmp_path / "none"), "--init", str(first_only)]) == 2
+    assert "has none" in capsys.readouterr().err and not (tmp_path / "none").exists()
+    assert module.main([str(cfg), "--out", str(tmp_path / "none")]) == 2
+    assert "refine.fine_tune" in capsys.readouterr().err and not (tmp_path / "none").exists()
 
     cfg.write_text(TINY_REFINE.replace("steps: 2,", "steps: 0,"))
     capsys.readouterr()

@@ -122,11 +122,14 @@ class RefineConfig(StrictModel):
     box_weight: Annotated[float, Field(ge=0.0, allow_inf_nan=False)] = 5.0    # of the L1 on edges (window units)
     p_positive: Prob = 0.35              # samples that are positive candidates
     p_synthetic: Prob = 0.2              # samples that are the target's box moved at random
+    p_occluded: Prob | None = None       # of those two kinds, the share from frames with the target behind
+                                         # the net or a UAV (none: as the frames come)
     synthetic_jitter: Annotated[float, Field(ge=0.0, le=1.0)] = 0.15    # box sides / log scale, std
     jitter: Annotated[float, Field(ge=0.0, le=1.0)] = 0.05              # every sample's box, std
     p_low_res: Prob = 0.5                # samples cut at a lower resolution
     low_res_max: Annotated[float, Field(ge=1.0, le=8.0)] = 2.0          # up to this many times fewer pixels
     seed: Annotated[int, Field(ge=0)] = 0
+    fine_tune: bool = False              # start from the second stage of the --init weights, not a random init
 
     @model_validator(mode="after")
     def _shares(self):

@@ -13,6 +13,11 @@ Each training sample (:func:`make_sample`) is then one window:
   placed worse than it usually does;
 * otherwise a candidate that is not (a negative).
 
+With ``p_occluded`` set, a positive or synthetic sample comes from a frame whose target is
+behind the net or a UAV (the frame's ``meta.scene`` is ``net`` or ``uav``) with that
+probability, and from any other frame otherwise: hidden targets, a small share of the frames
+and the ones the first stage finds worst, are seen more often than they come.
+
 Every chosen box is jittered a little more (``jitter``) and labelled again against the
 frame's ground truth; the window is cut around it, at a random lower resolution with
 probability ``p_low_res`` (as if the target were up to ``low_res_max`` times farther: the
@@ -31,6 +36,8 @@ import cv2
 import numpy as np
 
 from mysim_jax.perception.detect.config import DetectorConfig
+
+OCCLUDED_SCENES = ("net", "uav")     # dataset frames' meta.scene with something in front of the target
 
 
 def collect_candidates(detector, images, floor: float, progress: bool = True, name: str = "") -> list[list]:
@@ -90,10 +97,24 @@ class SamplePool:
                     (self.positives if lab[k] else self.negatives).append((i, k))
         self.counted = [i for i, t in enumerate(self.truths) if any(not ign for _, ign in t)]
         self.candidates = candidates
+        hidden = {i for i, lab in enumerate(labels) if (lab.get("meta") or {}).get("scene") in OCCLUDED_SCENES}
+        # positives and counted frames split by whether the target is behind something: (hidden, others)
+        self.positives_by = ([s for s in self.positives if s[0] in hidden], [s for s in self.positives if s[0] not in hidden])
+        self.counted_by = ([i for i in self.counted if i in hidden], [i for i in self.counted if i not in hidden])
 
     def __repr__(self) -> str:
-        return (f"SamplePool({len(self.positives)} positives, {len(self.negatives)} negatives, "
-                f"{len(self.counted)} frames with a counted target)")
+        return (f"SamplePool({len(self.positives)} positives ({len(self.positives_by[0])} hidden), "
+                f"{len(self.negatives)} negatives, {len(self.counted)} frames with a counted target "
+                f"({len(self.counted_by[0])} hidden))")
+
+
+def _pick(everything: list, by: tuple[list, list], p_hidden: float | None, rng: np.random.Generator):
+    """One item of ``everything``, or with ``p_hidden`` set, of ``by[0]`` (hidden targets) with
+    that probability and of ``by[1]`` otherwise (either one when the other is empty)."""
+    group = everything
+    if p_hidden is not None and by[0] and by[1]:
+        group = by[0] if rng.random() < p_hidden else by[1]
+    return group[rng.integers(len(group))]
 
 
 def make_sample(images, pool: SamplePool, cfg: DetectorConfig, rng: np.random.Generator):
@@ -104,13 +125,14 @@ def make_sample(images, pool: SamplePool, cfg: DetectorConfig, rng: np.random.Ge
     r = cfg.refine
     u = rng.random()
     if u < r.p_synthetic and pool.counted:
-        i = pool.counted[rng.integers(len(pool.counted))]
+        i = _pick(pool.counted, pool.counted_by, r.p_occluded, rng)
         box = next(np.asarray(b, float) for b, ign in pool.truths[i] if not ign)
         box = _jitter(box, r.synthetic_jitter, rng)
     else:
-        group = pool.positives if (u < r.p_synthetic + r.p_positive and pool.positives) or not pool.negatives \
-            else pool.negatives
-        i, k = group[rng.integers(len(group))]
+        if (u < r.p_synthetic + r.p_positive and pool.positives) or not pool.negatives:
+            i, k = _pick(pool.positives, pool.positives_by, r.p_occluded, rng)
+        else:
+            i, k = pool.negatives[rng.integers(len(pool.negatives))]
         box = np.asarray(pool.candidates[i][k][0], float)
     box = _jitter(box, r.jitter, rng)
     label, weight, target = sample_labels(box[None], pool.truths[i])

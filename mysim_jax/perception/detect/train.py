@@ -265,6 +265,29 @@ def init_from(cfg: DetectorConfig, path: str | Path):
     return start.params
 
 
+def refine_init_from(cfg: DetectorConfig, path: str | Path) -> list | None:
+    """With ``refine.fine_tune``, the second-stage networks of the weights file ``path`` to
+    fine-tune from (one per ``refine.members``), checked against the config's second stage
+    (:class:`~mysim_jax.perception.camera.PerceptionError` naming what is wrong); else None."""
+    from mysim_jax.perception.camera import PerceptionError
+    from mysim_jax.perception.detect.model import CNNDetector
+
+    r = cfg.refine
+    if r is None or not r.fine_tune:
+        return None
+    ref = CNNDetector.load(path).refiner
+    if ref is None:
+        raise PerceptionError(f"{path}: refine.fine_tune starts the second stage from this file's, but it has none "
+                              f"(set refine.fine_tune: false to train it from a random init)")
+    s = ref.settings
+    mine = (tuple(r.widths), r.hidden, r.size, r.members)
+    theirs = (tuple(s.widths), s.hidden, s.size, s.members)
+    if mine != theirs:
+        raise PerceptionError(f"{path}: its second stage (widths, hidden, size, members) is {theirs}, the config's "
+                              f"refine section asks for {mine}")
+    return list(ref.members)
+
+
 def _prefetch(make, n: int, depth: int = 2):
     """The results of ``n`` calls of ``make()``, made in order by a background thread up to
     ``depth`` ahead (the crops are cut while the network trains on the previous batch)."""
@@ -352,9 +375,10 @@ def refine_settings(cfg: DetectorConfig):
 
 
 def train_refine_stage(cfg: DetectorConfig, first_stage, images, labels, spec, cache: Path, progress: bool = True,
-                       log=None):
+                       log=None, init_members: list | None = None):
     """Train the second stage on ``first_stage``'s candidates in the training frames (``spec``'s;
-    the candidates are cached in ``cache``). Returns (Refiner, loss history)."""
+    the candidates are cached in ``cache``), from random inits or from ``init_members`` (one
+    parameter tree per network). Returns (Refiner, loss history)."""
     import jax
 
     from mysim_jax.perception.detect.refine import Refiner
@@ -370,6 +394,7 @@ def train_refine_stage(cfg: DetectorConfig, first_stage, images, labels, spec, c
         member_cfg = cfg.model_copy(update={"refine": r.model_copy(update={"seed": r.seed + k})})
         member_log = None if log is None else (lambda step, loss, parts, k=k: log(step, loss, dict(parts, member=k)))
         params, h = train_refiner(member_cfg, images, pool, progress=progress, log=member_log,
+                                  params=None if init_members is None else init_members[k],
                                   desc="train refiner" + (f" {k + 1}/{r.members}" if r.members > 1 else ""))
         members.append(params)
         history += h
@@ -575,7 +600,8 @@ def run(cfg: DetectorConfig, out: Path, progress: bool = True, cache: Path | Non
             t0 = time.time()
             cnn.refiner, refine_history = train_refine_stage(
                 cfg, cnn, train_images, train_labels, spec_of(cfg, "train"), cache, progress=progress,
-                log=lambda k, loss, parts: log_lines.append(dict(stage="refine", step=k, loss=loss, **parts)))
+                log=lambda k, loss, parts: log_lines.append(dict(stage="refine", step=k, loss=loss, **parts)),
+                init_members=None if init is None else refine_init_from(cfg, init))
             metrics.update(refine_seconds=time.time() - t0, refine_steps=cfg.refine.steps,
                            refine_final_loss=float(np.mean([l for _, l in refine_history[-50:]])))
         cnn.save(out / "detector.msgpack")
