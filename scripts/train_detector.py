@@ -79,7 +79,7 @@ def main(argv=None) -> int:
             if args.init is not None:
                 raise ConfigError("--init fine-tunes a training run; --weights evaluates without training: "
                                   "give one of them")
-        if cfg.refine is not None and cfg.refine.fine_tune and args.init is None:
+        if cfg.refine is not None and cfg.refine.fine_tune and args.init is None and args.weights is None:
             raise ConfigError("refine.fine_tune starts the second stage from the --init weights: give them with --init "
                               "(e.g. docs/detector/detector.msgpack)")
         if cfg.train.steps == 0 and args.init is None and args.weights is None:

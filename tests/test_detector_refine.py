@@ -279,7 +279,8 @@ def test_script_trains_and_evaluates_both_stages_on_a_tiny_config(tmp_path, caps
     assert a.shape == b.shape and not np.allclose(a, b)         # from seeds refine.seed and refine.seed + 1
     assert isinstance(det.detect(np.zeros((90, 160, 3), np.uint8), min_score=0.0), list)
 
-    cfg.write_text(TINY_REFINE.replace("candidate_min_score: 0.01,", "candidate_min_score: 0.5, score: refined,"))
+    cfg.write_text(TINY_REFINE.replace("candidate_min_score: 0.01,", "candidate_min_score: 0.5, score: refined,")
+                   .replace("members: 2}", "members: 2, fine_tune: true}"))     # fine_tune: training only
     again = tmp_path / "eval"
     assert module.main([str(cfg), "--out", str(again), "--weights", str(out / "detector.msgpack"), "--no-progress",
                         "--cache", str(out / "cache"), "--eval-images", "2"]) == 0
