@@ -75,7 +75,10 @@ def test_sigkill_then_resume_equals_an_uninterrupted_run(tmp_path):
     cfg = tmp_path / "reach.yaml"
     cfg.write_text(REACH % (32 * 16 * iterations, every))
     whole, killed = tmp_path / "whole", tmp_path / "killed"
-    assert _run([str(cfg), "--out", str(whole), "--no-eval"]).returncode == 0
+    # the uninterrupted run goes on beside the one to be killed (they share nothing but the config)
+    whole_err = (tmp_path / "whole.err").open("w")
+    uninterrupted = subprocess.Popen([sys.executable, str(SCRIPT), str(cfg), "--out", str(whole), "--no-eval",
+                                      "--no-progress"], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=whole_err)
 
     proc = subprocess.Popen([sys.executable, str(SCRIPT), str(cfg), "--out", str(killed), "--no-eval",
                              "--no-progress"], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -95,6 +98,9 @@ def test_sigkill_then_resume_equals_an_uninterrupted_run(tmp_path):
     res = _run(["--resume", str(killed), "--no-eval"])
     assert res.returncode == 0, res.stderr
     assert "resuming" in res.stdout
+    uninterrupted.wait(timeout=300)
+    whole_err.close()
+    assert uninterrupted.returncode == 0, (tmp_path / "whole.err").read_text()
     assert (killed / "policy" / "policy.msgpack").read_bytes() == (whole / "policy" / "policy.msgpack").read_bytes()
     a, b = _rows(whole / "metrics.csv"), _rows(killed / "metrics.csv")
     assert len(a) == len(b) == iterations
