@@ -66,6 +66,10 @@ from mysim_jax.perception.render import Lighting, Renderer
 ROOT = Path(__file__).resolve().parents[3]
 SCENE_FILES = {"sphere": ROOT / "configs" / "capture_falling.yaml",
                "drone": ROOT / "configs" / "capture_maneuvering_cameras.yaml"}
+# what else a frame shows (its ``meta["scene"]``)
+SCENE_NONE, SCENE_ONBOARD, SCENE_DISTRACTORS = "none", "onboard", "distractors"
+SCENE_NET, SCENE_UAV = "net", "uav"               # the formation's net / one UAV in front of the target
+OCCLUDED_SCENES = (SCENE_NET, SCENE_UAV)
 PARK_Z = -100.0                 # m, height of hidden objects (under the ground, which hides them)
 ONBOARD_OFFSET = (0.0, 0.0, -0.04)   # m, an onboard camera below its UAV's centre (UAV frame, level UAV)
 ONBOARD_MIN_HEIGHT = 2.0        # m, lowest onboard camera (the net hangs ~1.4 m below it)
@@ -417,7 +421,7 @@ def render_sample(spec: DatasetSpec, index: int) -> Sample:
 
     # occluders and distractors
     uavs = [q.body for q in config.quadrotors]
-    meta_occ = "none"
+    meta_occ = SCENE_NONE
     los = offset / distance
     side = np.cross(los, [0.0, 0.0, 1.0])
     side = side / max(np.linalg.norm(side), 1e-9)
@@ -425,7 +429,7 @@ def render_sample(spec: DatasetSpec, index: int) -> Sample:
     hide: tuple[str, ...] = ()
     formation = None
     if onboard:                      # the camera under tether k's UAV, the formation around it
-        meta_occ = "onboard"
+        meta_occ = SCENE_ONBOARD
         k = int(rng_onboard.integers(len(tethers.uavs)))
         f_yaw, sag = rng_onboard.uniform(0, 2 * np.pi), rng_onboard.uniform(0.0, 0.4)
         tilt, heading = np.radians(rng_onboard.uniform(0.0, ONBOARD_MAX_LEAN_DEG)), rng_onboard.uniform(0, 2 * np.pi)
@@ -440,16 +444,16 @@ def render_sample(spec: DatasetSpec, index: int) -> Sample:
         f = rng.uniform(0.3, 0.85)
         at = p + offset * f
         if rng.random() < 0.5:       # the formation, its net across the line of sight
-            meta_occ = "net"
+            meta_occ = SCENE_NET
             shift = rng.uniform(-0.8, 0.8) * side + rng.uniform(-0.8, 0.8) * up
             cols.net((at + shift, rng.uniform(0, 2 * np.pi), rng.uniform(0.0, 0.4)))
         else:                        # one UAV partly in front
-            meta_occ = "uav"
+            meta_occ = SCENE_UAV
             lateral = radius * f * rng.uniform(0.3, 1.6)
             ang = rng.uniform(0, 2 * np.pi)
             cols.body(uavs[0], at + lateral * (np.cos(ang) * side + np.sin(ang) * up), _random_quat(rng, 20.0))
     elif rng.random() < spec.p_distractors:
-        meta_occ = "distractors"
+        meta_occ = SCENE_DISTRACTORS
         if rng.random() < 0.4:
             d = float(np.exp(rng.uniform(np.log(3.0), np.log(30.0))))
             at, _ = _in_view_point(rng, intr, R, p, d, margin=0.0)

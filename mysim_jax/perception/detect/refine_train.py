@@ -36,8 +36,7 @@ import cv2
 import numpy as np
 
 from mysim_jax.perception.detect.config import DetectorConfig
-
-OCCLUDED_SCENES = ("net", "uav")     # dataset frames' meta.scene with something in front of the target
+from mysim_jax.perception.detect.dataset import OCCLUDED_SCENES
 
 
 def collect_candidates(detector, images, floor: float, progress: bool = True, name: str = "") -> list[list]:
