@@ -541,14 +541,17 @@ def test_committed_weights_match_their_recipe():
     from mysim_jax.perception.detect.train import refine_settings
 
     names = ("detector", "detector_onboard", "detector_palettes", "detector_aspect", "detector_aspect_seed2",
-             "detector_refine")
+             "detector_refine", "detector_refine_fine")
     stages = [load_config(ROOT / "configs" / f"{n}.yaml") for n in names]
     committed = load_detector()
     last = stages[-1].model
     assert list(committed.widths) == last.widths and all(c.model.widths == last.widths for c in stages)
     assert committed.pyramid == tuple(last.pyramid) and committed.flip_test == last.flip_test
     assert committed.pyramid_band_px == tuple(last.pyramid_band_px)
-    assert stages[-1].train.steps == 0 and stages[-1].model == stages[-2].model    # the first stage is stage 5's
+    # the first stage is stage 5's network (stages 6 and 7 do not train it; stage 7 runs it on another pyramid)
+    assert stages[-1].train.steps == 0 and stages[-2].train.steps == 0 and stages[-2].model == stages[-3].model
+    assert stages[-1].model.model_copy(update={"pyramid": stages[-2].model.pyramid}) == stages[-2].model
+    assert stages[-1].refine.fine_tune        # stage 7's second stage starts from stage 6's
     assert committed.refiner is not None and committed.refiner.settings == refine_settings(stages[-1])
 
 
