@@ -76,30 +76,33 @@ def test_sigkill_then_resume_equals_an_uninterrupted_run(tmp_path):
     cfg.write_text(REACH % (32 * 16 * iterations, every))
     whole, killed = tmp_path / "whole", tmp_path / "killed"
     # the uninterrupted run goes on beside the one to be killed (they share nothing but the config)
-    whole_err = (tmp_path / "whole.err").open("w")
-    uninterrupted = subprocess.Popen([sys.executable, str(SCRIPT), str(cfg), "--out", str(whole), "--no-eval",
-                                      "--no-progress"], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=whole_err)
+    with (tmp_path / "whole.err").open("w") as whole_err:
+        uninterrupted = subprocess.Popen([sys.executable, str(SCRIPT), str(cfg), "--out", str(whole), "--no-eval",
+                                          "--no-progress"], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=whole_err)
+        try:
+            proc = subprocess.Popen([sys.executable, str(SCRIPT), str(cfg), "--out", str(killed), "--no-eval",
+                                     "--no-progress"], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            deadline = time.time() + 300
+            while time.time() < deadline and proc.poll() is None:
+                steps = [int(p.name) for p in (killed / "checkpoints").glob("*") if p.name.isdigit()] \
+                    if (killed / "checkpoints").exists() else []
+                if steps and max(steps) >= 10:
+                    break
+                time.sleep(0.01)
+            assert proc.poll() is None, "the run ended before it could be killed"
+            os.kill(proc.pid, signal.SIGKILL)
+            proc.wait()
+            done_at_kill = len(_rows(killed / "metrics.csv"))
+            assert done_at_kill < iterations
 
-    proc = subprocess.Popen([sys.executable, str(SCRIPT), str(cfg), "--out", str(killed), "--no-eval",
-                             "--no-progress"], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    deadline = time.time() + 300
-    while time.time() < deadline and proc.poll() is None:
-        steps = [int(p.name) for p in (killed / "checkpoints").glob("*") if p.name.isdigit()] \
-            if (killed / "checkpoints").exists() else []
-        if steps and max(steps) >= 10:
-            break
-        time.sleep(0.01)
-    assert proc.poll() is None, "the run ended before it could be killed"
-    os.kill(proc.pid, signal.SIGKILL)
-    proc.wait()
-    done_at_kill = len(_rows(killed / "metrics.csv"))
-    assert done_at_kill < iterations
-
-    res = _run(["--resume", str(killed), "--no-eval"])
-    assert res.returncode == 0, res.stderr
-    assert "resuming" in res.stdout
-    uninterrupted.wait(timeout=300)
-    whole_err.close()
+            res = _run(["--resume", str(killed), "--no-eval"])
+            assert res.returncode == 0, res.stderr
+            assert "resuming" in res.stdout
+            uninterrupted.wait(timeout=300)
+        finally:
+            if uninterrupted.poll() is None:       # a failure above: do not leave it running
+                uninterrupted.kill()
+                uninterrupted.wait()
     assert uninterrupted.returncode == 0, (tmp_path / "whole.err").read_text()
     assert (killed / "policy" / "policy.msgpack").read_bytes() == (whole / "policy" / "policy.msgpack").read_bytes()
     a, b = _rows(whole / "metrics.csv"), _rows(killed / "metrics.csv")
