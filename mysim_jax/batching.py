@@ -559,17 +559,28 @@ def vmap(fun: Callable, in_axes: int | None | Sequence[int | None] = 0, chunk: i
     return chunked_fun
 
 
+def _leaf_nbytes(leaf) -> int:
+    """Bytes of one array leaf from its shape and dtype: works for concrete arrays and for
+    abstract ones (``jax.ShapeDtypeStruct`` from ``jax.eval_shape``), which hold no data.
+    Non-array leaves (None, Python scalars without a dtype) count nothing."""
+    shape, dtype = getattr(leaf, "shape", None), getattr(leaf, "dtype", None)
+    if shape is None or dtype is None:
+        return 0
+    return int(np.prod(shape, dtype=np.int64)) * np.dtype(dtype).itemsize
+
+
 def chunk_for(state, cache_bytes: int = 16 << 20, per_env_factor: float = 16.0) -> int | None:
     """A block size for :func:`vmap`'s ``chunk``: the largest power of two ``c`` with
     ``c × per_env_factor × (bytes of one environment's state) <= cache_bytes``, or None
     when that is 1024 or more (small states: blocks of a thousand environments and more
     run as fast unblocked, and a longer batch row amortises each operation's overhead).
-    ``state`` is one environment's (unbatched) pytree; ``per_env_factor`` stands for the
+    ``state`` is one environment's (unbatched) pytree of arrays or of their shapes
+    (``jax.eval_shape`` output: only shapes and dtypes are read); ``per_env_factor`` stands for the
     step's temporaries, several times the state. The defaults are calibrated on the
     capture environment (blocks of 128–256 ran fastest at B = 1024 on a 2-core EPYC,
     twice the unblocked speed; ``scripts/bench.py`` section e times the result); the rope
     net, with a state a tenth the size, is not blocked."""
-    nbytes = sum(np.asarray(leaf).nbytes for leaf in jax.tree.leaves(state) if hasattr(leaf, "shape"))
+    nbytes = sum(_leaf_nbytes(leaf) for leaf in jax.tree.leaves(state))
     if nbytes == 0:
         return None
     c = 1
