@@ -39,7 +39,7 @@ from mysim_jax.contact.config import ContactConfig, contact_problems
 from mysim_jax.control.config import QuadrotorConfig, quadrotor_problems
 from mysim_jax.net.config import NetConfig, net_elements
 from mysim_jax.tasks.config import TargetConfig, TeamConfig
-from mysim_jax.tasks.env_config import EnvConfig
+from mysim_jax.tasks.env_config import EnvConfig, ranking_problems
 
 __all__ = ["ConfigError", "SceneConfig", "RunSettings", "load_config", "config_from_dict", "apply_override",
            "dump_config"]
@@ -405,6 +405,9 @@ class SceneConfig(StrictModel):
                             f"multiple of sim.dt = {self.sim.dt:g} s (e.g. {1.0 / (max(round(ratio), 1) * self.sim.dt):g} Hz)")
         elif round(self.sim.t_end / (round(ratio) * self.sim.dt)) < 1:
             problems.append(f"env.policy_rate: sim.t_end = {self.sim.t_end:g} s is shorter than one policy period")
+        else:
+            max_steps = int(round(self.sim.t_end / (round(ratio) * self.sim.dt)))
+            problems += ranking_problems(env.weights(), max(len(self.quadrotors), 1), max_steps, env.discount)
         return problems
 
     def _reference_problems(self) -> list[str]:

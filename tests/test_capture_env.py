@@ -18,7 +18,7 @@ import pytest
 from mysim_jax.config import ConfigError, load_config
 from mysim_jax.tasks.capture import make_env
 from mysim_jax.tasks.env_config import FAILURES, REWARD_TERMS, FailureConfig, RewardScales, SuccessConfig
-from mysim_jax.tasks.rewards import Snapshot, checks, inside_polygon, reward_terms
+from mysim_jax.tasks.rewards import Snapshot, checks, cost_terms, inside_polygon, outcome_terms, potential_terms
 
 SMALL = ["env={}", "net.knots=3", "net.tethers.n_masses=1", "sim.t_end=0.4", "sim.precision=float32",
          "output.plot=[target, uav0]"]
@@ -49,18 +49,21 @@ def snapshot(target=(0.0, 0.0, 2.8), target_vel=(0.0, 0.0, 0.0), shift=(0.0, 0.0
     return Snapshot(**{k: jnp.asarray(v, jnp.float32) for k, v in fields.items()})
 
 
-def evaluate(snap, touched=False, succeeded=False, failed=False):
+def evaluate(snap, touched=False, catch_point=None):
+    """Flags and every unweighted potential and cost term of a snapshot; the catch point
+    defaults to the target's position (a target at the net's height)."""
     flags = checks(snap, target_radius=0.2, line_radius=0.0005, contact_margin=SCALES.contact_margin,
                    success=SuccessConfig(), failure=FailureConfig())
-    terms = reward_terms(snap, flags, slots=jnp.asarray(SLOTS, jnp.float32), scales=SCALES,
-                         touched_before=jnp.asarray(touched), succeeded=jnp.asarray(succeeded),
-                         failed=jnp.asarray(failed))
+    catch = snap.target_pos if catch_point is None else jnp.asarray(catch_point, jnp.float32)
+    terms = potential_terms(snap, flags, catch_point=catch, slots=jnp.asarray(SLOTS, jnp.float32), scales=SCALES,
+                            touched=jnp.asarray(touched))
+    terms.update(cost_terms(snap))
     return flags, {k: np.asarray(v) for k, v in terms.items()}
 
 
 def test_every_shaped_term_is_zero_for_a_centred_still_team():
     _, terms = evaluate(snapshot())
-    for name in ("distance", "alignment", "spin", "swing", "safe", "collision", "stability", "success", "failure"):
+    for name in ("distance", "alignment", "spin", "swing", "safe", "collision", "stability"):
         np.testing.assert_allclose(terms[name], 0.0, atol=1e-7, err_msg=name)   # float32 means of the knots
     np.testing.assert_allclose(terms["effort"], -0.5 ** 3, rtol=1e-6)   # half speed: an eighth of full power
 
@@ -68,6 +71,9 @@ def test_every_shaped_term_is_zero_for_a_centred_still_team():
 def test_distance_alignment_spin_swing_saturate_at_their_scales():
     t = math.tanh(1.0)
     _, terms = evaluate(snapshot(target=(SCALES.distance, 0.0, 2.8)))
+    np.testing.assert_allclose(terms["distance"], -t, rtol=1e-6)
+    # distance is measured to the catch point, not to the target
+    _, terms = evaluate(snapshot(target=(0.0, 0.0, 5.0)), catch_point=(0.0, SCALES.distance, 2.5))
     np.testing.assert_allclose(terms["distance"], -t, rtol=1e-6)
     _, terms = evaluate(snapshot(target_vel=(0.0, SCALES.alignment, -3.0)))   # vertical speed does not count
     np.testing.assert_allclose(terms["alignment"], -t, rtol=1e-6)
@@ -114,20 +120,40 @@ def test_stability_rewards_a_target_at_rest_in_the_net_after_contact():
     np.testing.assert_array_equal(terms["stability"], 0.0)
 
 
-def test_terminal_terms():
-    _, terms = evaluate(snapshot(), succeeded=True)
-    np.testing.assert_array_equal(terms["success"], 1.0)
-    _, terms = evaluate(snapshot(), failed=True)
-    np.testing.assert_array_equal(terms["failure"], -1.0)
+def test_outcome_terms():
+    ones = np.ones(4)
+    for kw, name, value in ((dict(succeeded=True), "success", 1.0), (dict(missed=True), "miss", -1.0),
+                            (dict(crashed=True), "crash", -1.0)):
+        flags = {"succeeded": False, "missed": False, "crashed": False, **kw}
+        terms = outcome_terms(4, jnp.float32, **{k: jnp.asarray(v) for k, v in flags.items()})
+        for other in ("success", "miss", "crash"):
+            np.testing.assert_array_equal(terms[other], value * ones if other == name else 0.0 * ones)
 
 
-def test_held_needs_inside_below_slow_and_above_ground():
+def test_held_needs_inside_above_the_net_below_slow_and_above_ground():
     flags, _ = evaluate(snapshot(target=(0.3, 0.2, 2.7)))
-    assert bool(flags.held)
+    assert bool(flags.held) and bool(flags.above_net)
     assert not bool(evaluate(snapshot(target=(0.9, 0.2, 2.7)))[0].inside)
     assert not bool(evaluate(snapshot(target=(0.3, 0.2, 3.95)))[0].below)
     assert not bool(evaluate(snapshot(target=(0.3, 0.2, 2.7), target_vel=(0.6, 0.0, 0.0)))[0].slow)
     assert not bool(evaluate(snapshot(target=(0.3, 0.2, 0.2)))[0].above_ground)
+    # under the net (0.1 m below its knots at 2.5 m), slow, inside the outline, below the
+    # attachments and off the ground: not held
+    under, _ = evaluate(snapshot(target=(0.3, 0.2, 2.4)))
+    assert bool(under.inside & under.below & under.slow & under.above_ground)
+    assert not bool(under.above_net) and not bool(under.held)
+
+
+def test_above_net_follows_the_knots_nearest_to_the_target():
+    # a net sagging into a bowl: the centre knot 0.4 m below the others
+    snap = snapshot()
+    sag = snap.knot_pos.at[4, 2].add(-0.4)
+    # over the centre knot the net is low: 0.05 m below the outer knots' height is still above it
+    flags, _ = evaluate(snap.replace(knot_pos=sag, target_pos=jnp.asarray([0.05, 0.05, 2.45])))
+    assert bool(flags.above_net)
+    # by the flat edge, the same height is under the net
+    flags, _ = evaluate(snap.replace(knot_pos=sag, target_pos=jnp.asarray([0.75, 0.75, 2.45])))
+    assert not bool(flags.above_net)
 
 
 def test_inside_polygon_on_a_concave_outline():
@@ -256,6 +282,8 @@ def test_target_on_the_ground_terminates_and_resets(small):
     obs2, new, reward, term, trunc, info = step(jax.random.PRNGKey(1), state, jnp.zeros((4, 3)), params)
     assert bool(term) and not bool(trunc) and not bool(info["success"]) and bool(info["failed"])
     assert [k for k, v in info["failures"].items() if bool(v)] == ["target_ground"]
+    assert bool(info["missed"]) and not bool(info["crashed"])             # a miss, not a crash
+    np.testing.assert_allclose(info["terms"]["miss"], -float(params.weights[list(REWARD_TERMS).index("miss")]))
     assert int(new.steps) == 0 and float(new.sim.time) == 0.0                # auto-reset
     assert float(new.sim.phys.body_pos[t, 2]) > 5.0                           # a fresh spawn
     # final_obs is the ended episode's: the target under 0.3 m; obs the new episode's
@@ -272,10 +300,36 @@ def test_reward_is_the_sum_of_the_weighted_terms_and_weights_are_traced(small):
     np.testing.assert_allclose(reward, sum(np.asarray(v) for v in info["terms"].values()), rtol=1e-6)
     assert set(info["terms"]) == set(REWARD_TERMS)
     compiled = step._cache_size()
+    # the state carries its potential: an episode started with doubled weights gets doubled rewards
     doubled = params.replace(weights=2.0 * params.weights)
-    _, _, reward2, _, _, _ = step(jax.random.PRNGKey(1), state, action, doubled)
-    np.testing.assert_allclose(reward2, 2.0 * np.asarray(reward), rtol=1e-6)
+    _, state2 = reset(jax.random.PRNGKey(0), doubled)
+    np.testing.assert_allclose(state2.potential, 2.0 * np.asarray(state.potential), rtol=1e-6)
+    _, _, reward2, _, _, _ = step(jax.random.PRNGKey(1), state2, action, doubled)
+    np.testing.assert_allclose(reward2, 2.0 * np.asarray(reward), rtol=1e-5)
     assert step._cache_size() == compiled      # new weights did not recompile
+
+
+def test_shaping_is_potential_based_its_discounted_sum_telescopes(small):
+    """Over an episode, the discounted sum of the shaping terms is γ^T Φ(s_T) − Φ(s_0)
+    (Φ(s_T) = 0 when the episode ends by an outcome): whatever the team does, shaping adds
+    only the difference of the end potentials, so it cannot change the best policy."""
+    env, params, reset, step = small
+    from mysim_jax.tasks.env_config import SHAPING_TERMS
+
+    gamma = float(params.discount)
+    for key, actions in ((0, lambda s: env.scripted_actions(s, params)), (3, lambda s: jnp.full((4, 3), 0.4))):
+        obs, state = reset(jax.random.PRNGKey(key), params)
+        phi0 = np.asarray(state.potential).sum(axis=0)
+        total = np.zeros(4)
+        for t in range(env.max_steps):
+            obs, new, reward, term, trunc, info = step(jax.random.PRNGKey(100 + t), state, actions(state), params)
+            total += gamma ** t * sum(np.asarray(info["terms"][k], float) for k in SHAPING_TERMS)
+            if bool(info["done"]):
+                break
+            state = new
+        end = 0.0 if bool(term) else gamma ** (t + 1) * np.asarray(info["final_state"].potential).sum(axis=0)
+        np.testing.assert_allclose(total, end - phi0, atol=2e-5)
+        assert np.abs(phi0).max() > 0.1          # a non-trivial start potential
 
 
 def test_nan_actions_act_as_zero_and_are_flagged_out_of_range_is_clipped(small):
@@ -338,6 +392,10 @@ def test_randomisation_draws_inside_the_ranges():
     ("env.randomize.uav_mass_scale={low: 0.0, high: 1.0}", r"uav_mass_scale.*must be positive"),
     ("env.policy_rate=30", r"env.policy_rate: 30 Hz.*not a whole multiple of sim.dt"),
     ("env.success.hold_time=-1", r"env.success.hold_time"),
+    ("env.discount=1.5", r"env.discount"),
+    # outcomes smaller than what shaping can add over an episode: a miss could outscore a catch
+    ("env.rewards={success: 5.0}", r"env.rewards.success = 5 must exceed .*largest spread"),
+    ("env.rewards={crash: 1.0, miss: 0.5}", r"env.rewards.crash = 1 must exceed rewards.miss"),
 ])
 def test_bad_env_blocks_name_the_field(override, message):
     with pytest.raises(ConfigError, match=message):
@@ -377,7 +435,7 @@ def test_success_agrees_with_the_capture_verdict_of_the_recorded_episode():
 
     config = load_config("configs/capture_env_falling.yaml")
     env, params = make_env(config)
-    record = record_episode(env, params, scripted_policy(env), jax.random.PRNGKey(2))
+    record = record_episode(env, params, scripted_policy(env), jax.random.PRNGKey(2), 0)
     assert record.success
     outcome = capture_outcome(record_columns(env, record), config, hold_time=env.success.hold_time)
     assert outcome.caught

@@ -26,24 +26,34 @@ wrong shape is a ValueError when the step is traced.
 **Observations** ``(n_agents, obs_size)``, per agent (world frame, float): its own
 position, velocity, attitude quaternion and body rate; the target's position and velocity
 relative to it; the net centre's (mean knot) position and velocity relative to it; every
-teammate's position and velocity relative to it; its one-hot id; the fraction of the
+teammate's position and velocity relative to it; the predicted **catch point**
+relative to its own slot (where it must fly for the net's centre to meet the target: the
+catch point plus its slot offset minus its position, in units of ``CATCH_LENGTH_SCALE``)
+and the time to it (in ``CATCH_TIME_SCALE``), from its own measurement of the target
+(:meth:`CaptureEnv.catch_point`: the drag-aware fall of a falling target to the net
+centre's height; a maneuvering target's position); its one-hot id; the fraction of the
 episode left. Own and target measurements carry Gaussian noise (``env.noise``, standard
 deviations drawn per episode), independent per agent. With ``env.perception`` the team flies
 on estimates: the UAVs' positions and velocities and the target's carry correlated
 estimation errors (first-order Gauss-Markov, :class:`PerceptionErrors` in the state), in
 the observations and in what the scripted team sees (:meth:`CaptureEnv.estimates`).
 ``info["global_state"]`` ``(state_size,)`` is the noise-free state for a centralised critic: every UAV's absolute
-state, the target's, the net centre's, the fraction left.
+state, the target's, the net centre's, the true catch point relative to the formation's
+centre and the time to it, the fraction left.
 
-**Rewards** ``(n_agents,)``: the weighted sum of the terms of
-:mod:`mysim_jax.tasks.rewards`; ``info["terms"]`` holds every weighted term ``(n_agents,)``.
+**Rewards** ``(n_agents,)``: potential-based shaping, the effort cost and the outcome
+(:mod:`mysim_jax.tasks.rewards`): ``F = γ Φ(s') − Φ(s)`` with ``Φ`` the weighted potential
+terms of the state (kept in ``EnvState.potential``; 0 in a state that ends the episode)
+and ``γ`` = ``env.discount``; ``info["terms"]`` holds every weighted term ``(n_agents,)``
+(a shaping term's share of ``F`` for the potential terms), and they sum to the reward.
 
 **Episode end.** ``terminated`` on success (the target held at every policy step over
 ``success.hold_time``, from its first held step: the measure of
 :func:`~mysim_jax.tasks.outcome.capture_outcome` on the policy-step grid)
 or any failure (:data:`~mysim_jax.tasks.env_config.FAILURES`); ``truncated`` when the
 time limit is reached without either. ``info`` flags which (``success``,
-``failures[name]``, ``timeout``) and carries the episode's return and length. On either,
+``failures[name]``, ``timeout``; ``missed`` when the target reached the ground, ``crashed``
+for any other failure) and carries the episode's return and length. On either,
 the environment resets inside ``step`` (auto-reset): the returned ``obs``, ``state`` and
 ``info["global_state"]`` are the new episode's first; ``info`` describes the episode that
 ended, with its last observation, global state and state in ``info["final_obs"]``,
@@ -68,9 +78,11 @@ from mysim_jax.build import build
 from mysim_jax.control.setpoint import setpoint_from_action
 from mysim_jax.dynamics.quaternion import quat_rotate
 from mysim_jax.sim import step as sim_step
-from mysim_jax.tasks.env_config import FAILURES, REWARD_TERMS
+from mysim_jax.tasks.env_config import (COST_TERMS, CRASHES, FAILURES, MISSES, OUTCOME_TERMS, REWARD_TERMS,
+                                        SHAPING_TERMS)
+from mysim_jax.tasks.intercept import CatchPoint, predict_catch
 from mysim_jax.tasks.outcome import border_knots
-from mysim_jax.tasks.rewards import Snapshot, checks, reward_terms
+from mysim_jax.tasks.rewards import Snapshot, checks, cost_terms, outcome_terms, potential_terms
 from mysim_jax.tasks.scripted import team_policy
 from mysim_jax.tasks.target import spawn_target
 from mysim_jax.types import Params, State
@@ -104,6 +116,7 @@ class EnvParams:
     sim: Params                   # the scene's nominal physics parameters
     start: State                  # the nominal first state (the target is placed by the reset)
     weights: jnp.ndarray          # (n_terms,) reward weights, REWARD_TERMS order, >= 0
+    discount: jnp.ndarray         # () γ of the potential-based shaping
     ranges: Ranges
     # (4, 2) (sigma, rho per policy step) of the estimation errors of UAV position [m], UAV
     # velocity [m/s], target position, target velocity (env.perception; rho = exp(-policy_dt
@@ -133,6 +146,7 @@ class EnvState:
     held_time: jnp.ndarray        # () s from the first held step of the current hold to the last
     touched: jnp.ndarray          # () bool, the target has touched the net this episode
     returns: jnp.ndarray          # (n_agents,) sum of rewards this episode
+    potential: jnp.ndarray        # (n_shaping_terms, n_agents) weighted potential terms of this state
     perception: PerceptionErrors | None = None   # None unless the team flies on estimates
 
 
@@ -161,16 +175,19 @@ class CaptureEnv:
     scales: object                       # RewardScales
     randomized_wind: bool
     scripted: object                     # the scripted team (ScriptedTeam)
+    falling: bool = True                 # the target falls (else it is maneuvering)
+    target_drag_per_mass: float = 0.0    # 1/m, nominal k / m of the target: what the team assumes
+    gravity: tuple[float, float, float] = (0.0, 0.0, -9.81)   # m/s^2, world
     perception: bool = False             # the team flies on estimates (levels: EnvParams.perception)
 
     # --- sizes ------------------------------------------------------------------------
     @property
     def obs_size(self) -> int:
-        return 13 + 6 + 6 + 6 * (self.n_agents - 1) + self.n_agents + 1
+        return 13 + 6 + 6 + 6 * (self.n_agents - 1) + CATCH_FEATURES + self.n_agents + 1
 
     @property
     def state_size(self) -> int:
-        return 13 * self.n_agents + 6 + 6 + 1
+        return 13 * self.n_agents + 6 + 6 + CATCH_FEATURES + 1
 
     @property
     def action_shape(self) -> tuple[int, int]:
@@ -206,14 +223,23 @@ class CaptureEnv:
             succeeded = flags.held & (held_time >= self.success.hold_time - 1e-6)
             # a step that succeeds is not a failure (the flags are exclusive in info)
             failures = {k: v & ~succeeded for k, v in flags.failures.items()}
-            failed = jnp.any(jnp.stack([failures[k] for k in FAILURES]))
+            crashed = jnp.any(jnp.stack([failures[k] for k in CRASHES]))
+            missed = jnp.any(jnp.stack([failures[k] for k in MISSES])) & ~crashed
+            failed = crashed | missed
             steps = state.steps + 1
             terminated = succeeded | failed
             timeout = (steps >= self.max_steps) & ~terminated
             touched = state.touched | flags.touching
-            terms = reward_terms(snap, flags, slots=jnp.asarray(self.slots, dtype), scales=self.scales,
-                                 touched_before=touched, succeeded=succeeded, failed=failed)
-            weighted = {k: params.weights[i].astype(dtype) * terms[k] for i, k in enumerate(REWARD_TERMS)}
+            potential = self.potential(snap, flags, touched, sim_params, params)
+            # F = γ Φ(s') − Φ(s), with Φ = 0 in a state that ends the episode
+            shaping = params.discount.astype(dtype) * jnp.where(terminated, 0.0, potential) - state.potential
+            weighted = {k: shaping[i] for i, k in enumerate(SHAPING_TERMS)}
+            costs = cost_terms(snap)
+            outcomes = outcome_terms(self.n_agents, dtype, succeeded=succeeded, missed=missed, crashed=crashed)
+            w = self.weights(params, dtype)
+            weighted.update({k: w[k] * costs[k] for k in COST_TERMS})
+            weighted.update({k: w[k] * outcomes[k] for k in OUTCOME_TERMS})
+            weighted = {k: weighted[k] for k in REWARD_TERMS}
             reward = sum(weighted.values())
             returns = state.returns + reward
 
@@ -222,6 +248,8 @@ class CaptureEnv:
             "terms": weighted,
             "success": succeeded,
             "failed": failed,
+            "crashed": crashed,
+            "missed": missed,
             "failures": failures,
             "timeout": timeout,
             "held": flags.held,
@@ -234,7 +262,7 @@ class CaptureEnv:
         errors = (self._step_errors(jax.random.fold_in(key, 2), state.perception, params, dtype)
                   if self.perception else state.perception)
         after = EnvState(sim=sim, episode=state.episode, steps=steps, held=flags.held, held_time=held_time,
-                         touched=touched, returns=returns, perception=errors)
+                         touched=touched, returns=returns, potential=potential, perception=errors)
         key_reset, key_obs = jax.random.split(key)
         fresh = self._reset_state(key_reset, params)
         # the episode's last observation (before the reset), e.g. to bootstrap a value
@@ -294,12 +322,47 @@ class CaptureEnv:
     def _reset_state(self, key, params: EnvParams) -> EnvState:
         k_episode, k_spawn = jax.random.split(key)
         episode = self.draw_episode(k_episode, params.ranges)
-        sim = spawn_target(self.scene, self.episode_params(params, episode), params.start, k_spawn)
+        sim_params = self.episode_params(params, episode)
+        sim = spawn_target(self.scene, sim_params, params.start, k_spawn)
         dtype = sim.phys.body_pos.dtype
         errors = self._draw_errors(jax.random.fold_in(key, 5), params, dtype) if self.perception else None
+        snap = self.snapshot(sim, sim_params)
+        flags = self.flags(snap)
+        potential = self.potential(snap, flags, flags.touching, sim_params, params)
         return EnvState(sim=sim, episode=episode, steps=jnp.zeros((), jnp.int32), held=jnp.zeros((), bool),
-                        held_time=jnp.zeros((), dtype),
-                        touched=jnp.zeros((), bool), returns=jnp.zeros((self.n_agents,), dtype), perception=errors)
+                        held_time=jnp.zeros((), dtype), touched=flags.touching,
+                        returns=jnp.zeros((self.n_agents,), dtype), potential=potential, perception=errors)
+
+    # --- rewards ----------------------------------------------------------------------
+    def weights(self, params: EnvParams, dtype) -> dict:
+        """Every term's weight ``name -> ()`` (REWARD_TERMS)."""
+        return {k: params.weights[i].astype(dtype) for i, k in enumerate(REWARD_TERMS)}
+
+    def _gravity(self, dtype):
+        return jnp.asarray(self.gravity, dtype)
+
+    def catch_point(self, target_pos, target_vel, net_z, gravity) -> CatchPoint:
+        """Where and when the target meets the net's height ``net_z`` (m), as the team can
+        predict it: a falling target's drag-aware fall with the nominal drag per mass
+        (:func:`~mysim_jax.tasks.intercept.predict_catch`); a maneuvering target's current
+        position (it does not fall; ``time`` 0)."""
+        if self.falling:
+            return predict_catch(target_pos, target_vel, net_z, gravity, self.target_drag_per_mass)
+        return CatchPoint(point=target_pos, time=jnp.zeros((), target_pos.dtype), velocity=target_vel,
+                          crossed=jnp.ones((), bool))
+
+    def potential(self, snap: Snapshot, flags, touched, sim_params: Params, params: EnvParams):
+        """The weighted potential terms ``(n_shaping_terms, n_agents)`` of one state
+        (SHAPING_TERMS order; :func:`~mysim_jax.tasks.rewards.potential_terms`), from its
+        true state: the catch point is predicted from the target's true position and
+        velocity and the net centre's height."""
+        dtype = snap.uav_pos.dtype
+        net_z = jnp.mean(snap.knot_pos[:, 2])
+        catch = self.catch_point(snap.target_pos, snap.target_vel, net_z, self._gravity(dtype))
+        terms = potential_terms(snap, flags, catch_point=catch.point, slots=jnp.asarray(self.slots, dtype),
+                                scales=self.scales, touched=touched)
+        w = self.weights(params, dtype)
+        return jnp.stack([w[k] * terms[k] for k in SHAPING_TERMS])
 
     # --- flying on estimates (env.perception) -----------------------------------------
     def _error_shapes(self):
@@ -373,6 +436,12 @@ class CaptureEnv:
         tvel = est_tvel + sigma[3] * jax.random.normal(k[3], (n, 3), dtype)
         c_net = jnp.mean(phys.point_pos[knots], axis=0)
         v_net = jnp.mean(phys.point_vel[knots], axis=0)
+        # each agent's own prediction of the catch point, from its measurement of the target
+        gravity = self._gravity(dtype)
+        catch = jax.vmap(lambda p, v: self.catch_point(p, v, c_net[2], gravity))(tpos, tvel)
+        slots = jnp.asarray(self.slots, dtype)
+        to_slot = (catch.point + slots - pos) / CATCH_LENGTH_SCALE
+        catch_time = catch.time[:, None] / CATCH_TIME_SCALE
         # teammates j != i, relative to i, in a fixed order per agent
         others = np.asarray([[j for j in range(n) if j != i] for i in range(n)], dtype=np.int32).reshape(n, n - 1)
         mates = jnp.concatenate([est_pos[others] - pos[:, None, :], est_vel[others] - vel[:, None, :]], axis=-1)
@@ -382,6 +451,7 @@ class CaptureEnv:
             tpos - pos, tvel - vel,
             c_net[None, :] - pos, v_net[None, :] - vel,
             mates.reshape(n, 6 * (n - 1)),
+            to_slot, catch_time,
             jnp.eye(n, dtype=dtype),
             jnp.broadcast_to(left, (n, 1)),
         ], axis=-1)
@@ -396,15 +466,21 @@ class CaptureEnv:
         uav = jnp.concatenate([phys.body_pos[quads], phys.body_vel[quads], phys.body_quat[quads],
                                phys.body_angvel[quads]], axis=-1).reshape(-1)
         left = 1.0 - state.steps.astype(dtype) / self.max_steps
+        c_net = jnp.mean(phys.point_pos[knots], axis=0)
+        catch = self.catch_point(phys.body_pos[self.target_body], phys.body_vel[self.target_body], c_net[2],
+                                 self._gravity(dtype))
+        centre = jnp.mean(phys.body_pos[quads], axis=0)
         out = jnp.concatenate([uav, phys.body_pos[self.target_body], phys.body_vel[self.target_body],
-                               jnp.mean(phys.point_pos[knots], axis=0), jnp.mean(phys.point_vel[knots], axis=0),
+                               c_net, jnp.mean(phys.point_vel[knots], axis=0),
+                               (catch.point - centre) / CATCH_LENGTH_SCALE, catch.time[None] / CATCH_TIME_SCALE,
                                left[None]])
         return jnp.where(jnp.isfinite(out), out, 0.0)
 
     # --- baselines --------------------------------------------------------------------
     def scripted_actions(self, state: EnvState, params: EnvParams):
         """The scripted intercept team's actions ``(n_agents, 3)``
-        (:mod:`mysim_jax.tasks.scripted`), mapped into the action space. The team sees the
+        (:mod:`mysim_jax.tasks.scripted`: with position setpoints the point of the flyable
+        box, with velocity setpoints the velocity team's command over ``max_speed``). The team sees the
         true state, or under ``env.perception`` the estimates (:meth:`estimates`), without
         the observation noise."""
         sim_params = self.episode_params(params, state.episode)
@@ -419,9 +495,8 @@ class CaptureEnv:
         sp = self.scripted(self.scene, sim_params, sim)
         cp = sim_params.controller
         if self.scene.quadrotor.setpoint_mode == "velocity":
-            p = sim.phys.body_pos[np.asarray(self.quad_bodies, dtype=np.int32)]
-            v = SCRIPTED_VELOCITY_GAIN * (sp.position - p)
-            return jnp.clip(v / cp.max_speed[:, None], -1.0, 1.0)
+            # the velocity team (scripted.VelocityTeam) commands velocities
+            return jnp.clip(sp.velocity / cp.max_speed[:, None], -1.0, 1.0)
         return jnp.clip(2.0 * (sp.position - cp.box_low) / (cp.box_high - cp.box_low) - 1.0, -1.0, 1.0)
 
     def random_actions(self, key):
@@ -429,8 +504,12 @@ class CaptureEnv:
         return jax.random.uniform(key, self.action_shape, minval=-1.0, maxval=1.0)
 
 
-# velocity-mode scripted team: setpoint velocity per metre of position error [1/s]
-SCRIPTED_VELOCITY_GAIN = 1.5
+# the catch-point features of an observation: the catch point relative to the agent's
+# slot position (3, in units of CATCH_LENGTH_SCALE) and the time to it (1, in units of
+# CATCH_TIME_SCALE)
+CATCH_FEATURES = 4
+CATCH_LENGTH_SCALE = 2.0    # m
+CATCH_TIME_SCALE = 1.0      # s
 
 
 def _ranges(config, dtype) -> Ranges:
@@ -497,10 +576,14 @@ def make_env(config) -> tuple[CaptureEnv, EnvParams]:
         slots=tuple(map(tuple, slots.tolist())), control_steps=control_steps, max_steps=max_steps,
         policy_dt=control_steps * config.sim.dt, success=env_cfg.success, failure=env_cfg.failure,
         scales=env_cfg.reward_scales, randomized_wind=env_cfg.randomize.wind is not None, scripted=team,
+        falling=config.target.behaviour == "falling",
+        target_drag_per_mass=float(config.target.drag_constant / config.target.mass),
+        gravity=tuple(float(g) for g in config.gravity),
         perception=env_cfg.perception is not None)
     weights = env_cfg.weights()
     env_params = EnvParams(sim=params, start=state,
                            weights=jnp.asarray([weights[k] for k in REWARD_TERMS], scene.dtype),
+                           discount=jnp.asarray(env_cfg.discount, scene.dtype),
                            ranges=_ranges(config, scene.dtype),
                            perception=jnp.asarray(_perception(env_cfg.perception, control_steps * config.sim.dt),
                                                   scene.dtype))

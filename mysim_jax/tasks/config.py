@@ -140,8 +140,10 @@ class TeamConfig(StrictModel):
     ``scripted``: the intercept team (:mod:`mysim_jax.tasks.scripted`): it predicts where
     the target crosses the net's height, flies the formation so that the net's centre is
     there, ``lead`` seconds of the target's horizontal motion ahead, and lets the net
-    give way (``soften``) once the target is in it. ``hold``: the team holds its start
-    formation.
+    give way (``soften``) once the target is in it. With velocity setpoints it is the
+    velocity team of that module (drag-aware catch point, lag feed-forward, following the
+    net after the catch: ``gain``, ``lag_gain``, ``follow_gain``). ``hold``: the team holds
+    its start formation.
     """
 
     policy: Literal["scripted", "hold"] = "scripted"
@@ -149,3 +151,7 @@ class TeamConfig(StrictModel):
     soften: NonNegFloat = 0.3               # m the formation descends after the catch
     catch_radius: PosFloat = 0.6            # m: the target counts as "in the net" within this of its centre
     altitude: Finite | None = None          # m, formation height (default: the start height)
+    # velocity setpoints only (mysim_jax/tasks/scripted.py, VelocityTeam)
+    gain: PosFloat = 2.0                    # 1/s, commanded velocity per metre of position error
+    lag_gain: NonNegFloat = 0.5             # -, extra speed per m/s by which the net trails the team
+    follow_gain: NonNegFloat = 1.0          # 1/s, after the catch: velocity per metre the net is off centre

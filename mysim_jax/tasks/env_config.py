@@ -6,7 +6,9 @@ is a complete block::
 
     env:
       policy_rate: 25.0            # Hz: one action per 1/25 s (a whole number of sim.dt)
-      rewards: {distance: 1.2, ...}   # weights, >= 0 (the sign is in the term); the paper's by default
+      rewards: {distance: 1.2, ..., success: 100, miss: 0, crash: 100}   # weights, >= 0 (the sign
+                                   # is in the term); the paper's shaping and these outcomes by default
+      discount: 0.99               # γ of the potential-based shaping (the learner's)
       reward_scales: {...}         # the length, speed and rate each shaped term saturates at
       success: {hold_time: 0.5, ...}
       failure: {max_tilt_deg: 80, ...}
@@ -28,7 +30,8 @@ from pydantic import Field, field_validator, model_validator
 from mysim_jax.config_base import NonNegFloat, PosFloat, StrictModel
 from mysim_jax.tasks.config import BoxRange
 
-# The paper's eight terms and their weights (Table rewards).
+# The paper's eight terms and their weights (Table rewards): seven are the terms of the
+# shaping potential, effort is a per-step cost (mysim_jax/tasks/rewards.py).
 PAPER_WEIGHTS = {
     "distance": 1.2,
     "alignment": 0.6,
@@ -39,13 +42,61 @@ PAPER_WEIGHTS = {
     "collision": 2.8,
     "stability": 4.5,
 }
-# Terminal terms beyond the paper (off by default, so the default reward is the paper's).
-EXTRA_WEIGHTS = {"success": 0.0, "failure": 0.0}
-REWARD_TERMS = tuple(PAPER_WEIGHTS) + tuple(EXTRA_WEIGHTS)
+SHAPING_TERMS = ("distance", "alignment", "spin", "swing", "safe", "collision", "stability")
+COST_TERMS = ("effort",)
+# Outcomes beyond the paper (it has none), large enough by default that the paper's
+# shaping cannot outweigh them over a default episode (return_bounds).
+OUTCOME_WEIGHTS = {"success": 100.0, "miss": 0.0, "crash": 100.0}
+OUTCOME_TERMS = tuple(OUTCOME_WEIGHTS)
+REWARD_TERMS = tuple(PAPER_WEIGHTS) + OUTCOME_TERMS
+# Potential terms that are bonuses (in [0, 1]); the others are penalties (in [-1, 0],
+# ``safe`` in [-(n_agents - 1), 0]).
+BONUS_TERMS = ("collision", "stability")
 
-# The ways an episode can end without success, in the order they are reported.
+# The ways an episode can end without success, in the order they are reported. The
+# target reaching the ground is a miss; every other failure is a crash.
 FAILURES = ("uav_ground", "uav_tilt", "uav_altitude", "uav_uav_collision", "uav_target_collision",
             "target_ground", "non_finite")
+MISSES = ("target_ground",)
+CRASHES = tuple(f for f in FAILURES if f not in MISSES)
+
+
+def return_bounds(weights: dict[str, float], n_agents: int, max_steps: int, discount: float) -> dict[str, float]:
+    """Bounds on what shaping and costs can add to one agent's (undiscounted) episode
+    return, for episodes of at most ``max_steps`` steps.
+
+    With ``Φ`` in ``[−P, B]`` (``P`` the sum of the penalty weights, ``safe`` counted
+    ``n_agents − 1`` times, ``B`` that of the bonuses), an episode's shaping is
+    ``G = −Φ_0 + (γ − 1) Σ_{t=1}^{T−1} Φ_t + γ Φ_T`` (``Φ_T = 0`` when it ends by an
+    outcome), so ``G`` lies in ``[−B − (T−1)(1−γ) B − γ P,  P + (T−1)(1−γ) P + γ B]``; the
+    costs add ``[−w_effort T, 0]``. Returns ``shaping_low``, ``shaping_high``,
+    ``cost_low`` and ``spread`` = (highest − lowest) shaping and cost together."""
+    penalty = sum(weights[k] * (n_agents - 1 if k == "safe" else 1.0) for k in SHAPING_TERMS if k not in BONUS_TERMS)
+    bonus = sum(weights[k] for k in BONUS_TERMS)
+    tail = (max_steps - 1) * (1.0 - discount)
+    low = -bonus - tail * bonus - discount * penalty
+    high = penalty + tail * penalty + discount * bonus
+    cost_low = -sum(weights[k] for k in COST_TERMS) * max_steps
+    return {"shaping_low": low, "shaping_high": high, "cost_low": cost_low, "spread": high - low - cost_low}
+
+
+def ranking_problems(weights: dict[str, float], n_agents: int, max_steps: int, discount: float) -> list[str]:
+    """Why these weights could let an episode's shaping and costs outweigh its outcome
+    (empty when they cannot: every caught episode then returns more than every missed one,
+    and every missed one more than every crashed one)."""
+    b = return_bounds(weights, n_agents, max_steps, discount)
+    spread = b["spread"]
+    problems = []
+    if weights["success"] <= spread:
+        problems.append(f"env.rewards.success = {weights['success']:g} must exceed {spread:.4g}, the largest spread of "
+                        f"an episode's shaping and costs with these weights ({max_steps} policy steps, discount "
+                        f"{discount:g}), or a missed episode could return more than a caught one: raise it or "
+                        "lower the shaping weights")
+    if weights["crash"] <= weights["miss"] + spread:
+        problems.append(f"env.rewards.crash = {weights['crash']:g} must exceed rewards.miss + {spread:.4g} = "
+                        f"{weights['miss'] + spread:.4g} (the largest spread of an episode's shaping and costs), or "
+                        "a crashed episode could return more than a missed one: raise it or lower the shaping weights")
+    return problems
 
 
 class Range(StrictModel):
@@ -160,6 +211,9 @@ class EnvConfig(StrictModel):
 
     policy_rate: PosFloat = 25.0           # Hz
     rewards: dict[str, NonNegFloat] = {}   # term -> weight; missing terms keep their default
+    # γ of the shaping F = γ Φ(s') − Φ(s): the learner's discount (scripts/train.py sets it
+    # to algo.gamma), so that the shaping leaves the optimal policy unchanged
+    discount: Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)] = 0.99
     reward_scales: RewardScales = RewardScales()
     success: SuccessConfig = SuccessConfig()
     failure: FailureConfig = FailureConfig()
@@ -177,5 +231,5 @@ class EnvConfig(StrictModel):
         return v
 
     def weights(self) -> dict[str, float]:
-        """Every term's weight: the file's, else the paper's (extras: 0)."""
-        return {**PAPER_WEIGHTS, **EXTRA_WEIGHTS, **self.rewards}
+        """Every term's weight: the file's, else the paper's (outcomes: OUTCOME_WEIGHTS)."""
+        return {**PAPER_WEIGHTS, **OUTCOME_WEIGHTS, **self.rewards}

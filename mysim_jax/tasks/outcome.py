@@ -4,6 +4,8 @@ The target is **held** at an output time when all of these hold:
 
 * *inside the net's outline*: its horizontal position is inside the polygon of the
   net's border knots (at that time);
+* *above the net*: its centre is higher than the mean height of the ``NET_SURFACE_KNOTS``
+  knots nearest to it horizontally (it lies in the net, not under it);
 * *below the tether attachments*: its centre is lower than every tethered UAV's
   attachment marker;
 * *slow relative to the net*: its speed relative to the mean velocity of the knots is
@@ -25,6 +27,7 @@ from mysim_jax.dynamics.forces import spring_tension
 from mysim_jax.npgeom import rotate
 
 MAX_RELATIVE_SPEED = 0.5   # m/s
+NET_SURFACE_KNOTS = 3      # knots whose mean height is the net under the target (rewards.above_net)
 GROUND_CLEARANCE = 0.05    # m
 HOLD_TIME = 0.5            # s
 
@@ -35,6 +38,7 @@ class CaptureOutcome:
 
     time: np.ndarray
     inside: np.ndarray
+    above_net: np.ndarray
     below: np.ndarray
     slow: np.ndarray
     above_ground: np.ndarray
@@ -43,14 +47,15 @@ class CaptureOutcome:
 
     @property
     def held(self) -> np.ndarray:
-        return self.inside & self.below & self.slow & self.above_ground
+        return self.inside & self.above_net & self.below & self.slow & self.above_ground
 
     def summary(self) -> dict:
         last = -1
         return {
             "caught": bool(self.caught),
             "held_from_s": self.first_held,
-            "at_end": {"inside_net_outline": bool(self.inside[last]), "below_tether_attachments": bool(self.below[last]),
+            "at_end": {"inside_net_outline": bool(self.inside[last]), "above_net": bool(self.above_net[last]),
+                       "below_tether_attachments": bool(self.below[last]),
                        "slow_relative_to_net": bool(self.slow[last]), "above_ground": bool(self.above_ground[last])},
         }
 
@@ -92,17 +97,21 @@ def capture_outcome(columns, config, max_relative_speed=MAX_RELATIVE_SPEED,
     else:
         below = np.ones(len(time), bool)
     knots = [net.knot_name(i, j) for i in range(net.knots) for j in range(net.knots)]
+    knot_pos = np.stack([_xyz(columns, k) for k in knots], axis=1)      # (n_out, n_knots, 3)
+    d2 = np.sum((knot_pos[..., :2] - p[:, None, :2]) ** 2, axis=-1)
+    nearest = np.argsort(d2, axis=1, kind="stable")[:, :NET_SURFACE_KNOTS]
+    over_net = p[:, 2] > np.take_along_axis(knot_pos[..., 2], nearest, axis=1).mean(axis=1)
     v_net = np.mean(np.stack([_xyz(columns, k, "v") for k in knots], axis=1), axis=1)
     slow = np.linalg.norm(v - v_net, axis=-1) < max_relative_speed
     above = p[:, 2] - target.radius > ground_clearance
-    held = inside & below & slow & above
+    held = inside & over_net & below & slow & above
     first = None
     if held[-1]:
         not_held = np.flatnonzero(~held)
         start = 0 if not_held.size == 0 else not_held[-1] + 1
         first = float(time[start])
     caught = first is not None and time[-1] - first >= hold_time - 1e-9
-    return CaptureOutcome(time=time, inside=inside, below=below, slow=slow, above_ground=above,
+    return CaptureOutcome(time=time, inside=inside, above_net=over_net, below=below, slow=slow, above_ground=above,
                           caught=bool(caught), first_held=first)
 
 

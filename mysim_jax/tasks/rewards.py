@@ -1,40 +1,57 @@
 """Rewards, success and failure of the capture task, on one snapshot of one environment.
 
-The paper (Table rewards) names eight terms and their weights but gives no formulas.
-Here is each one, per UAV ``i`` (every term is dimensionless and lies in ``[-1, 0]`` or
-``[0, 1]``, so the weight alone sets its share; the sign is part of the term, the weights
-are non-negative). Notation: ``p_i, v_i, ω_i`` a UAV's position, velocity and body rate;
+**Rewards rank outcomes.** A step's reward is
+
+    r = F + c + o,    F = γ Φ(s') − Φ(s)   (Φ(s') = 0 when the episode ends in s')
+
+with ``F`` potential-based shaping (Ng, Harada & Russell 1999), ``c`` a per-step cost and
+``o`` the outcome, paid once on the step that ends the episode. Shaping of this form adds
+``−Φ(s_0)`` to every discounted return whatever the team does, so it guides learning but
+cannot change which policy is optimal; and because ``Φ`` and the cost are bounded, no
+episode's accumulated shaping and cost can outweigh its outcome when the outcome weights
+exceed the bound :func:`~mysim_jax.tasks.env_config.return_bounds` computes (a scene whose
+weights do not is refused when it is loaded). So for every team a caught episode returns
+more than any missed one, and a missed one more than any crashed one.
+
+The paper (Table rewards) names eight terms and their weights but gives no formulas; here
+seven of them are the terms of the potential ``Φ = Σ_k w_k φ_k`` and the eighth (effort)
+is the cost. Per UAV ``i`` (every ``φ_k`` is dimensionless and lies in ``[-1, 0]`` or
+``[0, 1]``; ``safe`` in ``[-(n - 1), 0]``), the weights are non-negative and the sign is
+part of the term. Notation: ``p_i, v_i, ω_i`` a UAV's position, velocity and body rate;
 ``s_i`` its slot (its start offset from the formation's centre, horizontal); ``p_t, v_t``
-the target's position and velocity; ``c_net, v_net`` the mean position and velocity of the
-net's knots; ``c_uav`` the mean UAV position; ``(·)_xy`` the horizontal part; scales
-``L_d, V_a, Ω, L_s, D, V_s`` from ``env.reward_scales``.
+the target's position and velocity; ``c`` the predicted catch point
+(:func:`~mysim_jax.tasks.intercept.predict_catch`: where the falling target comes down
+to the net's height, drag included; the target itself once it is there); ``c_net,
+v_net`` the mean position and velocity of the net's knots; ``c_uav`` the mean UAV
+position; ``(·)_xy`` the horizontal part; scales ``L_d, V_a, Ω, L_s, D, V_s`` from
+``env.reward_scales``.
 
-* **distance** ``−tanh(|(p_i − s_i − p_t)_xy| / L_d)``: the UAV's distance to where it must
-  be for the net's centre to lie under the target. Zero when the whole formation is
-  centred under the target, so it rewards positioning the net, not crowding the target
-  (a UAV right above the target would put the net beside it).
-* **alignment** ``−tanh(|(v_i − v_t)_xy| / V_a)``: moving with the target. Once the net
-  is under a moving target, staying under it means matching its horizontal velocity.
-* **spin** ``−tanh(|ω_i| / Ω)``: body rates, which shake the net and blur cameras.
-* **effort** ``−mean_k (ω_k / ω_max)³`` over the four rotors: rotor power grows with the
-  cube of rotor speed, so this is the fraction of full power the UAV draws.
-* **swing** ``−tanh(|(c_net − c_uav)_xy| / L_s)`` (shared): a net swinging like a
-  pendulum under the team hangs off the formation's centre, and then the team's placing
-  (distance) no longer puts the net where the target arrives.
-* **safe** ``−Σ_{j≠i} max(0, 1 − |p_i − p_j| / D)``: a linear penalty for every teammate
-  closer than ``D`` (zero beyond it), so it only acts near a collision.
-* **collision** ``+1`` (shared) while the target touches a net line: its centre is within
-  its radius (+ the line radius and ``contact_margin``) of a line segment.
-* **stability** ``+exp(−|v_t − v_net| / V_s)`` (shared) while the target is inside the
-  net's outline and below the tether attachments, after it has first touched the net:
-  a caught target that comes to rest in the net rather than bouncing out.
+* **distance** ``φ = −tanh(|(p_i − s_i − c)_xy| / L_d)``: the UAV's distance to its slot
+  under the catch point, where it must be for the net's centre to meet the target.
+* **alignment** ``φ = −tanh(|(v_i − v_t)_xy| / V_a)``: moving with the target.
+* **spin** ``φ = −tanh(|ω_i| / Ω)``: body rates, which shake the net and blur cameras.
+* **swing** ``φ = −tanh(|(c_net − c_uav)_xy| / L_s)`` (shared): a net swinging like a
+  pendulum under the team hangs off the formation's centre.
+* **safe** ``φ = −Σ_{j≠i} max(0, 1 − |p_i − p_j| / D)``: teammates closer than ``D``.
+* **collision** ``φ = +1`` (shared) while the target touches a net line: its centre is
+  within its radius (+ the line radius and ``contact_margin``) of a line segment.
+* **stability** ``φ = +exp(−|v_t − v_net| / V_s)`` (shared) while the target is inside
+  the net's outline, above the net and below the tether attachments, after it has first
+  touched the net.
+* **effort** (cost, every step) ``c = −mean_k (ω_k / ω_max)³`` over the four rotors:
+  rotor power grows with the cube of rotor speed, so this is the fraction of full power
+  the UAV draws.
 
-Two terminal terms beyond the paper, weight 0 by default: **success** ``+1`` on the step
-the episode succeeds, **failure** ``−1`` on a step it fails (not on a timeout).
+Outcomes (beyond the paper, which has none): **success** ``+1`` on the step the target
+has been held for ``hold_time``; **miss** ``−1`` on the step the target reaches the
+ground; **crash** ``−1`` on the step a UAV fails (ground, tilt, altitude, a collision, a
+non-finite state), whatever the target does then. A timeout is a truncation, not an
+outcome: it pays nothing (a learner bootstraps the value there).
 """
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 from flax import struct
 
@@ -67,6 +84,7 @@ class Checks:
 
     touching: jnp.ndarray       # () bool, target touches a net line
     inside: jnp.ndarray         # () bool, inside the net's outline (horizontally)
+    above_net: jnp.ndarray      # () bool, above the net where it is (not under it)
     below: jnp.ndarray          # () bool, below every tether attachment
     slow: jnp.ndarray           # () bool, slow relative to the net
     above_ground: jnp.ndarray   # () bool
@@ -74,7 +92,13 @@ class Checks:
 
     @property
     def held(self):
-        return self.inside & self.below & self.slow & self.above_ground
+        return self.inside & self.above_net & self.below & self.slow & self.above_ground
+
+    @property
+    def in_net(self):
+        """Inside the outline, above the net and below the attachments: where a caught
+        target lies (held asks, besides, that it is slow and off the ground)."""
+        return self.inside & self.above_net & self.below
 
 
 def inside_polygon(point, polygon):
@@ -95,6 +119,21 @@ def segment_distance(p, a, b):
     return vecmath.safe_norm(a + t[:, None] * ab - p)
 
 
+# knots around the target whose mean height is "the net under it" (NumPy twin:
+# mysim_jax.tasks.outcome.NET_SURFACE_KNOTS)
+NET_SURFACE_KNOTS = 3
+
+
+def above_net(p, knot_pos, k: int = NET_SURFACE_KNOTS):
+    """Is the point ``p`` (3,) above the net: higher than the mean height of the ``k``
+    knots nearest to it horizontally (``knot_pos`` (n_knots, 3))? A target resting in the
+    net lies above the knots under it; one under the net (the net draped over it, or
+    hanging above it) has them above its centre."""
+    d2 = jnp.sum((knot_pos[:, :2] - p[:2]) ** 2, axis=-1)
+    _, nearest = jax.lax.top_k(-d2, k)
+    return p[2] > jnp.mean(knot_pos[nearest, 2])
+
+
 def tilt_cosine(quat):
     """``cos`` of the angle between each body's z axis and world z ``(n,)``."""
     z = jnp.zeros(quat.shape[:-1] + (3,), dtype=quat.dtype).at[..., 2].set(1.0)
@@ -108,6 +147,7 @@ def checks(snap: Snapshot, *, target_radius, line_radius, contact_margin, succes
     gap = jnp.min(segment_distance(p_t, snap.line_a, snap.line_b)) - target_radius - line_radius
     touching = gap <= contact_margin
     inside = inside_polygon(p_t[:2], snap.border[:, :2])
+    over_net = above_net(p_t, snap.knot_pos)
     below = p_t[2] < jnp.min(snap.attach[:, 2])
     v_rel = vecmath.safe_norm(snap.target_vel - jnp.mean(snap.knot_vel, axis=0))
     slow = v_rel < success.max_relative_speed
@@ -132,37 +172,49 @@ def checks(snap: Snapshot, *, target_radius, line_radius, contact_margin, succes
     }
     # a non-finite state makes every comparison False; report it alone
     failures = {k: (v & finite) if k != "non_finite" else v for k, v in failures.items()}
-    return Checks(touching=touching & finite, inside=inside & finite, below=below & finite, slow=slow & finite,
-                  above_ground=above & finite, failures=failures)
+    return Checks(touching=touching & finite, inside=inside & finite, above_net=over_net & finite,
+                  below=below & finite, slow=slow & finite, above_ground=above & finite, failures=failures)
 
 
-def reward_terms(snap: Snapshot, flags: Checks, *, slots, scales, touched_before, succeeded, failed) -> dict:
-    """Unweighted terms ``name -> (n,)`` (module docstring). ``slots`` (n, 3) m;
-    ``scales`` a RewardScales; ``touched_before`` (): the target touched the net at an
-    earlier or this step; ``succeeded`` / ``failed`` (): the episode ends so this step."""
+def potential_terms(snap: Snapshot, flags: Checks, *, catch_point, slots, scales, touched) -> dict:
+    """The unweighted potential terms ``φ_k`` ``name -> (n,)`` of one state (module
+    docstring; :data:`~mysim_jax.tasks.env_config.SHAPING_TERMS`). ``catch_point`` (3,) m;
+    ``slots`` (n, 3) m; ``scales`` a RewardScales; ``touched`` (): the target has touched
+    the net in this episode (this state included)."""
     n = snap.uav_pos.shape[0]
     dtype = snap.uav_pos.dtype
     ones = jnp.ones((n,), dtype=dtype)
-    p_t, v_t = snap.target_pos, snap.target_vel
+    v_t = snap.target_vel
     # horizontal parts as 3-vectors with z = 0 (vecmath works on 3-vectors)
-    offset = (snap.uav_pos - slots - p_t).at[:, 2].set(0.0)
+    offset = (snap.uav_pos - slots - catch_point).at[:, 2].set(0.0)
     dv = (snap.uav_vel - v_t).at[:, 2].set(0.0)
     c_net = jnp.mean(snap.knot_pos, axis=0)
     v_net = jnp.mean(snap.knot_vel, axis=0)
     c_uav = jnp.mean(snap.uav_pos, axis=0)
     d = vecmath.safe_norm(snap.uav_pos[:, None, :] - snap.uav_pos[None, :, :])
     crowd = jnp.where(jnp.eye(n, dtype=bool), 0.0, jnp.maximum(0.0, 1.0 - d / scales.safe_distance))
-    resting = flags.inside & flags.below & touched_before
+    resting = flags.in_net & touched
     terms = {
         "distance": -jnp.tanh(vecmath.safe_norm(offset) / scales.distance),
         "alignment": -jnp.tanh(vecmath.safe_norm(dv) / scales.alignment),
         "spin": -jnp.tanh(vecmath.safe_norm(snap.uav_angvel) / scales.spin),
-        "effort": -jnp.mean(snap.rotor_fraction ** 3, axis=-1),
         "swing": -jnp.tanh(vecmath.safe_norm((c_net - c_uav).at[2].set(0.0)) / scales.swing) * ones,
         "safe": -jnp.sum(crowd, axis=-1),
         "collision": flags.touching.astype(dtype) * ones,
         "stability": jnp.where(resting, jnp.exp(-vecmath.safe_norm(v_t - v_net) / scales.stability), 0.0) * ones,
-        "success": succeeded.astype(dtype) * ones,
-        "failure": -failed.astype(dtype) * ones,
     }
     return {k: jnp.where(jnp.isfinite(v), v, 0.0).astype(dtype) for k, v in terms.items()}
+
+
+def cost_terms(snap: Snapshot) -> dict:
+    """The unweighted per-step costs ``name -> (n,)`` (``effort``)."""
+    effort = -jnp.mean(snap.rotor_fraction ** 3, axis=-1)
+    return {"effort": jnp.where(jnp.isfinite(effort), effort, 0.0).astype(snap.uav_pos.dtype)}
+
+
+def outcome_terms(n: int, dtype, *, succeeded, missed, crashed) -> dict:
+    """The unweighted outcome terms ``name -> (n,)``: ``success`` +1, ``miss`` −1,
+    ``crash`` −1 on the step that ends the episode that way (0 otherwise)."""
+    ones = jnp.ones((n,), dtype=dtype)
+    return {"success": succeeded.astype(dtype) * ones, "miss": -missed.astype(dtype) * ones,
+            "crash": -crashed.astype(dtype) * ones}

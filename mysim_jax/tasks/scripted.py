@@ -22,6 +22,26 @@ knows nothing about the target's behaviour beyond its current position and veloc
 ``ScriptedTeam`` is a frozen (hashable) dataclass, so it can be the ``policy`` of
 :func:`mysim_jax.sim.simulate` / :func:`mysim_jax.sim.rollout` (a static argument).
 ``HoldTeam`` holds the start formation.
+
+**Velocity setpoints** (``controller.setpoint_mode: velocity``, e.g. the training
+environments): :class:`VelocityTeam` flies the same intercept with velocity commands, and
+adds what a team commanding velocities can do better:
+
+* a **drag-aware** catch point: where the target comes down to the net's current height
+  (the mean height of its knots), with quadratic drag at the target's nominal mass
+  (:func:`~mysim_jax.tasks.intercept.predict_catch`);
+* a **lag feed-forward**: the net hangs from tethers and trails the formation while the
+  formation accelerates; the team flies faster by ``lag_gain`` times the velocity by
+  which the net trails it, so that the net, not only the formation, arrives under the
+  catch point in time;
+* **following the net** once the target is in it: the formation moves over the net's
+  centre (``follow_gain``) instead of holding still, which damps the net's swing so the
+  target settles sooner.
+
+Each UAV's command is ``v_i = gain (c* + s_i − p_i) + lag_gain (v̄ − v_net)`` horizontally
+(``c*`` the formation's aim, ``s_i`` its slot, ``v̄`` the team's mean velocity, ``v_net``
+the knots'), and ``gain (z* − z_i)`` vertically; the environment scales it into the
+action space (``v / max_speed``, clipped to ``[-1, 1]``).
 """
 
 from __future__ import annotations
@@ -32,6 +52,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from mysim_jax.control.setpoint import Setpoint
+from mysim_jax.tasks.intercept import predict_catch
 
 
 @dataclass(frozen=True)
@@ -79,6 +100,55 @@ class ScriptedTeam:
         return Setpoint.hold(formation[None, :] + jnp.asarray(self.offsets, dtype=dtype))
 
 
+@dataclass(frozen=True)
+class VelocityTeam:
+    """The intercept team for velocity setpoints (module docstring; lengths in m, times in s)."""
+
+    target_body: int
+    quad_bodies: tuple[int, ...]
+    knot_points: tuple[int, ...]                       # the net's knots (point indices)
+    offsets: tuple[tuple[float, float, float], ...]   # (n_quads, 3) UAV start - formation centre
+    altitude: float        # formation centre height (mean UAV height)
+    net_drop: float        # net centre below the formation centre at the start
+    drag_per_mass: float   # 1/m, the target's nominal k / m
+    gain: float = 2.0      # 1/s, velocity per metre of position error
+    lag_gain: float = 0.5
+    follow_gain: float = 1.0   # 1/s, after the catch: velocity per metre of net offset
+    soften: float = 0.3
+    catch_radius: float = 0.6
+    catch_height: float = 0.3    # a target this little above the net's centre is in it
+
+    def velocities(self, params, state):
+        """The commanded velocity of every quadrotor ``(n_quads, 3)`` m/s."""
+        phys = state.phys
+        dtype = phys.body_pos.dtype
+        quads = np.asarray(self.quad_bodies, dtype=np.int32)
+        knots = np.asarray(self.knot_points, dtype=np.int32)
+        p = phys.body_pos[self.target_body]
+        v = phys.body_vel[self.target_body]
+        uav = phys.body_pos[quads]
+        centre = jnp.mean(uav, axis=0)
+        v_team = jnp.mean(phys.body_vel[quads], axis=0)
+        c_net = jnp.mean(phys.point_pos[knots], axis=0)
+        v_net = jnp.mean(phys.point_vel[knots], axis=0)
+        catch = predict_catch(p, v, c_net[2], params.gravity.astype(dtype), self.drag_per_mass)
+        # in the net: near its centre horizontally and down at its height (a target still
+        # falling towards the net, even below the UAVs, is not caught yet)
+        near = jnp.linalg.norm(p[:2] - c_net[:2]) < self.catch_radius
+        caught = near & (p[2] < c_net[2] + self.catch_height) & (p[2] > c_net[2] - 3.0 * self.net_drop)
+        chase = self.gain * (catch.point[:2] - centre[:2]) + self.lag_gain * (v_team[:2] - v_net[:2])
+        follow = self.follow_gain * (c_net[:2] - centre[:2])
+        formation = jnp.where(caught, follow, chase)
+        offsets = jnp.asarray(self.offsets, dtype=dtype)
+        keep = self.gain * (centre[None, :2] + offsets[:, :2] - uav[:, :2])
+        z = jnp.asarray(self.altitude, dtype=dtype) - jnp.where(caught, self.soften, 0.0)
+        vz = self.gain * (z - uav[:, 2])
+        return jnp.concatenate([formation[None, :] + keep, vz[:, None]], axis=1).astype(dtype)
+
+    def __call__(self, scene, params, state) -> Setpoint:
+        return Setpoint.from_velocity(self.velocities(params, state))
+
+
 def team_policy(config, scene):
     """The policy the scene's ``team:`` block asks for (None without one)."""
     team = config.team
@@ -93,6 +163,21 @@ def team_policy(config, scene):
     centre = start.mean(axis=0)
     altitude = centre[2] if team.altitude is None else team.altitude
     net_drop = centre[2] - (config.net.center[2] if config.net is not None else centre[2] - 1.0)
+    modes = {q.controller.setpoint_mode for q in config.quadrotors if q.controller is not None}
+    if modes == {"velocity"} and config.net is not None:
+        net = config.net
+        target = config.target
+        return VelocityTeam(
+            target_body=scene.body_names.index(target.name),
+            quad_bodies=tuple(scene.body_names.index(q.body) for q in config.quadrotors),
+            knot_points=tuple(scene.point_names.index(net.knot_name(i, j))
+                              for i in range(net.knots) for j in range(net.knots)),
+            offsets=tuple(map(tuple, (start - centre).tolist())),
+            altitude=float(altitude), net_drop=float(net_drop),
+            drag_per_mass=float(target.drag_constant / target.mass),
+            gain=team.gain, lag_gain=team.lag_gain, follow_gain=team.follow_gain,
+            soften=team.soften, catch_radius=team.catch_radius,
+        )
     return ScriptedTeam(
         target_body=scene.body_names.index(config.target.name),
         quad_bodies=tuple(scene.body_names.index(q.body) for q in config.quadrotors),
