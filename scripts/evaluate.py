@@ -28,6 +28,11 @@ episodes are not favoured). Writes into OUT:
   and ``capture.gif`` (skipped with ``--no-animation``), plus ``episode_steps.csv`` and
   ``episode_rewards.png`` (its per-step rewards).
 
+``--compare POLICY`` also runs a second team (any ``--policy`` value, e.g. ``scripted``)
+on the same episodes (episode ``i`` is drawn from its own key, whichever team flies it)
+and writes ``comparison.json`` (both success rates and their paired difference with its
+95 % interval) and ``comparison_episodes.csv`` (each team's outcome per episode).
+
 ``--perception FILE`` evaluates the team flying on estimates instead of true states: FILE is
 an ``env.perception`` block (YAML: ``uav_position``, ``uav_velocity``, ``target_position``,
 ``target_velocity``, each ``{sigma, correlation_time}``; mysim_jax/tasks/env_config.py),
@@ -84,6 +89,8 @@ def main(argv=None) -> int:
     parser.add_argument("--seed", type=int, default=0, help="PRNG seed of the whole evaluation (default 0)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="override a config value, e.g. --set env.policy_rate=10 (repeatable)")
+    parser.add_argument("--compare", metavar="POLICY",
+                        help="also run this team (as --policy) on the same episodes and compare (paired)")
     parser.add_argument("--perception", metavar="FILE",
                         help="fly on estimates: a YAML env.perception block (uav_position, ..., target_velocity)")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
@@ -114,6 +121,8 @@ def main(argv=None) -> int:
             env_note = f"note: {args.config} has no env: block; evaluating with the defaults (env: {{}})"
         out = check_output_dir(args.out)
         check_policy_spec(args.policy)
+        if args.compare is not None:
+            check_policy_spec(args.compare)
     except (ConfigError, OutputError, PolicyError) as err:
         return _error(str(err))
 
@@ -129,26 +138,39 @@ def main(argv=None) -> int:
         env, params = make_env(config)
     except (ConfigError, ValueError) as err:
         return _error(f"{args.config}: {err}")
-    try:
-        make_policy = policy_maker(args.policy)
+    def load(spec, flag):
+        make_policy = policy_maker(spec)
         try:
             policy = make_policy(env, params)
         except Exception as err:   # make_policy is the user's code: any error in it is an input error
-            raise PolicyError(f"--policy {args.policy}: make_policy(env, params) failed: "
+            raise PolicyError(f"{flag} {spec}: make_policy(env, params) failed: "
                               f"{type(err).__name__}: {err}") from None
-        check_policy(env, params, policy, args.policy)
+        check_policy(env, params, policy, spec)
+        return policy
+
+    try:
+        policy = load(args.policy, "--policy")
+        other = load(args.compare, "--compare") if args.compare is not None else None
     except PolicyError as err:
         return _error(str(err))
     if env_note:
         print(env_note, file=sys.stderr)
 
-    from mysim_jax.tasks.report import summary_line, write_evaluation
+    from mysim_jax.tasks.evaluate import run_episodes
+    from mysim_jax.tasks.report import comparison_line, summary_line, write_comparison, write_evaluation
 
+    key = jax.random.PRNGKey(args.seed)
+    stats = run_episodes(env, params, policy, args.episodes, args.batch, key, progress=not args.no_progress)
     metrics = write_evaluation(out, config, env, params, policy, policy_name=args.policy, episodes=args.episodes,
                                batch=args.batch, seed=args.seed, config_path=args.config, overrides=args.overrides,
                                env_note=env_note, progress=not args.no_progress, animate=not args.no_animation,
-                               extra={"perception": perception})
+                               extra={"perception": perception}, stats=stats)
     print(summary_line(config.name, args.policy, metrics, out))
+    if other is not None:
+        base = run_episodes(env, params, other, args.episodes, args.batch, key, progress=not args.no_progress)
+        result = write_comparison(out, stats, base, names=("policy", "compare"), seed=args.seed,
+                                  extra={"policy": args.policy, "compare": args.compare})
+        print(comparison_line(result))
     return 0
 
 

@@ -4,9 +4,10 @@
     # 1. measured estimation errors -> an env.perception block
     python scripts/perception_gap.py fit --uav runs/cap/vio_uav1/metrics.json runs/cap/vio_uav2/metrics.json \\
         --target runs/cap/track/metrics.json --out configs/perception_capture.yaml
-    # 2. the same 1000 episodes on true and on perceived states (one episode per slot)
-    python scripts/evaluate.py SCENE --policy RUN/policy --episodes 1000 --batch 1000 --out gap/true
-    python scripts/evaluate.py SCENE --policy RUN/policy --episodes 1000 --batch 1000 \\
+    # 2. the same 1000 episodes on true and on perceived states (the same seed: episode i
+    #    is drawn alike in both)
+    python scripts/evaluate.py SCENE --policy RUN/policy --episodes 1000 --out gap/true
+    python scripts/evaluate.py SCENE --policy RUN/policy --episodes 1000 \\
         --perception configs/perception_capture.yaml --out gap/perceived
     # 3. the gap, with intervals
     python scripts/perception_gap.py compare gap/true gap/perceived [--out gap/gap.json]

@@ -31,8 +31,14 @@ def _run(*args):
 def test_outputs_and_consistent_metrics(tmp_path):
     out = tmp_path / "eval"
     res = _run(CONFIG, "--policy", "scripted", "--episodes", 4, "--batch", 2, "--seed", 3, "--out", out,
-               "--no-animation")
+               "--no-animation", "--compare", "random")
     assert res.returncode == 0, res.stderr
+    # the random team flew the same four episodes: a paired comparison
+    comparison = json.loads((out / "comparison.json").read_text())
+    assert (comparison["policy"], comparison["compare"], comparison["episodes"]) == ("scripted", "random", 4)
+    assert comparison["both"] + comparison["neither"] + comparison["only_policy"] + comparison["only_compare"] == 4
+    assert "on the same 4 episodes" in res.stdout
+    assert len((out / "comparison_episodes.csv").read_text().splitlines()) == 5
     assert "no env: block" in res.stderr          # capture_falling.yaml has none: defaults, with a note
     for name in ("metrics.json", "episodes.csv", "outcomes.png", "reward_terms.png", "lengths.png", "returns.png",
                  "trajectory.csv", "config.yaml", "capture_top.png", "capture_side.png", "episode_steps.csv",
@@ -44,8 +50,8 @@ def test_outputs_and_consistent_metrics(tmp_path):
     assert metrics["scene"] == "capture_falling" and metrics["env_block"] == "defaults"
 
     rows = read_trajectory_csv(out / "episodes.csv")
-    assert len(rows["episode"]) == 4
-    assert sorted(np.bincount(rows["slot"].astype(int))) == [2, 2]     # every slot ran its share
+    np.testing.assert_array_equal(rows["episode"], np.arange(4))          # numbered, in order
+    assert set(rows["slot"].astype(int)) == {0, 1}                        # both slots ran episodes
     flags = {"success": rows["success"], "timeout": rows["timeout"],
              **{f: rows[f"failure_{f}"] for f in FAILURES}}
     rates = {"success": metrics["success"], "timeout": metrics["timeout"], **metrics["failures"]}
@@ -62,11 +68,11 @@ def test_outputs_and_consistent_metrics(tmp_path):
         assert metrics["mean_terms"][t] == pytest.approx(rows[f"term_{t}"].mean(), rel=1e-6, abs=1e-9)
     np.testing.assert_allclose(sum(rows[f"term_{t}"] for t in REWARD_TERMS), rows["return"], rtol=1e-4)
 
-    # the recorded episode (slot 0's first) in simulate.py's format, on the policy-step grid
+    # the recorded episode (episode 0) in simulate.py's format, on the policy-step grid
     traj = read_trajectory_csv(out / "trajectory.csv")
     assert {"time", "target_x", "uav0_qw", "uav0_az", "uav0_rotor4", "net_k1_1_vz"} <= set(traj)
     rec = metrics["recorded_episode"]
-    first = int(np.flatnonzero(rows["slot"] == 0)[0])
+    first = 0
     assert len(traj["time"]) == rec["length_steps"] + 1 == int(rows["length_steps"][first]) + 1
     np.testing.assert_allclose(traj["time"], np.arange(len(traj["time"])) * metrics["policy_dt"], atol=1e-5)
     assert rec["mean_return"] == pytest.approx(rows["return"][first], rel=1e-3)
@@ -115,11 +121,13 @@ def test_record_episode_stops_at_the_pre_reset_state():
 
     # the same episode stepped with env.step: same rewards, same states, and its state after
     # the last step is already the reset one
-    k_reset, k = jax.random.split(key)
+    from mysim_jax.tasks.evaluate import episode_keys
+
+    k_reset, _, _ = episode_keys(key, 0, 0)
     obs, state = env.reset(k_reset, params)
     step = jax.jit(env.step)
     for i in range(rec.length):
-        k, k_act, k_step = jax.random.split(k, 3)
+        _, k_act, k_step = episode_keys(key, 0, i)
         obs, state, reward, _, _, info = step(k_step, state, policy(k_act, obs, state, params), params)
         np.testing.assert_allclose(reward, rec.rewards[i], rtol=1e-4, atol=1e-5)
         if i < rec.length - 1:
@@ -153,3 +161,33 @@ def test_policy_files_are_checked_before_compiling(tmp_path):
     checkpoint.write_text("")
     with pytest.raises(PolicyError, match="not a Python file"):
         policy_maker(str(checkpoint))
+
+
+def test_numbered_episodes_are_the_same_whatever_the_batch_and_the_team():
+    """Episode i is drawn from its own key: batches of 1, 3 and 6 slots run the same six
+    episodes (their returns agree to 2e-3: the compiled programs differ and contact amplifies float32 rounding), and
+    two teams get the same first state in every episode (the paired comparison relies on it)."""
+    from mysim_jax.tasks.capture import make_env
+    from mysim_jax.tasks.evaluate import Evaluator, episode_keys, random_policy, run_episodes, scripted_policy
+    from mysim_jax.tasks.report import compare
+
+    env, params = make_env(load_config(CONFIG, ["env={}", *SMALL]))
+    key = jax.random.PRNGKey(5)
+    runs = [run_episodes(env, params, scripted_policy(env), 6, b, key, progress=False) for b in (1, 3, 6)]
+    for other in runs[1:]:
+        np.testing.assert_array_equal(other.length, runs[0].length)
+        np.testing.assert_array_equal(other.success, runs[0].success)
+        np.testing.assert_allclose(other.returns, runs[0].returns, rtol=0, atol=2e-3)   # measured 2e-4
+    starts = [env.reset(episode_keys(key, i, 0)[0], params)[1] for i in range(6)]
+    spawns = np.array([np.asarray(s.sim.phys.body_pos[env.target_body]) for s in starts])
+    assert len({tuple(np.round(x, 6)) for x in spawns}) == 6               # six different episodes
+    random = run_episodes(env, params, random_policy(env), 6, 3, key, progress=False)
+    result = compare(runs[0], random, ("scripted", "random"))
+    assert result["episodes"] == 6 and result["teams"] == ["scripted", "random"]
+    assert result["both"] + result["neither"] + result["only_scripted"] + result["only_random"] == 6
+    lo, hi = result["difference"]["interval95"]
+    assert lo <= result["difference"]["estimate"] <= hi
+    with pytest.raises(ValueError, match="same episodes"):
+        compare(runs[0], run_episodes(env, params, random_policy(env), 3, 3, key, progress=False))
+    with pytest.raises(ValueError, match="at least 1"):
+        Evaluator(env, params, lambda *a: None, batch=0)

@@ -13,13 +13,13 @@ inside the step when an episode ends, so its returned state is already the next
 episode's; its ``info["final_state"]`` is the state before the reset, and that is what is
 saved here for every step.
 
-**Keys.** The key is used exactly as :func:`~mysim_jax.tasks.evaluate.run_episodes`
-uses slot ``b``'s key ``fold_in(key, b)``: ``record_episode(env, params, policy,
-fold_in(key, 0))`` replays the first episode of slot 0 of ``run_episodes(..., key)``
-with the same draws, and the same states up to floating-point rounding, which differs
-between compiled programs. Contact is chaotic: once the target touches the net, that
-rounding grows (millimetres within a few steps) and the replay can end differently from
-the batched episode (as two batched runs of different batch sizes can).
+**Keys.** ``record_episode(env, params, policy, key, index)`` draws episode ``index`` of
+an evaluation seeded with ``key`` exactly as :func:`~mysim_jax.tasks.evaluate.run_episodes`
+does (:func:`~mysim_jax.tasks.evaluate.episode_keys`): the same draws, and the same
+states up to floating-point rounding, which differs between compiled programs. Contact is
+chaotic: once the target touches the net, that rounding grows (millimetres within a few
+steps) and the replay can end differently from the batched episode (as two batched runs
+of different batch sizes can).
 
 **Rows.** The trajectory has ``length + 1`` rows: the reset state at ``t = 0`` and the
 state after every policy step, the last one at ``t = length · policy_dt``.
@@ -52,8 +52,9 @@ def held_accelerations(env, sim_params, sim, actions):
     return accelerations(scene, sim_params, sim.phys, inputs, held)
 
 
-def episode_rollout(env, params, policy, key):
-    """``max_steps`` policy steps from a reset drawn from ``key`` (pure; module docstring).
+def episode_rollout(env, params, policy, key, index=0):
+    """``max_steps`` policy steps of episode ``index`` drawn from ``key`` (pure; module
+    docstring).
 
     Returns ``(first, sim_params, rows)``: the reset sim state, the first episode's
     physics parameters, and per-step stacked ``rows`` (leading axis ``max_steps``):
@@ -63,13 +64,15 @@ def episode_rollout(env, params, policy, key):
     (the episode's return so far, per agent). Rows after the first ``done`` belong to the
     following episodes (the environment auto-resets); :func:`record_episode` drops them.
     """
-    k_reset, k_run = jax.random.split(key)
+    from mysim_jax.tasks.evaluate import episode_keys
+
+    k_reset, _, _ = episode_keys(key, index, 0)
     obs, start = env.reset(k_reset, params)
     sim_params = env.episode_params(params, start.episode)
 
-    def one(carry, _):
+    def one(carry, t):
         k, obs, state = carry
-        k, k_act, k_step = jax.random.split(k, 3)
+        _, k_act, k_step = episode_keys(key, index, t)
         actions = policy(k_act, obs, state, params)
         obs, state, reward, _, _, info = env.step(k_step, state, actions, params)
         sim = info["final_state"].sim
@@ -79,7 +82,7 @@ def episode_rollout(env, params, policy, key):
                "returns": info["episode_return"]}
         return (k, obs, state), row
 
-    _, rows = jax.lax.scan(one, (k_run, obs, start), None, length=env.max_steps)
+    _, rows = jax.lax.scan(one, (key, obs, start), jnp.arange(env.max_steps))
     return start.sim, sim_params, rows
 
 
@@ -111,10 +114,10 @@ class EpisodeRecord:
         return next((f for f in FAILURES if self.failures[f]), "timeout")
 
 
-def record_episode(env, params, policy, key) -> EpisodeRecord:
-    """Run one episode (reset from ``key``, step until the first ``done``) and keep its
-    states up to and including the terminal, pre-reset one (module docstring)."""
-    first, sim_params, rows = jax.jit(lambda p, k: episode_rollout(env, p, policy, k))(params, key)
+def record_episode(env, params, policy, key, index: int = 0) -> EpisodeRecord:
+    """Run episode ``index`` drawn from ``key`` (module docstring) to its first ``done`` and
+    keep its states up to and including the terminal, pre-reset one."""
+    first, sim_params, rows = jax.jit(lambda p, k: episode_rollout(env, p, policy, k, index))(params, key)
     first, sim_params, rows = jax.tree.map(np.asarray, (first, sim_params, rows))
     done = np.flatnonzero(rows["done"])
     if done.size == 0:       # the time limit ends every episode within max_steps

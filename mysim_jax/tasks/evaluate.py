@@ -1,20 +1,33 @@
 """Evaluate a team on many episodes of a capture environment, batched.
 
-:func:`run_episodes` runs ``batch`` environments side by side (one jitted batch-last
-``mysim_jax.batching.vmap`` of
-:meth:`CaptureEnv.step` scanned over ``chunk`` policy steps per call, a progress bar
-between calls) until every environment has finished ``ceil(n / batch)`` episodes, and
-keeps exactly those first episodes of every slot (the first ``n`` of them in slot order).
-Keeping a fixed number of episodes per slot, rather than every episode that ends within a
-time window, avoids favouring short episodes (fast failures) in the rates.
+**Episodes are numbered.** Episode ``i`` of an evaluation seeded with ``key`` is drawn from
+``episode_key(key, i) = fold_in(key, i)`` alone: its reset from the first half of that key's
+split, and its step ``t`` from ``fold_in(second half, t)`` (the policy's key and the
+environment's, split from it). So the episodes, and every random draw inside them, are the
+same whichever team flies them and whichever environment slot runs them: two teams
+evaluated with one key fly the same episodes, and their outcomes can be compared episode
+by episode (:func:`mysim_jax.tasks.sweep.paired_difference_interval`).
+
+:func:`run_episodes` runs ``batch`` environment slots side by side (one jitted batch-last
+:func:`mysim_jax.batching.vmap` of :meth:`CaptureEnv.step` scanned over ``chunk`` policy
+steps per call, a progress bar between calls). Episodes ``0 .. batch − 1`` start in the
+slots; each slot holds the number of the episode it starts next, and when its episode
+ends it resets into that one at once. Between calls, slots that have started their next
+episode are given the next number from the queue, until ``n`` episodes have been handed
+out; slots left without one idle until the last episode ends. Every episode runs to its
+own end, so short episodes (fast failures) are not favoured, and results come back in
+episode order.
 
 Policies are functions ``policy(key, obs, state, params) -> actions`` of one environment
-(:func:`scripted_policy`, :func:`random_policy`, or a trained one).
+(:func:`scripted_policy`, :func:`random_policy`, or a trained one), or with
+``policy_args``, ``policy(key, obs, state, params, args)``: ``args`` (e.g. a network's
+parameters) is traced, so an :class:`Evaluator` compiled once evaluates new parameters
+without compiling again.
 """
 
 from __future__ import annotations
 
-import math
+import time
 from dataclasses import dataclass, field
 
 import jax
@@ -24,6 +37,19 @@ import numpy as np
 from mysim_jax import batching, parallel
 from mysim_jax.tasks.env_config import FAILURES, REWARD_TERMS
 from mysim_jax.tasks.sweep import wilson_interval
+
+
+def episode_key(key, index):
+    """The key that episode ``index`` of an evaluation seeded with ``key`` is drawn from."""
+    return jax.random.fold_in(key, index)
+
+
+def episode_keys(key, index, step):
+    """``(reset_key, policy_key, env_key)`` of step ``step`` of episode ``index``
+    (module docstring)."""
+    k_reset, k_run = jax.random.split(episode_key(key, index))
+    k_act, k_step = jax.random.split(jax.random.fold_in(k_run, step))
+    return k_reset, k_act, k_step
 
 
 def scripted_policy(env):
@@ -50,7 +76,7 @@ class EpisodeStats:
     length: np.ndarray                  # (n,) policy steps
     returns: np.ndarray                 # (n,) mean over agents of the episode's return
     terms: dict[str, np.ndarray]        # term -> (n,) episode sum of the weighted term, mean over agents
-    slot: np.ndarray                    # (n,) which batched environment ran it
+    slot: np.ndarray                    # (n,) which environment slot ran it
     wall_s: float = 0.0                 # the batched run, compile included
     policy_steps: int = 0               # policy steps taken in all (every slot, every step)
     extra: dict = field(default_factory=dict)
@@ -79,78 +105,129 @@ class EpisodeStats:
         }
 
 
-def run_episodes(env, params, policy, n_episodes: int, batch: int, key, chunk: int = 25,
-                 progress: bool = True) -> EpisodeStats:
-    """Run ``n_episodes`` episodes (module docstring). ``key`` seeds everything: slot
-    ``b`` resets from ``fold_in(key, b)`` and steps with keys split from its own."""
-    import time
+class Evaluator:
+    """Numbered episodes (module docstring) of ``policy`` on ``env``, ``batch`` slots side
+    by side: ``evaluator(key, n_episodes, policy_args)`` runs episodes ``0 .. n − 1`` drawn
+    from ``key`` and returns their :class:`EpisodeStats`. The batched step is compiled once
+    per batch size (``min(batch, n)``); keys, episode counts and ``policy_args`` are
+    arguments, so evaluating other episodes or other network parameters compiles nothing.
+    ``policy(key, obs, state, params, args)``."""
 
+    def __init__(self, env, params, policy, batch: int, chunk: int = 8):
+        if batch < 1 or chunk < 1:
+            raise ValueError("Evaluator: batch and chunk must be at least 1")
+        self.env, self.params = env, params
+        self.batch, self.chunk = batch, chunk
+        self._n_terms = len(REWARD_TERMS)
+
+        def slot_step(carry, _, args, key, fresh):
+            obs, state, ep, t, nxt, term_sum = carry
+            _, k_act, k_step = episode_keys(key, jnp.maximum(ep, 0), t)
+            actions = policy(k_act, obs, state, params, args)
+            obs2, state2, _, _, _, info = env.step(k_step, state, actions, params)
+            done = info["done"]
+            finishing = done & (ep >= 0)
+            terms = jnp.stack([jnp.mean(info["terms"][k]) for k in REWARD_TERMS])
+            term_sum = term_sum + terms
+            row = (ep, finishing, info["success"], jnp.stack([info["failures"][f] for f in FAILURES]),
+                   info["timeout"], info["episode_length"], jnp.mean(info["episode_return"]), term_sum)
+            # an ended episode (or an idle slot) starts the slot's next episode, if it has one
+            start = (done | (ep < 0)) & (nxt >= 0)
+            obs_n, state_n = fresh
+            obs = jnp.where(start, obs_n, obs2)
+            state = jax.tree.map(lambda a, b: jnp.where(start, a, b), state_n, state2)
+            ep = jnp.where(start, nxt, jnp.where(done, -1, ep))
+            nxt = jnp.where(start, -1, nxt)
+            t = jnp.where(start | done, 0, t + 1)
+            term_sum = jnp.where(start | done, jnp.zeros_like(term_sum), term_sum)
+            return (obs, state, ep, t, nxt, term_sum), row
+
+        def advance(carry, args, key):
+            # a slot starts at most one episode per call (its number is handed out between
+            # calls), so that episode's first state is computed once per call, not per step
+            k_reset, _, _ = episode_keys(key, jnp.maximum(carry[4], 0), 0)
+            fresh = env.reset(k_reset, params)
+            return jax.lax.scan(lambda c, x: slot_step(c, x, args, key, fresh), carry, None, length=chunk)
+
+        def start_slot(index, key):
+            k_reset, _, _ = episode_keys(key, index, 0)
+            return env.reset(k_reset, params)
+
+        self._start = jax.jit(jax.vmap(start_slot, in_axes=(0, None)))
+        one = jax.eval_shape(lambda: env.reset(jax.random.PRNGKey(0), params)[1])
+        self._batched = batching.vmap(advance, in_axes=(0, None, None), chunk=batching.chunk_for(one))
+        self._compiled = {}
+
+    def _advance(self, batch: int):
+        # batch axis last inside, in cache-sized blocks (mysim_jax.batching); split over
+        # the devices when there are several
+        if batch not in self._compiled:
+            self._compiled[batch] = parallel.jit_envs(self._batched, batch, in_axes=(0, None, None))
+        return self._compiled[batch]
+
+    def __call__(self, key, n_episodes: int, policy_args=None, progress: bool = False,
+                 desc: str = "episodes") -> EpisodeStats:
+        if n_episodes < 1:
+            raise ValueError("Evaluator: n_episodes must be at least 1")
+        n = n_episodes
+        batch = min(self.batch, n)
+        advance = self._advance(batch)
+        t0 = time.perf_counter()
+        first = np.arange(batch)
+        obs, state = self._start(jnp.asarray(first, jnp.int32), key)
+        nxt = np.where(first + batch < n, first + batch, -1)
+        queue = batch + int(np.sum(nxt >= 0))          # the next episode number to hand out
+        carry = (obs, state, jnp.asarray(first, jnp.int32), jnp.zeros(batch, jnp.int32),
+                 jnp.asarray(nxt, jnp.int32), jnp.zeros((batch, self._n_terms), jnp.float32))
+        rows = {}
+        bar = None
+        if progress:
+            from tqdm.auto import tqdm
+            bar = tqdm(total=n, desc=desc, unit="ep")
+        steps = 0
+        while len(rows) < n:
+            carry, out = advance(carry, policy_args, key)
+            ep, finishing, success, failures, timeout, length, ret, terms = jax.tree.map(np.asarray, out)
+            steps += batch * self.chunk
+            before = len(rows)
+            for b, s in zip(*np.nonzero(finishing)):
+                rows[int(ep[b, s])] = (b, success[b, s], failures[b, s], timeout[b, s], length[b, s], ret[b, s],
+                                       terms[b, s])
+            if bar is not None:
+                bar.update(len(rows) - before)
+            # slots that have started their next episode get another number
+            nxt = np.asarray(carry[4])
+            free = np.flatnonzero(nxt < 0)[:max(0, n - queue)]
+            if free.size:
+                nxt = nxt.copy()
+                nxt[free] = np.arange(queue, queue + free.size)
+                queue += free.size
+                carry = carry[:4] + (jnp.asarray(nxt, jnp.int32),) + carry[5:]
+        if bar is not None:
+            bar.close()
+        wall = time.perf_counter() - t0
+        order = [rows[i] for i in range(n)]
+        fail = np.stack([r[2] for r in order])
+        term_rows = np.stack([r[6] for r in order])
+        return EpisodeStats(
+            success=np.array([r[1] for r in order], bool),
+            failures={f: fail[:, i].astype(bool) for i, f in enumerate(FAILURES)},
+            timeout=np.array([r[3] for r in order], bool),
+            length=np.array([r[4] for r in order], int),
+            returns=np.array([r[5] for r in order], float),
+            terms={t: term_rows[:, i] for i, t in enumerate(REWARD_TERMS)},
+            slot=np.array([r[0] for r in order], int), wall_s=wall, policy_steps=steps)
+
+
+def run_episodes(env, params, policy, n_episodes: int, batch: int, key, chunk: int = 8,
+                 progress: bool = True, policy_args=None) -> EpisodeStats:
+    """Run episodes ``0 .. n_episodes − 1`` drawn from ``key`` (module docstring), ``batch``
+    at a time. ``policy(key, obs, state, params)``, or with ``policy_args``
+    ``policy(key, obs, state, params, args)``. ``wall_s`` includes compiling."""
     if n_episodes < 1 or batch < 1:
         raise ValueError("run_episodes: n_episodes and batch must be at least 1")
-    batch = min(batch, n_episodes)
-    quota = math.ceil(n_episodes / batch)
-
-    def one(carry, _):
-        k, obs, state = carry
-        k, k_act, k_step = jax.random.split(k, 3)
-        actions = policy(k_act, obs, state, params)
-        obs, state, reward, terminated, truncated, info = env.step(k_step, state, actions, params)
-        row = (info["done"], info["success"], jnp.stack([info["failures"][f] for f in FAILURES]), info["timeout"],
-               info["episode_length"], jnp.mean(info["episode_return"]),
-               jnp.stack([jnp.mean(info["terms"][t]) for t in REWARD_TERMS]))
-        return (k, obs, state), row
-
-    def advance(carry):
-        return jax.lax.scan(one, carry, None, length=chunk)
-
-    def start(k):
-        k_reset, k_run = jax.random.split(k)
-        obs, state = env.reset(k_reset, params)
-        return k_run, obs, state
-
-    carry = jax.jit(jax.vmap(start))(jax.vmap(lambda b: jax.random.fold_in(key, b))(jnp.arange(batch)))
-    # batch axis last inside, in cache-sized blocks (mysim_jax.batching); split over the
-    # devices when there are several
-    block = batching.chunk_for(jax.tree.map(lambda x: x[0], carry[2]))
-    advance = parallel.jit_envs(batching.vmap(advance, chunk=block), batch)
-    done_count = np.zeros(batch, int)
-    term_sums = np.zeros((batch, len(REWARD_TERMS)))
-    rows = []
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
-        bar = tqdm(total=quota * batch, desc="episodes", unit="ep")
+    call = policy if policy_args is not None else (lambda k, o, s, p, a: policy(k, o, s, p))
     t0 = time.perf_counter()
-    steps = 0
-    while done_count.min() < quota:
-        carry, out = advance(carry)
-        done, success, failures, timeout, length, ret, terms = jax.tree.map(np.asarray, out)
-        steps += batch * chunk
-        before = np.minimum(done_count, quota).sum()
-        for b in range(batch):
-            for s in range(chunk):
-                if done_count[b] >= quota:
-                    break
-                term_sums[b] += terms[b, s]
-                if done[b, s]:
-                    rows.append((b, done_count[b], success[b, s], failures[b, s], timeout[b, s], length[b, s],
-                                 ret[b, s], term_sums[b].copy()))
-                    done_count[b] += 1
-                    term_sums[b] = 0.0
-        if bar is not None:
-            bar.update(int(np.minimum(done_count, quota).sum() - before))
-    if bar is not None:
-        bar.close()
-    wall = time.perf_counter() - t0
-    rows.sort(key=lambda r: (r[1], r[0]))      # episode index within slot, then slot
-    rows = rows[:n_episodes]
-    fail = np.stack([r[3] for r in rows])
-    term_rows = np.stack([r[7] for r in rows])
-    return EpisodeStats(
-        success=np.array([r[2] for r in rows], bool),
-        failures={f: fail[:, i].astype(bool) for i, f in enumerate(FAILURES)},
-        timeout=np.array([r[4] for r in rows], bool),
-        length=np.array([r[5] for r in rows], int),
-        returns=np.array([r[6] for r in rows], float),
-        terms={t: term_rows[:, i] for i, t in enumerate(REWARD_TERMS)},
-        slot=np.array([r[0] for r in rows], int), wall_s=wall, policy_steps=steps)
+    stats = Evaluator(env, params, call, batch, chunk)(key, n_episodes, policy_args, progress=progress)
+    stats.wall_s = time.perf_counter() - t0
+    return stats

@@ -11,8 +11,8 @@ Two steps, both on files the other scripts write:
   correlation time: their mean).
 * :func:`compare_evaluations` reads two ``scripts/evaluate.py`` folders, one on true states
   and one with ``--perception``, checks that they ran the same episodes (same scene, policy,
-  seed and episode count, and one episode per environment slot, ``--batch`` equal to
-  ``--episodes``, so every episode is drawn from the same key in both), and returns both
+  seed and episode count: episode ``i`` is drawn from its own key in both,
+  :mod:`mysim_jax.tasks.evaluate`, whatever ``--batch``), pairs them by episode number, and returns both
   success rates with 95 % Wilson intervals and their paired difference with Newcombe's
   interval (:func:`mysim_jax.tasks.sweep.paired_difference_interval`).
 
@@ -84,31 +84,27 @@ def _read(folder: Path) -> tuple[dict, dict[int, bool]]:
     success = {}
     with episodes_path.open() as f:
         for row in csv.DictReader(f):
-            success[int(row["slot"])] = bool(int(row["success"]))
+            success[int(float(row["episode"]))] = bool(int(float(row["success"])))
     return metrics, success
 
 
 def compare_evaluations(true_dir, perceived_dir) -> dict:
     """Success on true states, on perceived states, and the paired gap (module docstring)."""
     (m_true, s_true), (m_perc, s_perc) = _read(Path(true_dir)), _read(Path(perceived_dir))
-    for key in ("scene", "policy", "episodes", "seed", "batch"):
+    for key in ("scene", "policy", "episodes", "seed"):
         if m_true.get(key) != m_perc.get(key):
             raise GapError(f"the two evaluations differ in {key} ({m_true.get(key)!r} and {m_perc.get(key)!r}): "
-                           "run both with the same scene, policy, --episodes, --batch and --seed")
-    if m_true["batch"] != m_true["episodes"]:
-        raise GapError(f"--batch {m_true['batch']} with --episodes {m_true['episodes']}: only each slot's first "
-                       "episode is drawn alike in both runs (later ones start when the previous ends); evaluate "
-                       "with --batch equal to --episodes")
+                           "run both with the same scene, policy, --episodes and --seed")
     if m_true.get("perception") is not None:
         raise GapError(f"{true_dir}: evaluated with --perception; the first folder must be on true states")
     if m_perc.get("perception") is None:
         raise GapError(f"{perceived_dir}: evaluated on true states; the second folder must use --perception")
-    slots = sorted(s_true)
-    if sorted(s_perc) != slots:
-        raise GapError("the two evaluations' episodes.csv hold different slots")
-    a = np.array([s_true[s] for s in slots])
-    b = np.array([s_perc[s] for s in slots])
-    n = len(slots)
+    episodes = sorted(s_true)
+    if sorted(s_perc) != episodes:
+        raise GapError("the two evaluations' episodes.csv hold different episodes")
+    a = np.array([s_true[i] for i in episodes])
+    b = np.array([s_perc[i] for i in episodes])
+    n = len(episodes)
     d, lo, hi = paired_difference_interval(a, b)
 
     def rate(x):

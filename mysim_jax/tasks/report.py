@@ -24,9 +24,11 @@ import numpy as np
 
 def write_evaluation(out: Path, config, env, params, policy, *, policy_name: str, episodes: int, batch: int,
                      seed: int, config_path: str, overrides=(), env_note: str | None = None,
-                     progress: bool = True, animate: bool = True, extra: dict | None = None) -> dict:
+                     progress: bool = True, animate: bool = True, extra: dict | None = None,
+                     stats=None) -> dict:
     """Evaluate ``policy`` on ``episodes`` episodes and write the report into ``out``.
-    Returns the ``metrics.json`` dict."""
+    Returns the ``metrics.json`` dict. ``stats``: the episodes' EpisodeStats when they
+    have been run already (episodes ``0 .. episodes − 1`` of ``seed``)."""
     from mysim_jax.config import dump_config
     from mysim_jax.io.capture_plots import capture_report
     from mysim_jax.io.eval_plots import episode_columns, evaluation_plots, outcome_labels, plot_episode_rewards
@@ -37,12 +39,13 @@ def write_evaluation(out: Path, config, env, params, policy, *, policy_name: str
 
     key = jax.random.PRNGKey(seed)
     batch = min(batch, episodes)
-    stats = run_episodes(env, params, policy, episodes, batch, key, progress=progress)
-    # slot 0's first episode, replayed with its key (run_episodes seeds slot b with fold_in(key, b))
-    record = record_episode(env, params, policy, jax.random.fold_in(key, 0))
+    if stats is None:
+        stats = run_episodes(env, params, policy, episodes, batch, key, progress=progress)
+    # episode 0, replayed with its key
+    record = record_episode(env, params, policy, key, 0)
 
     summary = stats.summary()
-    first = int(np.flatnonzero(stats.slot == 0)[0])
+    first = 0
     with staged_output(out) as tmp:
         (tmp / "config.yaml").write_text(dump_config(config))
         write_trajectory_csv(tmp / "episodes.csv", episode_columns(stats, env.policy_dt))
@@ -67,7 +70,7 @@ def write_evaluation(out: Path, config, env, params, policy, *, policy_name: str
             "max_steps": env.max_steps,
             **summary,
             "recorded_episode": {
-                "slot": 0, "index_in_slot": 0, "outcome": record.outcome, "length_steps": record.length,
+                "episode": 0, "outcome": record.outcome, "length_steps": record.length,
                 "length_s": float(record.trajectory.time[-1]), "mean_return": float(record.returns.mean()),
                 # the same episode in the batched run: identical draws, but after a contact the
                 # two compiled runs can drift apart and end differently
@@ -91,3 +94,61 @@ def summary_line(name: str, policy_name: str, metrics: dict, out) -> str:
             f"(compile included): success {s['rate']:.1%} (95 % {s['interval95'][0]:.1%}-{s['interval95'][1]:.1%}), "
             f"timeout {metrics['timeout']['rate']:.1%}" + (f", failures: {failures}" if failures else "")
             + f"; mean return {metrics['mean_return']:.3g}; wrote {out}/ ({len(metrics['plots'])} plots)")
+
+
+def compare(a, b, names=("a", "b")) -> dict:
+    """Two teams' outcomes on the same episodes (``a``, ``b``: EpisodeStats of episodes
+    ``0 .. n − 1`` of one seed): both success rates with their Wilson intervals, the
+    paired difference ``a − b`` with its 95 % interval
+    (:func:`~mysim_jax.tasks.sweep.paired_difference_interval`), and the episode counts
+    where only one of them succeeded."""
+    from mysim_jax.tasks.sweep import paired_difference_interval
+
+    if a.n != b.n:
+        raise ValueError(f"compare: {a.n} and {b.n} episodes; a paired comparison needs the same episodes")
+    d, lo, hi = paired_difference_interval(a.success, b.success)
+    return {
+        "episodes": a.n,
+        "teams": list(names),
+        "success": {names[0]: a.rate(a.success), names[1]: b.rate(b.success)},
+        "difference": {"estimate": d, "interval95": [lo, hi], "of": f"{names[0]} - {names[1]}"},
+        "only_" + names[0]: int(np.sum(a.success & ~b.success)),
+        "only_" + names[1]: int(np.sum(b.success & ~a.success)),
+        "both": int(np.sum(a.success & b.success)),
+        "neither": int(np.sum(~a.success & ~b.success)),
+        "mean_length_steps": {names[0]: float(np.mean(a.length)), names[1]: float(np.mean(b.length))},
+        "failures": {names[0]: {k: int(v.sum()) for k, v in a.failures.items() if v.any()},
+                     names[1]: {k: int(v.sum()) for k, v in b.failures.items() if v.any()}},
+    }
+
+
+def write_comparison(out: Path, a, b, *, names=("a", "b"), seed: int | None = None, extra: dict | None = None
+                     ) -> dict:
+    """Write ``comparison.json`` and ``comparison_episodes.csv`` (per episode, each team's
+    outcome and length) into the existing folder ``out``; returns the comparison
+    (:func:`compare`)."""
+    import csv
+
+    from mysim_jax.io.eval_plots import outcome_labels
+
+    out = Path(out)
+    result = {**compare(a, b, names), "seed": seed, **(extra or {})}
+    (out / "comparison.json").write_text(json.dumps(result, indent=2))
+    la, lb = outcome_labels(a), outcome_labels(b)
+    with (out / "comparison_episodes.csv").open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["episode", f"outcome_{names[0]}", f"outcome_{names[1]}", f"length_{names[0]}",
+                    f"length_{names[1]}"])
+        for i in range(a.n):
+            w.writerow([i, la[i], lb[i], int(a.length[i]), int(b.length[i])])
+    return result
+
+
+def comparison_line(result: dict) -> str:
+    """One line: both success rates and the paired difference with its interval."""
+    a, b = result["teams"]
+    d = result["difference"]
+    sa, sb = result["success"][a], result["success"][b]
+    return (f"{a} {sa['rate']:.1%} vs {b} {sb['rate']:.1%} on the same {result['episodes']} episodes: difference "
+            f"{100 * d['estimate']:+.1f} points (95 % {100 * d['interval95'][0]:+.1f} to "
+            f"{100 * d['interval95'][1]:+.1f}); only {a} caught {result['only_' + a]}, only {b} {result['only_' + b]}")
