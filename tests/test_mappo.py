@@ -19,7 +19,7 @@ from mysim_jax.config_base import ConfigError
 from mysim_jax.mappo.config import AlgoConfig, train_config_from_dict
 from mysim_jax.mappo.losses import RunningStats, gae, gaussian_log_prob, policy_loss, value_loss
 from mysim_jax.mappo.toy import ReachEnv
-from mysim_jax.mappo.trainer import make_train
+from mysim_jax.mappo.trainer import Trainer, make_train
 
 
 def test_gae_matches_a_hand_calculation():
@@ -189,3 +189,85 @@ def test_residual_policy_adds_the_base_team_and_needs_one():
     np.testing.assert_allclose(np.asarray(residual), np.clip(np.asarray(plain) + np.asarray(base), -1, 1), atol=1e-6)
     with pytest.raises(ConfigError, match="algo.residual"):
         train_config_from_dict({"name": "t", "env": {"builtin": "reach"}, "algo": {"residual": True}}, "t.yaml")
+
+
+def test_target_kl_stops_the_epochs_and_the_critic_warm_up_holds_the_policy():
+    """A tiny target KL stops an iteration's updates after its first minibatch (the KL of
+    the unchanged policy is 0, of the updated one not); during the critic's warm-up the
+    actor does not move while the critic does."""
+    env = ReachEnv()
+    params = env.default_params()
+    key = jax.random.PRNGKey(0)
+    free = Trainer(AlgoConfig(total_env_steps=32 * 16 * 4, **SMALL), env, params)
+    stopped = Trainer(AlgoConfig(total_env_steps=32 * 16 * 4, target_kl=1e-9, **SMALL), env, params)
+    _, m_free = free.iteration(free.init(key))
+    _, m_stop = stopped.iteration(stopped.init(key))
+    assert float(m_free["updates_applied"]) == 1.0
+    # 4 epochs x 4 minibatches: the first update is applied, the KL check stops the rest
+    assert float(m_stop["updates_applied"]) == pytest.approx(1 / 16)
+
+    warm = Trainer(AlgoConfig(total_env_steps=32 * 16 * 4, init="bc", **SMALL), env, params)
+    assert warm.critic_warmup == 2
+    ts0 = warm.init(key)
+    ts1, m = warm.iteration(ts0)
+    assert float(m["policy_coef"]) == 0.0
+    for a, b in zip(jax.tree.leaves(ts1.params["actor"]), jax.tree.leaves(ts0.params["actor"])):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert any(not np.array_equal(np.asarray(a), np.asarray(b))
+               for a, b in zip(jax.tree.leaves(ts1.params["critic"]), jax.tree.leaves(ts0.params["critic"])))
+    # after the warm-up the policy trains, with the anchor at full weight, decaying linearly
+    assert [float(x) for x in warm.schedule(2)] == [1.0, 1.0]
+    assert float(warm.schedule(2 + warm.config.bc.anchor_iterations // 2)[1]) == pytest.approx(0.5)
+    assert float(warm.schedule(2 + warm.config.bc.anchor_iterations)[1]) == 0.0
+
+
+def test_the_anchor_pulls_the_policy_towards_the_clone():
+    """With the anchor at a large weight the policy's mean stays closer to the anchor
+    policy's than without it, over the same iterations from the same start."""
+    env = ReachEnv()
+    params = env.default_params()
+    common = dict(total_env_steps=32 * 16 * 8, **SMALL)
+    a_none = Trainer(AlgoConfig(init="bc", bc={"critic_warmup": 0, "anchor_coef": 0.0}, **common), env, params)
+    a_big = Trainer(AlgoConfig(init="bc", bc={"critic_warmup": 0, "anchor_coef": 100.0}, **common), env, params)
+
+    def drift(trainer):
+        ts = trainer.init(jax.random.PRNGKey(0))
+        for _ in range(6):
+            ts, _ = trainer.iteration(ts)
+        obs = ts.obs.reshape(-1, env.obs_size)
+        mine = trainer.anchor_means(trainer.policy_arrays(ts), obs)
+        anchor = trainer.anchor_means(ts.anchor, obs)
+        return float(jnp.sqrt(jnp.mean((mine - anchor) ** 2)))
+
+    free, held = drift(a_none), drift(a_big)
+    assert free > 0.05 and held < 0.3 * free, (free, held)
+
+
+def test_model_selection_keeps_the_best_policy():
+    env = ReachEnv()
+    trainer = Trainer(AlgoConfig(total_env_steps=32 * 16 * 4, **SMALL), env, env.default_params())
+    ts = trainer.init(jax.random.PRNGKey(0))
+    first = trainer.policy_arrays(ts)
+    ts = trainer.keep_if_best(ts, 10, -3.0)
+    assert int(ts.best_iteration) == 0
+    ts, _ = trainer.iteration(ts)
+    worse = trainer.keep_if_best(ts, 9, 100.0)              # fewer successes: not kept
+    assert int(worse.best_iteration) == 0
+    for a, b in zip(jax.tree.leaves(trainer.run_policy(worse)), jax.tree.leaves(first)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    tie = trainer.keep_if_best(ts, 10, -2.0)                # as many, better return: kept
+    assert int(tie.best_iteration) == 1
+    for a, b in zip(jax.tree.leaves(trainer.run_policy(tie)), jax.tree.leaves(trainer.policy_arrays(ts))):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+@pytest.mark.parametrize("algo, message", [
+    ({"init": "bc", "residual": True}, "choose one"),
+    ({"init": "bc"}, "algo.init: bc clones the scripted team"),
+    ({"target_kl": 0.0}, "algo.target_kl"),
+    ({"init_std": 0.0}, "algo.init_std"),
+    ({"bc": {"holdout": 1.0}}, "algo.bc.holdout"),
+])
+def test_bad_bc_and_kl_settings_name_the_field(algo, message):
+    with pytest.raises(ConfigError, match=message):
+        train_config_from_dict(_raw(**algo), "t.yaml")

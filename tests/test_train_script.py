@@ -149,21 +149,36 @@ def test_an_existing_run_is_not_overwritten(tmp_path):
 
 
 def test_capture_environment_end_to_end_tiny(tmp_path):
-    """The default training file's path on the capture environment, tiny: one iteration of
-    4 environments x 2 steps (--no-eval: the final evaluation is write_evaluation, which
-    scripts/evaluate.py's tests run); the saved policy then loads as evaluate.py's
-    --policy RUN/policy and is traced on the environment (jax.eval_shape, no compile)."""
+    """The default training file's path on the capture environment, tiny: behaviour cloning
+    from 4 environments x 4 steps, one iteration of 4 environments x 2 steps, model
+    selection on 2 episodes before and after it (--no-eval: the final evaluation is
+    write_evaluation, which scripts/evaluate.py's tests run); the saved policy then loads
+    as evaluate.py's --policy RUN/policy and is traced on the environment (jax.eval_shape,
+    no compile)."""
     out = tmp_path / "run"
-    sets = ["algo.num_envs=4", "algo.num_steps=2", "algo.total_env_steps=8", "algo.num_minibatches=2"]
+    sets = ["algo.num_envs=4", "algo.num_steps=2", "algo.total_env_steps=8", "algo.num_minibatches=2",
+            "algo.bc.num_envs=4", "algo.bc.steps=4", "algo.bc.epochs=2", "algo.bc.holdout=0.25",
+            "run.selection.episodes=2", "run.selection.every=1"]
     res = _run(["configs/train_capture_falling.yaml", "--out", str(out), "--no-eval",
                 *[a for s in sets for a in ("--set", s)]])
     assert res.returncode == 0, res.stderr
-    # the run folder is self-contained: its scene is the resolved one (velocity setpoints)
-    assert "setpoint_mode: velocity" in (out / "scene.yaml").read_text()
+    # the run folder is self-contained: its scene is the resolved one (velocity setpoints,
+    # the shaping's discount the trainer's gamma)
+    scene_text = (out / "scene.yaml").read_text()
+    assert "setpoint_mode: velocity" in scene_text and "discount: 0.99" in scene_text
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["iterations"] == 1 and summary["env_steps"] == 8
+    assert summary["iterations"] == 1 and summary["env_steps"] == 8 and summary["init"] == "bc"
+    bc = json.loads((out / "bc.json").read_text())
+    assert bc["pairs"] == 4 * 4 * 4 and bc["holdout_environments"] == 1
+    assert summary["behaviour_cloning"] == bc
+    assert summary["selection"]["selected_iteration"] in (0, 1) and summary["selection"]["episodes"] == 2
+    # iteration 0 is the clone's selection row; the policy saved is the selected one
     rows = _rows(out / "metrics.csv")
-    assert len(rows) == 1 and all(v != "nan" for v in rows[0].values())
+    assert [int(r["iteration"]) for r in rows] == [0, 1]
+    assert rows[0]["select_success"] != "" and rows[1]["select_success"] != ""
+    assert all(v != "nan" for v in rows[1].values())
+    assert json.loads((out / "policy" / "policy.json").read_text())["selected_iteration"] == \
+        summary["selection"]["selected_iteration"]
 
     from mysim_jax.config import load_config
     from mysim_jax.tasks.capture import make_env

@@ -61,6 +61,35 @@ class EnvSection(StrictModel):
         return self
 
 
+class BCConfig(StrictModel):
+    """Behaviour cloning of the scripted team before PPO (``algo.init: bc``;
+    :mod:`mysim_jax.mappo.bc`).
+
+    The dataset is collected with the vmapped environment: ``num_envs`` environments run
+    ``steps`` policy steps with the scripted team's action plus Gaussian noise of ``noise``
+    (normalised action units; the states a slightly perturbed team visits, labelled with the
+    scripted team's action there: DART, Laskey et al. 2017). The actor's mean is fitted to
+    the labels by ``epochs`` passes of Adam (``lr``, minibatches of ``minibatch_size``),
+    ``holdout`` of the environments kept apart to measure the fit. PPO then starts from the
+    clone with exploration ``std``; its first ``critic_warmup`` iterations train only the
+    critic (the policy is held), and an anchor ``anchor_coef · |μ(o) − μ_clone(o)|²`` (the
+    squared distance of the policy's mean from the clone's, per action dimension) pulls the
+    policy back towards the clone, its weight decaying linearly to zero over
+    ``anchor_iterations`` PPO iterations."""
+
+    num_envs: PosInt = 128
+    steps: PosInt = 48
+    noise: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 0.2
+    epochs: PosInt = 60
+    minibatch_size: PosInt = 512
+    lr: PosFloat = 1e-3
+    holdout: Annotated[float, Field(gt=0, lt=1)] = 0.1
+    std: PosFloat = 0.2
+    critic_warmup: NonNegInt = 2
+    anchor_coef: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 1.0
+    anchor_iterations: PosInt = 100
+
+
 class AlgoConfig(StrictModel):
     """MAPPO's settings (:mod:`mysim_jax.mappo.trainer`). ``num_envs`` environments step
     side by side for ``num_steps`` policy steps per iteration; the ``batch_size`` team
@@ -83,10 +112,17 @@ class AlgoConfig(StrictModel):
     max_grad_norm: PosFloat = 0.5
     hidden: list[PosInt] = [128, 128]      # hidden layer widths of both networks
     activation: Literal["tanh", "relu"] = "tanh"
-    init_std: PosFloat = 0.3               # the policy's initial action standard deviation
+    # the policy's initial action standard deviation, in normalised action units (an action
+    # of 1 is the whole half-range: max_speed in velocity mode); PureJaxRL and MAPPO start at 1
+    init_std: PosFloat = 1.0
+    # stop an iteration's epochs once a minibatch's approximate KL divergence from the
+    # rollout's policy exceeds 1.5 x target_kl (None: never)
+    target_kl: PosFloat | None = None
     normalize_obs: bool = True             # running mean / std of observations and states
     value_norm: bool = True                # running mean / std of the value targets
     residual: bool = False                 # act = the scripted team's action + the policy's
+    init: Literal["none", "bc"] = "none"   # bc: clone the scripted team first (bc:)
+    bc: BCConfig = BCConfig()
 
     @model_validator(mode="after")
     def _sizes(self):
@@ -120,6 +156,17 @@ class AlgoConfig(StrictModel):
         return self.num_iterations * self.update_epochs * self.num_minibatches
 
 
+class SelectionConfig(StrictModel):
+    """Model selection during training: every ``every`` iterations (and before the first,
+    and after the last) the deterministic policy is evaluated on ``episodes`` fixed episodes
+    (drawn from ``seed``, the same ones every time, apart from the final evaluation's), and
+    the best so far (most successes, then the highest mean return) is the run's policy."""
+
+    every: PosInt = 10
+    episodes: PosInt = 128
+    seed: NonNegInt = 777
+
+
 class RunConfig(StrictModel):
     """Bookkeeping of a run."""
 
@@ -130,6 +177,9 @@ class RunConfig(StrictModel):
     eval_episodes: PosInt = 1000
     eval_batch: PosInt = 250
     eval_seed: NonNegInt = 12345           # evaluation episodes are drawn apart from training's
+    # compare with the scripted team on the same evaluation episodes (capture scenes only)
+    eval_baseline: bool = True
+    selection: SelectionConfig | None = SelectionConfig()   # None: the last policy is the run's
 
 
 class TrainConfig(StrictModel):
@@ -143,8 +193,12 @@ class TrainConfig(StrictModel):
 
     @model_validator(mode="after")
     def _residual_needs_a_team(self):
+        if self.algo.init == "bc" and self.algo.residual:
+            raise ValueError("algo.init: bc and algo.residual: true both start from the scripted team; choose one")
         if self.algo.residual and self.env.builtin is not None:
             raise ValueError("algo.residual: the builtin environment has no scripted team to add a residual to")
+        if self.algo.init == "bc" and self.env.builtin is not None:
+            raise ValueError("algo.init: bc clones the scripted team, which the builtin environment does not have")
         return self
 
 
@@ -195,13 +249,26 @@ def load_scene(config: TrainConfig, train_path: str | Path):
         return None
     if not path.exists():
         raise ConfigError(f"{train_path}: env.scene: no such file {path} (paths are relative to the training file)")
-    scene = load_config(path, list(config.env.set))
+    raw = read_yaml_file(path, "config file")
+    missing = [b for b in ("net", "target", "quadrotors", "env") if not (isinstance(raw, dict) and raw.get(b) is not None)
+               and b not in _set_blocks(config.env.set)]
+    if missing:
+        raise ConfigError(f"{train_path}: env.scene: {path} is not a capture environment: it has no "
+                          f"{' and no '.join(missing)} block")
+    # the shaping's discount is the learner's (potential-based shaping keeps the optimal
+    # policy only with the discount the learner optimises)
+    scene = load_config(path, [*config.env.set, f"env.discount={config.algo.gamma!r}"])
     missing = [b for b, v in (("net", scene.net), ("target", scene.target), ("quadrotors", scene.quadrotors),
                               ("env", scene.env)) if not v]
     if missing:
         raise ConfigError(f"{train_path}: env.scene: {path} is not a capture environment: it has no "
                           f"{' and no '.join(missing)} block")
     return scene
+
+
+def _set_blocks(overrides) -> set[str]:
+    """Top-level blocks an override list sets (``env={}`` or ``env.x=1`` set ``env``)."""
+    return {ov.split("=", 1)[0].split(".", 1)[0].strip() for ov in overrides if "=" in ov}
 
 
 def describe(config: TrainConfig) -> str:

@@ -39,7 +39,8 @@ TRAIN_FILE = "train.yaml"
 SCENE_FILE = "scene.yaml"
 CSV_FIELDS = ("iteration", "env_steps", "wall_s", "iteration_s", "episodes", "mean_return", "success_rate",
               "mean_length", "step_reward", "policy_loss", "value_loss", "entropy", "approx_kl", "clip_fraction",
-              "explained_variance", "grad_norm", "action_std", "lr")
+              "explained_variance", "grad_norm", "action_std", "lr", "updates_applied", "policy_coef",
+              "anchor_coef", "anchor_loss", "select_success", "select_return")
 
 
 @dataclass
@@ -140,8 +141,20 @@ def _write_rows(path: Path, rows: list[dict]) -> None:
     tmp.replace(path)
 
 
-def plot_curves(rows: list[dict], path: Path, title: str) -> Path | None:
-    """Learning curves of ``metrics.csv`` rows: return, success rate, episode length, losses, entropy.
+def _column(rows: list[dict], key: str):
+    import numpy as np
+
+    def value(r):
+        v = r.get(key, "")
+        return float(v) if v not in ("", None) else np.nan
+
+    return np.array([value(r) for r in rows])
+
+
+def plot_curves(rows: list[dict], path: Path, title: str, best_iteration: int | None = None) -> Path | None:
+    """Learning curves of ``metrics.csv`` rows: return, success rate (training episodes, and
+    the deterministic policy on the selection episodes with the selected iteration
+    marked), episode length, losses, entropy.
 
     Return, success and length are per episode: iterations in which no episode ended leave a
     gap rather than a zero.
@@ -154,18 +167,35 @@ def plot_curves(rows: list[dict], path: Path, title: str) -> Path | None:
     import matplotlib.pyplot as plt
     import numpy as np
 
-    x = np.array([float(r["env_steps"]) for r in rows])
-    panels = [("mean_return", "mean episode return"), ("success_rate", "success rate (episodes ended)"),
+    x = _column(rows, "env_steps")
+    panels = [("mean_return", "mean episode return"), ("success_rate", "success rate"),
               ("mean_length", "mean episode length [team steps]"), ("value_loss", "value loss"),
               ("policy_loss", "policy loss"), ("entropy", "policy entropy")]
     per_episode = {"mean_return", "success_rate", "mean_length"}
-    ended = np.array([float(r.get("episodes", 1.0)) > 0 for r in rows])
+    episodes = _column(rows, "episodes")
+    ended = ~(episodes <= 0)
     fig, axes = plt.subplots(2, 3, figsize=(13, 6.5))
     for ax, (key, label) in zip(axes.ravel(), panels):
-        y = np.array([float(r[key]) for r in rows])
+        y = _column(rows, key)
         if key in per_episode:
             y = np.where(ended, y, np.nan)
-        ax.plot(x, y, lw=1.2, marker="." if key in per_episode else None, ms=2)
+        keep = np.isfinite(y)
+        ax.plot(x[keep], y[keep], lw=1.2, marker="." if key in per_episode else None, ms=2,
+                label="training episodes (exploring)" if key == "success_rate" else None)
+        if key == "success_rate":
+            sel = _column(rows, "select_success")
+            has = np.isfinite(sel)
+            if has.any():
+                ax.plot(x[has], sel[has], "o-", ms=4, lw=1.0, color="tab:green",
+                        label="deterministic policy, selection episodes")
+                if best_iteration is not None:
+                    its = _column(rows, "iteration")
+                    at = np.flatnonzero(its == best_iteration)
+                    if at.size:
+                        ax.axvline(x[at[0]], color="tab:red", ls="--", lw=1.0,
+                                   label=f"selected policy (iteration {best_iteration})")
+            ax.set_ylim(-0.02, 1.02)
+            ax.legend(fontsize=7, loc="lower right")
         ax.set_title(label, fontsize=10)
         ax.set_xlabel("team steps")
         ax.grid(alpha=0.3)
@@ -205,10 +235,15 @@ def evaluate_builtin(env, env_params, policy, episodes: int, seed: int) -> dict:
     return {"episodes": episodes, "success": {"count": k, "rate": k / episodes, "interval95": [lo, hi]}}
 
 
+def _selection_row(stats) -> dict:
+    return {"select_success": float(stats.success.mean()), "select_return": float(stats.returns.mean())}
+
+
 def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=print) -> dict:
     """Train (or resume) the run ``p`` to its end, evaluate, write everything. Returns
     ``summary.json``'s dict."""
     import jax
+    import jax.numpy as jnp
     import numpy as np
 
     from mysim_jax.mappo.checkpoint import Checkpoints, save_policy
@@ -221,20 +256,58 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
     trainer = Trainer(c.algo, env, env_params)
     ckpt = Checkpoints(p.out / "checkpoints", keep=c.run.keep_checkpoints)
     key = jax.random.PRNGKey(c.run.seed)
+    k_init, k_bc = jax.random.split(key)
     t_compile = time.perf_counter()
-    state = trainer.init(key)
+    state = trainer.init(k_init)
     start_iteration = 0
     previous_wall = 0.0
+    restored = False
     if p.resume:
         last = ckpt.latest()
         if last is not None:
             state = ckpt.restore(last, state)
             start_iteration = int(state.iteration)
+            restored = True
     rows = _read_rows(p.out / "metrics.csv", start_iteration)
     if rows:
         previous_wall = float(rows[-1]["wall_s"])
     if p.resume:
         log(f"resuming {p.out} at iteration {start_iteration} of {c.algo.num_iterations}")
+
+    # model selection on fixed episodes (capture environments; the builtin task has its own evaluation)
+    selection = c.run.selection if p.scene is not None else None
+    evaluator = None
+    if selection is not None:
+        from mysim_jax.tasks.evaluate import Evaluator
+
+        evaluator = Evaluator(env, env_params, trainer.policy_fn(), batch=min(selection.episodes, c.run.eval_batch))
+        select_key = jax.random.PRNGKey(selection.seed)
+
+    def select(state):
+        stats = evaluator(select_key, selection.episodes, trainer.policy_arrays(state))
+        state = trainer.keep_if_best(state, int(stats.success.sum()), float(stats.returns.mean()))
+        return state, stats
+
+    t_start = time.perf_counter()
+    bc_path = p.out / "bc.json"
+    if not restored:
+        if c.algo.init == "bc":
+            from mysim_jax.mappo import bc
+
+            log(f"behaviour cloning the scripted team: {c.algo.bc.num_envs} environments x {c.algo.bc.steps} steps")
+            state, report = bc.clone(trainer, state, k_bc)
+            bc_path.write_text(json.dumps(report, indent=2))
+            log(f"cloned in {report['collect_s'] + report['fit_s']:.0f} s: {report['pairs']:,} pairs, held-out RMSE "
+                f"{report['rmse_holdout']:.3f}, R2 {', '.join(f'{v:.3f}' for v in report['r2_holdout'])}")
+        if evaluator is not None:
+            state, stats = select(state)
+            row0 = {"iteration": 0, "env_steps": 0, "wall_s": round(time.perf_counter() - t_start, 3),
+                    **_selection_row(stats)}
+            rows = [row0]
+            log(f"selection episodes before training: success {stats.success.mean():.1%}")
+        if c.algo.init == "bc" or evaluator is not None:
+            _write_rows(p.out / "metrics.csv", rows)
+            ckpt.save(0, state)
 
     from tensorboardX import SummaryWriter
 
@@ -245,7 +318,6 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
 
         bar = tqdm(total=c.algo.num_iterations, initial=start_iteration, desc=f"training {c.name}", unit="it")
     limit_s = None if c.run.time_limit_min is None else 60.0 * c.run.time_limit_min
-    t_start = time.perf_counter()
     iteration_times = []
     stopped_early = False
     iteration = start_iteration
@@ -257,20 +329,24 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
         iteration += 1
         if iteration > start_iteration + 1:     # the first call of a process compiles
             iteration_times.append(dt)
-        wall = previous_wall + time.perf_counter() - t_start
-        row = {"iteration": iteration, "env_steps": iteration * c.algo.batch_size, "wall_s": round(wall, 3),
+        last_iteration = iteration == c.algo.num_iterations
+        over_time = limit_s is not None and previous_wall + time.perf_counter() - t_start > limit_s
+        row = {"iteration": iteration, "env_steps": iteration * c.algo.batch_size,
                "iteration_s": round(dt, 4), "lr": trainer.learning_rate(iteration - 1),
                **{k: m[k] for k in CSV_FIELDS if k in m}}
+        if evaluator is not None and (iteration % selection.every == 0 or last_iteration or over_time):
+            state, stats = select(state)
+            row.update(_selection_row(stats))
+        row["wall_s"] = round(previous_wall + time.perf_counter() - t_start, 3)
         rows.append(row)
         for k, v in row.items():
             if k != "iteration":
                 writer.add_scalar(f"train/{k}", float(v), iteration)
         if bar is not None:
             bar.update(1)
-            bar.set_postfix_str(f"return {m['mean_return']:.2f}, success {m['success_rate']:.0%}, "
+            sel = f", selection {row['select_success']:.0%}" if "select_success" in row else ""
+            bar.set_postfix_str(f"return {m['mean_return']:.2f}, success {m['success_rate']:.0%}{sel}, "
                                 f"{c.algo.batch_size / dt:,.0f} env-steps/s")
-        last_iteration = iteration == c.algo.num_iterations
-        over_time = limit_s is not None and time.perf_counter() - t_start > limit_s
         if iteration % c.run.checkpoint_every == 0 or last_iteration or over_time:
             _write_rows(p.out / "metrics.csv", rows)
             ckpt.save(iteration, state)
@@ -285,15 +361,16 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
     ckpt.close()
     train_wall = time.perf_counter() - t_compile
     _write_rows(p.out / "metrics.csv", rows)
-    plot_curves(rows, p.out / "curves.png", c.name)
+    best_iteration = int(state.best_iteration)
+    plot_curves(rows, p.out / "curves.png", c.name, best_iteration if best_iteration >= 0 else None)
 
     n_agents, act = env.action_shape
+    arrays = trainer.run_policy(state)
     meta = {"kind": "mappo", "obs_size": int(env.obs_size), "action_shape": [n_agents, act],
             "hidden": list(c.algo.hidden), "activation": c.algo.activation, "normalize_obs": c.algo.normalize_obs,
             "residual": c.algo.residual,
             "env": "builtin:" + c.env.builtin if c.env.builtin else SCENE_FILE, "iteration": iteration,
-            "train": c.name}
-    arrays = trainer.policy_arrays(state)
+            "selected_iteration": best_iteration if best_iteration >= 0 else iteration, "train": c.name}
     save_policy(p.out / "policy", arrays, meta)
     base = env.scripted_actions if c.algo.residual else None
     policy = deterministic_policy(trainer.actor, arrays, c.algo.normalize_obs, base)
@@ -308,22 +385,50 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
         "training_wall_s_total": float(rows[-1]["wall_s"]) if rows else 0.0,
         "median_iteration_s": per_iteration,
         "env_steps_per_s_with_update": c.algo.batch_size / per_iteration if per_iteration else None,
-        "final_train_success_rate": float(rows[-1]["success_rate"]) if rows else None,
+        "final_train_success_rate": float(rows[-1]["success_rate"]) if rows and "success_rate" in rows[-1] else None,
+        "init": c.algo.init,
     }
+    if bc_path.exists():
+        summary["behaviour_cloning"] = json.loads(bc_path.read_text())
+    if selection is not None:
+        score = [float(x) for x in jax.device_get(state.best_score)]
+        summary["selection"] = {"episodes": selection.episodes, "seed": selection.seed, "every": selection.every,
+                                "selected_iteration": best_iteration, "successes": int(score[0]),
+                                "mean_return": score[1]}
     if evaluate:
         t_eval = time.perf_counter()
         if p.scene is None:
             summary["evaluation"] = evaluate_builtin(env, env_params, policy, c.run.eval_episodes, c.run.eval_seed)
         else:
-            from mysim_jax.tasks.report import summary_line, write_evaluation
+            from mysim_jax.tasks.evaluate import Evaluator, scripted_policy
+            from mysim_jax.tasks.report import comparison_line, summary_line, write_comparison, write_evaluation
 
+            # one compiled program flies both teams: the argument says whose actions are used
+            net = trainer.policy_fn()
+
+            def either(key, obs, state, params, args):
+                arrays, scripted = args
+                return jnp.where(scripted, env.scripted_actions(state, params), net(key, obs, state, params, arrays))
+
+            final = Evaluator(env, env_params, either, batch=c.run.eval_batch)
+            eval_key = jax.random.PRNGKey(c.run.eval_seed)
+            stats = final(eval_key, c.run.eval_episodes, (arrays, jnp.bool_(False)), progress=progress,
+                          desc="evaluation")
             metrics = write_evaluation(p.out / "eval", p.scene, env, env_params, policy,
                                        policy_name=str(p.out / "policy"), episodes=c.run.eval_episodes,
                                        batch=c.run.eval_batch, seed=c.run.eval_seed,
-                                       config_path=str(p.out / SCENE_FILE), progress=progress, animate=False)
+                                       config_path=str(p.out / SCENE_FILE), progress=progress, animate=False,
+                                       stats=stats)
             log(summary_line(p.scene.name, "trained (MAPPO)", metrics, p.out / "eval"))
             summary["evaluation"] = {k: metrics[k] for k in ("episodes", "success", "failures", "timeout",
                                                              "mean_return", "mean_length_steps", "wall_s")}
+            if c.run.eval_baseline:
+                base_stats = final(eval_key, c.run.eval_episodes, (arrays, jnp.bool_(True)), progress=progress,
+                                   desc="scripted team")
+                comparison = write_comparison(p.out / "eval", stats, base_stats, names=("trained", "scripted"),
+                                              seed=c.run.eval_seed)
+                log(comparison_line(comparison))
+                summary["baseline"] = comparison
         summary["evaluation_wall_s"] = round(time.perf_counter() - t_eval, 1)
     (p.out / "summary.json").write_text(json.dumps(summary, indent=2))
     return summary

@@ -101,6 +101,10 @@ class TrainerState:
     global_state: jnp.ndarray    # (num_envs, state_size)
     key: jnp.ndarray
     iteration: jnp.ndarray       # () int32, iterations done
+    anchor: dict                 # the policy the anchor pulls towards (policy_arrays layout; algo.init: bc)
+    best: dict                   # the best policy so far by model selection (policy_arrays layout)
+    best_score: jnp.ndarray      # (2,) its (successes, mean return) on the selection episodes; -inf: none yet
+    best_iteration: jnp.ndarray  # () int32, the iteration it was taken after (-1: none yet)
 
 
 @struct.dataclass
@@ -118,6 +122,10 @@ class Transition:
     episode_return: jnp.ndarray   # (B,) mean over agents of the ended episode's return
     episode_length: jnp.ndarray   # (B,)
     step_reward: jnp.ndarray      # (B,) mean over agents of the environment's reward
+
+
+def _policy_arrays(params: dict, obs_stats: RunningStats) -> dict:
+    return {"actor": params["actor"], "obs_mean": obs_stats.mean, "obs_var": obs_stats.var}
 
 
 def _step_info(info) -> dict:
@@ -142,7 +150,7 @@ class Trainer:
         object.__setattr__(self, "iteration", jax.jit(self._iteration))
         object.__setattr__(self, "_init", jax.jit(self._init_state))
         one = jax.eval_shape(lambda k: self.env.reset(k, self.env_params)[1], jax.random.PRNGKey(0))
-        object.__setattr__(self, "_block", batching.chunk_for(one))
+        object.__setattr__(self, "block", batching.chunk_for(one))
 
     # --- pieces ----------------------------------------------------------------------
     def _schedule(self):
@@ -192,7 +200,7 @@ class Trainer:
             obs, state, reward, terminated, truncated, info = env.step(key, state, action, env_params)
             return obs, state, reward, terminated, truncated, _step_info(info)
 
-        return batching.vmap(one, chunk=self._block)
+        return batching.vmap(one, chunk=self.block)
 
     # --- init ------------------------------------------------------------------------
     def _init_state(self, key) -> TrainerState:
@@ -205,9 +213,11 @@ class Trainer:
                   "critic": self.critic.init(k_critic, self.critic_input(gstate[0])[0])}
         obs_stats = RunningStats.create((obs.shape[-1],)).update(obs)
         state_stats = RunningStats.create((gstate.shape[-1],)).update(gstate)
+        arrays = _policy_arrays(params, obs_stats)
         return TrainerState(params=params, opt_state=self.tx.init(params), obs_stats=obs_stats,
                             state_stats=state_stats, ret_stats=RunningStats.create(), env_state=env_state, obs=obs,
-                            global_state=gstate, key=k_run, iteration=jnp.int32(0))
+                            global_state=gstate, key=k_run, iteration=jnp.int32(0), anchor=arrays, best=arrays,
+                            best_score=jnp.full((2,), -jnp.inf, jnp.float32), best_iteration=jnp.int32(-1))
 
     def init(self, key) -> TrainerState:
         """A fresh run from ``key``: networks, optimiser, ``num_envs`` reset environments."""
@@ -248,7 +258,7 @@ class Trainer:
         (env_state, obs, gstate, key), traj = jax.lax.scan(one, carry, None, length=c.num_steps)
         return env_state, obs, gstate, key, traj
 
-    def _loss(self, params, mb):
+    def _loss(self, params, mb, policy_coef, anchor_coef):
         c = self.config
         mean, log_std = self.actor.apply(params["actor"], mb["obs"])
         log_prob = gaussian_log_prob(mb["action"], mean, log_std)
@@ -257,9 +267,42 @@ class Trainer:
         v = self.critic.apply(params["critic"], mb["critic_in"])
         vl = value_loss(v, mb["old_value"], mb["target"], c.value_clip_eps)
         entropy = jnp.mean(gaussian_entropy(log_std))
-        total = pl + c.vf_coef * vl - c.ent_coef * entropy
-        return total, {"policy_loss": pl, "value_loss": vl, "entropy": entropy, "clip_fraction": clip_frac,
-                       "approx_kl": kl}
+        total = policy_coef * (pl - c.ent_coef * entropy) + c.vf_coef * vl
+        aux = {"policy_loss": pl, "value_loss": vl, "entropy": entropy, "clip_fraction": clip_frac, "approx_kl": kl}
+        if self.uses_anchor:
+            anchor = jnp.mean(jnp.sum((mean - mb["anchor_mean"]) ** 2, axis=-1))
+            total = total + policy_coef * anchor_coef * anchor
+            aux["anchor_loss"] = anchor
+        return total, aux
+
+    # --- behaviour cloning and its anchor ----------------------------------------------
+    @property
+    def uses_anchor(self) -> bool:
+        return self.config.init == "bc"
+
+    @property
+    def critic_warmup(self) -> int:
+        """Iterations at the start that train only the critic."""
+        return self.config.bc.critic_warmup if self.config.init == "bc" else 0
+
+    def schedule(self, iteration):
+        """``(policy_coef, anchor_coef)`` of iteration ``iteration`` (0-based): the policy is
+        held (0) during the critic's warm-up; the anchor decays linearly to 0 over
+        ``bc.anchor_iterations`` after it."""
+        c = self.config
+        it = jnp.asarray(iteration, jnp.float32)
+        warm = float(self.critic_warmup)
+        policy_coef = jnp.where(it < warm, 0.0, 1.0)
+        if not self.uses_anchor:
+            return policy_coef, jnp.float32(0.0)
+        left = jnp.clip(1.0 - (it - warm) / c.bc.anchor_iterations, 0.0, 1.0)
+        return policy_coef, jnp.float32(c.bc.anchor_coef) * left
+
+    def anchor_means(self, anchor: dict, raw_obs):
+        """The anchor policy's action means ``(..., act)`` at raw observations ``(..., obs_size)``."""
+        stats = RunningStats(mean=anchor["obs_mean"], var=anchor["obs_var"], count=jnp.asarray(1.0))
+        mean, _ = self.actor.apply(anchor["actor"], self._norm_obs(stats, raw_obs))
+        return mean
 
     def _iteration(self, ts: TrainerState):
         c = self.config
@@ -268,6 +311,7 @@ class Trainer:
         dones = jnp.broadcast_to(traj.done[..., None], traj.reward.shape)
         adv, targets = gae(traj.reward, traj.value, dones, last_value, c.gamma, c.gae_lambda)
         ret_stats = ts.ret_stats.update(targets) if c.value_norm else ts.ret_stats
+        policy_coef, anchor_coef = self.schedule(ts.iteration)
 
         def to_critic_units(x):
             return (x - ret_stats.mean) / ret_stats.std if c.value_norm else x
@@ -277,26 +321,36 @@ class Trainer:
             "obs": traj.obs, "critic_in": traj.critic_in, "action": traj.action, "log_prob": traj.log_prob,
             "advantage": adv, "target": to_critic_units(targets), "old_value": to_critic_units(traj.value),
         }
+        if self.uses_anchor:
+            data["anchor_mean"] = self.anchor_means(ts.anchor, traj.raw_obs)
         data = jax.tree.map(lambda x: x.reshape((n,) + x.shape[2:]), data)
+        kl_stop = np.inf if c.target_kl is None else 1.5 * c.target_kl
 
         def epoch(carry, k):
-            params, opt_state = carry
+            params, opt_state, stopped = carry
             perm = jax.random.permutation(k, n)
             shuffled = jax.tree.map(lambda x: x[perm].reshape((c.num_minibatches, c.minibatch_size) + x.shape[1:]),
                                     data)
 
             def minibatch(carry, mb):
-                params, opt_state = carry
-                (_, aux), grads = jax.value_and_grad(self._loss, has_aux=True)(params, mb)
-                updates, opt_state = self.tx.update(grads, opt_state, params)
+                params, opt_state, stopped = carry
+                (_, aux), grads = jax.value_and_grad(self._loss, has_aux=True)(params, mb, policy_coef, anchor_coef)
+                # the KL of the policy before this update: past the limit, this and every
+                # later minibatch of the iteration is skipped
+                stopped = stopped | (aux["approx_kl"] > kl_stop)
+                updates, new_opt_state = self.tx.update(grads, opt_state, params)
+                new_params = optax.apply_updates(params, updates)
+                params, opt_state = jax.tree.map(lambda old, new: jnp.where(stopped, old, new),
+                                                 (params, opt_state), (new_params, new_opt_state))
                 aux["grad_norm"] = optax.tree.norm(grads)
-                return (optax.apply_updates(params, updates), opt_state), aux
+                aux["updates_applied"] = (~stopped).astype(jnp.float32)
+                return (params, opt_state, stopped), aux
 
-            return jax.lax.scan(minibatch, (params, opt_state), shuffled)
+            return jax.lax.scan(minibatch, (params, opt_state, stopped), shuffled)
 
         key, k_update = jax.random.split(key)
-        (params, opt_state), aux = jax.lax.scan(epoch, (ts.params, ts.opt_state),
-                                                jax.random.split(k_update, c.update_epochs))
+        (params, opt_state, _), aux = jax.lax.scan(epoch, (ts.params, ts.opt_state, jnp.bool_(False)),
+                                                   jax.random.split(k_update, c.update_epochs))
         obs_stats = ts.obs_stats.update(traj.raw_obs) if c.normalize_obs else ts.obs_stats
         state_stats = ts.state_stats.update(traj.raw_state) if c.normalize_obs else ts.state_stats
 
@@ -312,17 +366,56 @@ class Trainer:
             "step_reward": jnp.mean(traj.step_reward),
             "explained_variance": 1.0 - jnp.var(targets - traj.value) / jnp.maximum(var_t, 1e-8),
             "action_std": jnp.mean(jnp.exp(params["actor"]["params"]["log_std"])),
+            "policy_coef": policy_coef,
+            "anchor_coef": anchor_coef,
         })
-        new = TrainerState(params=params, opt_state=opt_state, obs_stats=obs_stats, state_stats=state_stats,
-                           ret_stats=ret_stats, env_state=env_state, obs=obs, global_state=gstate, key=key,
-                           iteration=ts.iteration + 1)
+        new = ts.replace(params=params, opt_state=opt_state, obs_stats=obs_stats, state_stats=state_stats,
+                         ret_stats=ret_stats, env_state=env_state, obs=obs, global_state=gstate, key=key,
+                         iteration=ts.iteration + 1)
         return new, metrics
 
     # --- the trained policy ------------------------------------------------------------
     def policy_arrays(self, ts: TrainerState) -> dict:
         """What the deterministic policy needs: the actor's parameters and the observation
-        statistics."""
-        return {"actor": ts.params["actor"], "obs_mean": ts.obs_stats.mean, "obs_var": ts.obs_stats.var}
+        statistics (of the current policy; the best one is ``ts.best``)."""
+        return _policy_arrays(ts.params, ts.obs_stats)
+
+    def run_policy(self, ts: TrainerState) -> dict:
+        """The run's policy: the best by model selection when there has been one, else the
+        current one."""
+        return jax.tree.map(lambda b, c: jnp.where(ts.best_iteration >= 0, b, c), ts.best, self.policy_arrays(ts))
+
+    def keep_if_best(self, ts: TrainerState, successes: int, mean_return: float) -> TrainerState:
+        """``ts`` with its current policy as the best when ``(successes, mean_return)`` beats
+        the best score so far (lexicographically)."""
+        best_s, best_r = (float(x) for x in jax.device_get(ts.best_score))
+        if (successes, mean_return) > (best_s, best_r):
+            return ts.replace(best=self.policy_arrays(ts),
+                              best_score=jnp.asarray([successes, mean_return], jnp.float32),
+                              best_iteration=jnp.asarray(ts.iteration, jnp.int32))
+        return ts
+
+    def policy_fn(self):
+        """``policy(key, obs, state, params, arrays)``: the deterministic policy with its
+        arrays traced (:class:`~mysim_jax.tasks.evaluate.Evaluator`)."""
+        return deterministic_policy_fn(self.actor, self.config.normalize_obs,
+                                       self.env.scripted_actions if self.config.residual else None)
+
+
+def deterministic_policy_fn(actor: Actor, normalize_obs: bool = True, base: Callable | None = None) -> Callable:
+    """``policy(key, obs, state, params, arrays) -> actions``: :func:`deterministic_policy`
+    with the arrays an argument (traced), so one compiled evaluation serves every set."""
+
+    def policy(key, obs, state, params, arrays):
+        stats = RunningStats(mean=jnp.asarray(arrays["obs_mean"]), var=jnp.asarray(arrays["obs_var"]),
+                             count=jnp.asarray(1.0))
+        x = stats.normalize(obs.astype(jnp.float32)) if normalize_obs else obs.astype(jnp.float32)
+        mean, _ = actor.apply(arrays["actor"], x)
+        if base is not None:
+            mean = mean + base(state, params)
+        return jnp.clip(mean, -1.0, 1.0).astype(obs.dtype)
+
+    return policy
 
 
 def deterministic_policy(actor: Actor, arrays: dict, normalize_obs: bool = True, base: Callable | None = None

@@ -1,0 +1,173 @@
+"""Behaviour cloning of the scripted team: the warm start of ``algo.init: bc``.
+
+    demos = collect(trainer, key)                 # the vmapped environment, scripted team + noise
+    state, report = fit(trainer, state, demos, key)
+
+**Demonstrations** (:func:`collect`): ``bc.num_envs`` environments run ``bc.steps`` policy
+steps side by side (the trainer's batch-last layout). At every step each environment's
+scripted action ``a*`` (:meth:`CaptureEnv.scripted_actions`, in the action space) is the
+label, and the environment is stepped with ``a* + bc.noise · ξ`` (ξ standard normal): the
+states a slightly perturbed scripted team visits, each labelled with what the scripted
+team would do there (DART, Laskey et al. 2017), so the clone also learns to recover from
+the small errors it will make. Episodes end and reset as in training.
+
+**Fit** (:func:`fit`): the observation statistics are those of the demonstrations; the
+actor's mean is fitted to the labels by least squares (Adam, ``bc.epochs`` passes in
+shuffled minibatches of ``bc.minibatch_size``). The environments of the last
+``bc.holdout`` fraction are held out: their states were never trained on, and the report
+gives the fit there (RMSE, R² per action dimension). The exploration standard deviation
+is set to ``bc.std``, the anchor (:attr:`TrainerState.anchor`) to the clone, and the
+optimiser is reset.
+"""
+
+from __future__ import annotations
+
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from flax import struct
+
+from mysim_jax import batching
+from mysim_jax.mappo.losses import RunningStats
+
+
+@struct.dataclass
+class Demonstrations:
+    """Scripted-team labels at the states a perturbed scripted team visited."""
+
+    obs: jnp.ndarray          # (steps, envs, n_agents, obs_size), raw observations
+    actions: jnp.ndarray      # (steps, envs, n_agents, act), the scripted team's actions there
+    success: jnp.ndarray      # (steps, envs) an episode ended in success at this step
+    done: jnp.ndarray         # (steps, envs) an episode ended at this step
+
+    @property
+    def pairs(self) -> int:
+        """Observation-action pairs (one per agent and step)."""
+        return int(np.prod(self.obs.shape[:3]))
+
+
+def collect(trainer, key) -> Demonstrations:
+    """The demonstrations of the module docstring for ``trainer``'s environment."""
+    bc = trainer.config.bc
+    env, params = trainer.env, trainer.env_params
+
+    def one_env(key, state, obs):
+        def body(carry, k):
+            state, obs = carry
+            k_noise, k_step = jax.random.split(k)
+            teacher = env.scripted_actions(state, params)
+            action = teacher + bc.noise * jax.random.normal(k_noise, teacher.shape, teacher.dtype)
+            obs2, state2, _, _, _, info = env.step(k_step, state, action, params)
+            row = (obs, teacher, info["success"] & info["done"], info["done"])
+            return (state2, obs2), row
+
+        _, rows = jax.lax.scan(body, (state, obs), jax.random.split(key, bc.steps))
+        return rows
+
+    k_reset, k_run = jax.random.split(key)
+    obs, states = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(k_reset, bc.num_envs), params)
+    run = jax.jit(batching.vmap(one_env, chunk=trainer.block))
+    obs_rows, teacher, success, done = run(jax.random.split(k_run, bc.num_envs), states, obs)
+    # (envs, steps, ...) -> (steps, envs, ...)
+    swap = lambda x: jnp.swapaxes(x, 0, 1)      # noqa: E731
+    return Demonstrations(obs=swap(obs_rows).astype(jnp.float32), actions=swap(teacher).astype(jnp.float32),
+                          success=swap(success), done=swap(done))
+
+
+def _r2(pred, target):
+    """R² per action dimension ``(act,)`` of predictions ``(m, act)``."""
+    sse = jnp.sum((pred - target) ** 2, axis=0)
+    sst = jnp.sum((target - jnp.mean(target, axis=0)) ** 2, axis=0)
+    return 1.0 - sse / jnp.maximum(sst, 1e-12)
+
+
+def fit(trainer, ts, demos: Demonstrations, key):
+    """``(state, report)``: ``ts`` with the actor cloned from ``demos`` (module docstring)."""
+    c = trainer.config
+    bc = c.bc
+    t0 = time.perf_counter()
+    steps, envs = demos.obs.shape[:2]
+    n_hold = max(1, int(round(bc.holdout * envs)))
+    if n_hold >= envs:
+        raise ValueError(f"algo.bc: {envs} environment(s) leave none to train on after holding out {n_hold}")
+    obs_size, act = demos.obs.shape[-1], demos.actions.shape[-1]
+    train_obs = demos.obs[:, : envs - n_hold].reshape(-1, obs_size)
+    train_act = demos.actions[:, : envs - n_hold].reshape(-1, act)
+    hold_obs = demos.obs[:, envs - n_hold:].reshape(-1, obs_size)
+    hold_act = demos.actions[:, envs - n_hold:].reshape(-1, act)
+    obs_stats = RunningStats.create((obs_size,)).update(train_obs)
+
+    def norm(x):
+        return obs_stats.normalize(x) if c.normalize_obs else x
+
+    n = train_obs.shape[0]
+    mb = min(bc.minibatch_size, n)
+    n_mb = n // mb
+    tx = optax.adam(bc.lr)
+
+    def loss(actor_params, x, y):
+        mean, _ = trainer.actor.apply(actor_params, x)
+        return jnp.mean(jnp.sum((mean - y) ** 2, axis=-1))
+
+    @jax.jit
+    def train(actor_params, key):
+        opt_state = tx.init(actor_params)
+        x_all, y_all = norm(train_obs), train_act
+
+        def epoch(carry, k):
+            p, o = carry
+            perm = jax.random.permutation(k, n)[: n_mb * mb].reshape(n_mb, mb)
+
+            def step(carry, idx):
+                p, o = carry
+                value, grads = jax.value_and_grad(loss)(p, x_all[idx], y_all[idx])
+                updates, o = tx.update(grads, o, p)
+                return (optax.apply_updates(p, updates), o), value
+
+            (p, o), values = jax.lax.scan(step, (p, o), perm)
+            return (p, o), jnp.mean(values)
+
+        (p, _), history = jax.lax.scan(epoch, (actor_params, opt_state), jax.random.split(key, bc.epochs))
+        return p, history
+
+    actor_params, history = train(ts.params["actor"], key)
+    log_std = jnp.full_like(actor_params["params"]["log_std"], np.log(bc.std))
+    actor_params = {**actor_params, "params": {**actor_params["params"], "log_std": log_std}}
+
+    @jax.jit
+    def measure(p):
+        pred_t, _ = trainer.actor.apply(p, norm(train_obs))
+        pred_h, _ = trainer.actor.apply(p, norm(hold_obs))
+        return (jnp.sqrt(jnp.mean((pred_t - train_act) ** 2)), jnp.sqrt(jnp.mean((pred_h - hold_act) ** 2)),
+                _r2(pred_h, hold_act), jnp.std(hold_act, axis=0))
+
+    rmse_train, rmse_hold, r2_hold, spread = jax.device_get(measure(actor_params))
+    params = {**ts.params, "actor": actor_params}
+    arrays = {"actor": actor_params, "obs_mean": obs_stats.mean, "obs_var": obs_stats.var}
+    state = ts.replace(params=params, opt_state=trainer.tx.init(params), obs_stats=obs_stats, anchor=arrays)
+    report = {
+        "pairs": demos.pairs, "train_pairs": int(n),
+        "holdout_environments": n_hold, "episodes_ended": int(jnp.sum(demos.done)),
+        "teacher_success_rate": float(jnp.sum(demos.success) / jnp.maximum(jnp.sum(demos.done), 1)),
+        "epochs": bc.epochs, "final_train_loss": float(history[-1]),
+        "rmse_train": float(rmse_train), "rmse_holdout": float(rmse_hold),
+        "r2_holdout": [float(v) for v in r2_hold], "label_std_holdout": [float(v) for v in spread],
+        "fit_s": round(time.perf_counter() - t0, 2),
+    }
+    return state, report
+
+
+def clone(trainer, ts, key):
+    """``(state, report)``: collect demonstrations and fit the actor to them."""
+    k_collect, k_fit = jax.random.split(key)
+    t0 = time.perf_counter()
+    demos = collect(trainer, k_collect)
+    jax.block_until_ready(demos.obs)
+    collect_s = time.perf_counter() - t0
+    state, report = fit(trainer, ts, demos, k_fit)
+    report["collect_s"] = round(collect_s, 2)
+    report["team_steps"] = int(demos.obs.shape[0] * demos.obs.shape[1])
+    return state, report
