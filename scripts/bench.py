@@ -1902,30 +1902,68 @@ def section_g(cfg, results) -> list[str]:
 TRAIN_RUNS = ROOT / "docs" / "train"
 
 
+def _scripted_outcomes(runs) -> dict:
+    """The scripted team's outcomes on the evaluation episodes of ``runs`` that compared
+    against it (``eval/comparison_episodes.csv``), keyed by (evaluation seed, episodes)."""
+    import csv
+    import json
+
+    found = {}
+    for run in runs:
+        table = run / "eval" / "comparison_episodes.csv"
+        base = json.loads((run / "summary.json").read_text()).get("baseline")
+        if base is None or not table.is_file():
+            continue
+        with table.open() as f:
+            rows = list(csv.DictReader(f))
+        found[(base["seed"], len(rows))] = np.array([r["outcome_scripted"] == "success" for r in rows])
+    return found
+
+
+def _run_settings(run):
+    """``(train.yaml as a dict, seed, init, eval seed)`` of a kept run folder."""
+    import yaml
+
+    cfg = yaml.safe_load((run / "train.yaml").read_text())
+    run_cfg, algo = cfg.get("run", {}), cfg.get("algo", {})
+    return cfg, run_cfg.get("seed", 0), algo.get("init", "none"), run_cfg.get("eval_seed")
+
+
 def training_runs_lines() -> list[str]:
     """The training runs kept in docs/train/<run>/ (copied from scripts/train.py run folders:
-    summary.json, train.yaml, metrics.csv, curves.png, eval/metrics.json): one table row
-    each, and their learning curves."""
+    summary.json, train.yaml, metrics.csv, curves.png, eval/): one table row each with the
+    paired difference to the scripted team on the same episodes where it was measured, the
+    spread over seeds of runs that differ only in ``run.seed``, every run's curves side
+    by side (``docs/train/runs.png``) and each run's own."""
     import json
+
+    from mysim_jax.mappo.run import plot_runs, read_metrics
+    from mysim_jax.tasks.sweep import paired_difference_interval
 
     runs = sorted(p for p in TRAIN_RUNS.glob("*") if (p / "summary.json").is_file())
     if not runs:
         return []
+    scripted = _scripted_outcomes(runs)
     lines = [
         "### Training runs",
         "",
-        "Each run is `python scripts/train.py configs/<file>.yaml` on this machine, its folder's "
-        "`summary.json`, `metrics.csv`, `curves.png` and `eval/metrics.json` kept in `docs/train/<run>/`. "
-        "Training success is the share of episodes ended in the iteration that succeeded (exploration noise on); "
-        "evaluation is the deterministic policy on `run.eval_episodes` fresh episodes (`eval_seed`), as "
-        "`scripts/evaluate.py` reports it.",
+        "Each run is `python scripts/train.py configs/<file>.yaml` (with the `--set` overrides its `train.yaml` "
+        "records) on this machine, its folder's `summary.json`, `train.yaml`, `metrics.csv`, `curves.png` and "
+        "`eval/` kept in `docs/train/<run>/`. Training success is the share of episodes ended in the iteration "
+        "that succeeded (exploration noise on); the selection curve is the deterministic policy on the fixed "
+        "selection episodes; evaluation is the saved (selected) policy on `run.eval_episodes` fresh episodes "
+        "(`eval_seed`), as `scripts/evaluate.py` reports it. *vs scripted* is the paired difference to the "
+        "scripted team on the same evaluation episodes (the run's own `eval/comparison.json`, or the scripted "
+        "outcomes another run measured on the same episodes), with its 95 % interval.",
         "",
-        "| run | training file | team steps | training [min] | env-steps/s (update incl.) | evaluation [min] | "
-        "success (95 % interval) | how the others ended |",
-        "|---|---|---:|---:|---:|---:|---|---|",
+        "| run | init | seed | team steps | training [min] | env-steps/s (update incl.) | evaluation [min] | "
+        "success (95 % interval) | vs scripted [points] | how the others ended |",
+        "|---|---|---:|---:|---:|---:|---:|---|---|---|",
     ]
+    groups: dict[str, list[tuple[str, float]]] = {}
     for run in runs:
         s = json.loads((run / "summary.json").read_text())
+        cfg, seed, init, eval_seed = _run_settings(run)
         ev = s.get("evaluation", {})
         fails = ", ".join(f"{v['count']} {k}" for k, v in ev.get("failures", {}).items() if v["count"])
         if ev.get("timeout", {}).get("count"):
@@ -1933,13 +1971,41 @@ def training_runs_lines() -> list[str]:
         succ = ev.get("success")
         succ_text = (f"**{succ['rate']:.1%}** ({succ['interval95'][0]:.1%}–{succ['interval95'][1]:.1%}) of "
                      f"{ev['episodes']}" if succ else "—")
+        versus = "—"
+        if "baseline" in s:
+            d = s["baseline"]["difference"]
+            versus = f"{100 * d['estimate']:+.1f} ({100 * d['interval95'][0]:+.1f} to {100 * d['interval95'][1]:+.1f})"
+        elif succ and (run / "eval" / "episodes.csv").is_file():
+            import csv
+
+            with (run / "eval" / "episodes.csv").open() as f:
+                mine = np.array([r["success"] == "1" for r in csv.DictReader(f)])
+            base = scripted.get((eval_seed, len(mine)))
+            if base is not None:
+                d, lo, hi = paired_difference_interval(mine, base)
+                versus = f"{100 * d:+.1f} ({100 * lo:+.1f} to {100 * hi:+.1f})"
         stopped = " (time limit)" if s.get("stopped_by_time_limit") else ""
         rate = s.get("env_steps_per_s_with_update")
         rate_text = "—" if rate is None else f"{rate:,.0f}"
-        lines.append(f"| `{run.name}` | `{s.get('config', 'configs/' + s['name'] + '.yaml')}` | {s['env_steps']:,}{stopped} | "
+        lines.append(f"| `{run.name}` | {init} | {seed} | {s['env_steps']:,}{stopped} | "
                      f"{s['training_wall_s_total'] / 60:.1f} | {rate_text} | "
-                     f"{s.get('evaluation_wall_s', float('nan')) / 60:.1f} | {succ_text} | {fails or '—'} |")
+                     f"{s.get('evaluation_wall_s', float('nan')) / 60:.1f} | {succ_text} | {versus} | {fails or '—'} |")
+        if succ:
+            cfg.get("run", {}).pop("seed", None)
+            groups.setdefault(json.dumps(cfg, sort_keys=True), []).append((run.name, succ["rate"]))
     lines.append("")
+    for members in groups.values():
+        if len(members) > 1:
+            rates = np.array([r for _, r in members])
+            lines.append(f"**Over seeds** ({', '.join(f'`{n}`' for n, _ in members)}: the same file and settings, "
+                         f"`run.seed` alone differs): evaluation success mean **{rates.mean():.1%}**, "
+                         f"range {rates.min():.1%}–{rates.max():.1%}, standard deviation {rates.std(ddof=1):.1%} "
+                         f"over {len(rates)} seeds.")
+            lines.append("")
+    figure = plot_runs({run.name: read_metrics(run) for run in runs}, TRAIN_RUNS / "runs.png",
+                       "kept training runs, side by side")
+    if figure is not None:
+        lines += ["![kept training runs side by side](docs/train/runs.png)", ""]
     for run in runs:
         if (run / "curves.png").is_file():
             lines += [f"![{run.name}](docs/train/{run.name}/curves.png)", ""]
@@ -1947,6 +2013,32 @@ def training_runs_lines() -> list[str]:
     for note in notes:
         lines += [f"**{note.parent.name}**: " + note.read_text().strip(), ""]
     return lines
+
+
+def refresh_training_runs(path: Path) -> int:
+    """Replace the training-runs list of section (g) in ``path`` (from ``### Training runs``
+    to the section's timing line) with :func:`training_runs_lines`, and say so under the
+    section's heading. Measures nothing: the runs are what ``docs/train/`` holds."""
+    lines = path.read_text().splitlines()
+    try:
+        head = lines.index("## (g) Training throughput (MAPPO)")
+        start = lines.index("### Training runs", head)
+    except ValueError:
+        print(f"{path}: no section (g) with a training-runs list to refresh", file=sys.stderr)
+        return 2
+    end = next((i for i in range(start, len(lines)) if lines[i].startswith("*(section g")
+                or (i > start and lines[i].startswith("## "))), len(lines))
+    when = _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    note = (f"*The training-runs list below was refreshed from `docs/train/` on {when} "
+            "(`scripts/bench.py --runs-only`); the throughput table is from the run named before it.*")
+    body = lines[head + 1:start]
+    body = [ln for ln in body if not ln.startswith("*The training-runs list below was refreshed")]
+    new = lines[:head + 1] + ["", note] + [ln for ln in body if ln or True] + training_runs_lines() + lines[end:]
+    # collapse the blank lines the splice may double
+    out = [ln for i, ln in enumerate(new) if ln or i == 0 or new[i - 1]]
+    path.write_text("\n".join(out).rstrip() + "\n")
+    print(f"refreshed the training runs of section (g) in {path}")
+    return 0
 
 
 def section_h(cfg, results) -> list[str]:
@@ -2019,7 +2111,11 @@ def main(argv=None) -> int:
                         "existing output file (default BENCHMARKS.md) and keep the others from its earlier run")
     parser.add_argument("--cases", default="", help="section (d) only: comma-separated accuracy cases to run "
                         "(rope_net, rope_net_slack, collision_light, collision_heavy, capture_falling; default: all)")
+    parser.add_argument("--runs-only", action="store_true", help="refresh only the training-runs list of section "
+                        "(g) in BENCHMARKS.md from docs/train/ (no measuring; the throughput table is kept)")
     args = parser.parse_args(argv)
+    if args.runs_only:
+        return refresh_training_runs(Path(args.out) if args.out else ROOT / "BENCHMARKS.md")
     sections = tuple(s.strip().lower() for s in args.only.split(",") if s.strip())
     unknown = [s for s in sections if s not in SECTIONS]
     if unknown:

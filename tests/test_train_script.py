@@ -202,3 +202,26 @@ def test_policy_folders_are_checked(tmp_path):
     (bad / "policy.msgpack").write_bytes(b"\x00")
     with pytest.raises(PolicyError, match="cannot read the saved policy"):
         policy_maker(str(bad))
+
+
+def test_runs_side_by_side_plot_reads_every_run(tmp_path):
+    """plot_runs draws one line per run from metrics.csv rows (selection and training
+    success against wall time); a run without selection rows still gets its training line."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from mysim_jax.mappo.run import CSV_FIELDS, _write_rows, plot_runs, read_metrics
+
+    runs = {}
+    for name, selection in (("with_selection", True), ("without", False)):
+        folder = tmp_path / name
+        folder.mkdir()
+        rows = [{"iteration": i, "wall_s": 60.0 * i, "episodes": 4, "success_rate": 0.25 * i,
+                 "select_success": (0.5 if selection and i % 2 == 0 else "")} for i in range(5)]
+        _write_rows(folder / "metrics.csv", rows)
+        runs[name] = read_metrics(folder)
+        assert [int(r["iteration"]) for r in runs[name]] == list(range(5))
+        assert set(runs[name][0]) == set(CSV_FIELDS)
+    out = plot_runs(runs, tmp_path / "runs.png", "two runs")
+    assert out.is_file() and out.stat().st_size > 10_000
+    assert plot_runs({}, tmp_path / "none.png", "no runs") is None

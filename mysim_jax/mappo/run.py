@@ -206,6 +206,49 @@ def plot_curves(rows: list[dict], path: Path, title: str, best_iteration: int | 
     return path
 
 
+def read_metrics(run_dir: Path) -> list[dict]:
+    """Every row of a run folder's ``metrics.csv``."""
+    return _read_rows(Path(run_dir) / "metrics.csv", 10**9)
+
+
+def plot_runs(runs: dict[str, list[dict]], path: Path, title: str) -> Path | None:
+    """Several runs' ``metrics.csv`` rows side by side against wall time: the deterministic
+    policy's success on the selection episodes (where the run had model selection) and
+    the training episodes' success (exploration on), one colour per run."""
+    if not runs:
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.2), sharey=True)
+    for i, (name, rows) in enumerate(runs.items()):
+        colour = f"C{i}"
+        minutes = _column(rows, "wall_s") / 60.0
+        sel = _column(rows, "select_success")
+        has = np.isfinite(sel)
+        if has.any():
+            axes[0].plot(minutes[has], sel[has], "o-", ms=4, lw=1.2, color=colour, label=name)
+        train = np.where(_column(rows, "episodes") > 0, _column(rows, "success_rate"), np.nan)
+        keep = np.isfinite(train)
+        axes[1].plot(minutes[keep], train[keep], lw=1.0, color=colour, label=name)
+    axes[0].set_title("deterministic policy, selection episodes", fontsize=10)
+    axes[1].set_title("training episodes (exploring)", fontsize=10)
+    for ax in axes:
+        ax.set_xlabel("wall time of the run [min] (cloning, training, selection)")
+        ax.set_ylim(-0.02, 1.02)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, loc="lower right")
+    axes[0].set_ylabel("success rate")
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def evaluate_builtin(env, env_params, policy, episodes: int, seed: int) -> dict:
     """Success rate of ``policy`` on the builtin environment (``episodes`` episodes)."""
     import jax

@@ -423,15 +423,10 @@ def deterministic_policy(actor: Actor, arrays: dict, normalize_obs: bool = True,
     """``policy(key, obs, state, params) -> actions`` of one environment: the Gaussian's
     mean, clipped to ``[-1, 1]`` (the interface of :mod:`mysim_jax.tasks.evaluate`).
     ``base(state, params)``: actions the mean is added to (a residual policy's team)."""
-    stats = RunningStats(mean=jnp.asarray(arrays["obs_mean"]), var=jnp.asarray(arrays["obs_var"]),
-                         count=jnp.asarray(1.0))
+    with_arrays = deterministic_policy_fn(actor, normalize_obs, base)
 
     def policy(key, obs, state, params):
-        x = stats.normalize(obs.astype(jnp.float32)) if normalize_obs else obs.astype(jnp.float32)
-        mean, _ = actor.apply(arrays["actor"], x)
-        if base is not None:
-            mean = mean + base(state, params)
-        return jnp.clip(mean, -1.0, 1.0).astype(obs.dtype)
+        return with_arrays(key, obs, state, params, arrays)
 
     return policy
 
