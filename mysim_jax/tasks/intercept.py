@@ -71,13 +71,18 @@ def predict_catch(pos, vel, z_catch, gravity, drag_per_mass, horizon: float = HO
     # the first sample at or below z_catch (the last one when none is)
     i = jnp.where(crossed, jnp.argmax(below), n_steps)
     j = jnp.maximum(i - 1, 0)
-    z0, z1 = ps[j, 2], ps[i, 2]
+    # rows i and j as masked sums, not gathers: batch-last (mysim_jax.batching) has a rule
+    # for every primitive of the step, and gathers with traced indices are not among them
+    rows = jnp.arange(n_steps + 1)
+    pick = lambda x, k: jnp.sum(jnp.where((rows == k)[:, None], x, 0.0), axis=0)   # noqa: E731
+    p_i, p_j, v_i, v_j = pick(ps, i), pick(ps, j), pick(vs, i), pick(vs, j)
+    z0, z1 = p_j[2], p_i[2]
     # linear interpolation between samples j and i (i == j == 0: already below, s = 0)
     denom = jnp.where(jnp.abs(z0 - z1) > 1e-9, z0 - z1, 1.0)
     s = jnp.where(i > 0, jnp.clip((z0 - z_catch) / denom, 0.0, 1.0), 0.0)
     s = jnp.where(crossed, s, 1.0)
-    point = ps[j] + s * (ps[i] - ps[j])
-    velocity = vs[j] + s * (vs[i] - vs[j])
+    point = p_j + s * (p_i - p_j)
+    velocity = v_j + s * (v_i - v_j)
     time = (j.astype(dtype) + jnp.where(i > 0, s, 0.0)) * dt
     return CatchPoint(point=point.astype(dtype), time=time.astype(dtype), velocity=velocity.astype(dtype),
                       crossed=crossed)

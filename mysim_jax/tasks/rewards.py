@@ -130,8 +130,14 @@ def above_net(p, knot_pos, k: int = NET_SURFACE_KNOTS):
     net lies above the knots under it; one under the net (the net draped over it, or
     hanging above it) has them above its centre."""
     d2 = jnp.sum((knot_pos[:, :2] - p[:2]) ** 2, axis=-1)
-    _, nearest = jax.lax.top_k(-d2, k)
-    return p[2] > jnp.mean(knot_pos[nearest, 2])
+    index = jnp.arange(knot_pos.shape[0])
+    height = jnp.zeros((), knot_pos.dtype)
+    # the k nearest one by one, as masks (no top_k or gathers: batch-last has no rule for them)
+    for _ in range(k):
+        nearest = index == jnp.argmin(d2)
+        height = height + jnp.sum(jnp.where(nearest, knot_pos[:, 2], 0.0))
+        d2 = jnp.where(nearest, jnp.inf, d2)
+    return p[2] > height / k
 
 
 def tilt_cosine(quat):
