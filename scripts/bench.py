@@ -1904,7 +1904,9 @@ TRAIN_RUNS = ROOT / "docs" / "train"
 
 def _scripted_outcomes(runs) -> dict:
     """The scripted team's outcomes on the evaluation episodes of ``runs`` that compared
-    against it (``eval/comparison_episodes.csv``), keyed by (evaluation seed, episodes)."""
+    against it (``eval/comparison_episodes.csv``), keyed by evaluation seed: episode i of a
+    seed is the same episode in every evaluation, so a run evaluated on fewer episodes
+    pairs with the first of these."""
     import csv
     import json
 
@@ -1916,7 +1918,7 @@ def _scripted_outcomes(runs) -> dict:
             continue
         with table.open() as f:
             rows = list(csv.DictReader(f))
-        found[(base["seed"], len(rows))] = np.array([r["outcome_scripted"] == "success" for r in rows])
+        found[base["seed"]] = np.array([r["outcome_scripted"] == "success" for r in rows])
     return found
 
 
@@ -1940,10 +1942,10 @@ def training_runs_lines() -> list[str]:
     from mysim_jax.mappo.run import plot_runs, read_metrics
     from mysim_jax.tasks.sweep import paired_difference_interval
 
-    runs = sorted(p for p in TRAIN_RUNS.glob("*") if (p / "summary.json").is_file())
+    runs = sorted(p for p in TRAIN_RUNS.glob("*") if (p / "metrics.csv").is_file() and (p / "train.yaml").is_file())
     if not runs:
         return []
-    scripted = _scripted_outcomes(runs)
+    scripted = _scripted_outcomes([run for run in runs if (run / "summary.json").is_file()])
     lines = [
         "### Training runs",
         "",
@@ -1962,8 +1964,18 @@ def training_runs_lines() -> list[str]:
     ]
     groups: dict[str, list[tuple[str, float]]] = {}
     for run in runs:
-        s = json.loads((run / "summary.json").read_text())
         cfg, seed, init, eval_seed = _run_settings(run)
+        if not (run / "summary.json").is_file():
+            # stopped before its evaluation: what metrics.csv says
+            rows = read_metrics(run)
+            last = rows[-1]
+            selected = [r for r in rows if r.get("select_success") not in ("", None)]
+            sel = ", ".join(f"{float(r['select_success']):.0%} at {r['iteration']}" for r in selected)
+            lines.append(f"| `{run.name}` | {init} | {seed} | {int(last['env_steps']):,} | "
+                         f"{float(last['wall_s']) / 60:.1f} | — | — | not evaluated (stopped after training); "
+                         f"selection success {sel or '—'} | — | — |")
+            continue
+        s = json.loads((run / "summary.json").read_text())
         ev = s.get("evaluation", {})
         fails = ", ".join(f"{v['count']} {k}" for k, v in ev.get("failures", {}).items() if v["count"])
         if ev.get("timeout", {}).get("count"):
@@ -1980,9 +1992,9 @@ def training_runs_lines() -> list[str]:
 
             with (run / "eval" / "episodes.csv").open() as f:
                 mine = np.array([r["success"] == "1" for r in csv.DictReader(f)])
-            base = scripted.get((eval_seed, len(mine)))
-            if base is not None:
-                d, lo, hi = paired_difference_interval(mine, base)
+            base = scripted.get(eval_seed)
+            if base is not None and len(base) >= len(mine):
+                d, lo, hi = paired_difference_interval(mine, base[:len(mine)])
                 versus = f"{100 * d:+.1f} ({100 * lo:+.1f} to {100 * hi:+.1f})"
         stopped = " (time limit)" if s.get("stopped_by_time_limit") else ""
         rate = s.get("env_steps_per_s_with_update")
