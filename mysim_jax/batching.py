@@ -13,10 +13,11 @@ operation element-wise over a contiguous batch — runs several times faster
 function once into a jaxpr and evaluates that jaxpr on batched arrays whose batch axis is
 the **last** one: each primitive is re-emitted with the batch appended as a trailing
 dimension (element-wise ops, slices, reshapes, broadcasts, reductions, ``dot_general``,
-gathers and scatters with per-environment-constant indices, ``scan``/``while``/``cond``
-bodies, nested ``jit``), so the compiled step works on contiguous batch rows as a
+gathers and scatters (per-environment indices become XLA batching dimensions),
+``scan``/``while``/``cond`` bodies, nested ``jit``; a per-environment ``cond`` runs one
+branch when the whole batch takes it), so the compiled step works on contiguous batch rows as a
 hand-written batch-last kernel does. Equations keep their ``jax.named_scope`` names. Primitives without a batch-last rule here (linear-algebra
-factorisations, PRNG primitives, ops on data-dependent indices, ...) fall back to JAX's
+factorisations, PRNG primitives, ...) fall back to JAX's
 own batching rule with the batch moved to the front and back again around that one op:
 always correct, only that op pays for a transpose.
 
@@ -103,9 +104,11 @@ def _to_back(x):
     return jnp.moveaxis(x, 0, -1)
 
 
-def _fallback(prim, vals, batched, params, size):
-    """JAX's own batching rule, with the batch moved to the front around this one op."""
-    FALLBACK_COUNTS[prim.name] = FALLBACK_COUNTS.get(prim.name, 0) + 1
+def _fallback(prim, vals, batched, params, size, count: bool = True):
+    """JAX's own batching rule, with the batch moved to the front around this one op
+    (``count``: record it in :data:`FALLBACK_COUNTS`)."""
+    if count:
+        FALLBACK_COUNTS[prim.name] = FALLBACK_COUNTS.get(prim.name, 0) + 1
     in_axes = [0 if b else None for b in batched]
     args = [_to_front(v) if b else v for v, b in zip(vals, batched)]
 
@@ -241,11 +244,32 @@ def _dot_general(prim, vals, batched, params, size, eqn):
     return (out if rhs_free == 0 else jnp.moveaxis(out, out_nd - rhs_free, -1)), True
 
 
+def _batched_indices(indices):
+    """Per-environment indices ``idx_shape + (B,)`` (index vector last per environment) as
+    ``idx_shape[:-1] + (B, vector)``: the batch becomes the indices' last batch dimension."""
+    return jnp.moveaxis(indices, -1, -2)
+
+
 def _gather(prim, vals, batched, params, size, eqn):
     operand, indices = vals
-    if batched[1]:
-        return _fallback(prim, vals, batched, params, size)
     dn = params["dimension_numbers"]
+    if batched[1]:
+        # per-environment indices: the batch is a batching dimension of the operand and of
+        # the indices (XLA's batched gather); it lands on the output's last non-offset
+        # position, which is the last axis since the offset dims keep their places
+        idx_nd = len(eqn.invars[1].aval.shape)
+        if idx_nd == 0:
+            return _fallback(prim, vals, batched, params, size)
+        slice_sizes = tuple(params["slice_sizes"])
+        if batched[0]:
+            op_nd = len(eqn.invars[0].aval.shape)
+            dn = dn._replace(operand_batching_dims=tuple(dn.operand_batching_dims) + (op_nd,),
+                             start_indices_batching_dims=tuple(dn.start_indices_batching_dims) + (idx_nd - 1,))
+            slice_sizes = slice_sizes + (1,)
+        out = lax.gather(operand, _batched_indices(indices), dn, slice_sizes,
+                         indices_are_sorted=False, unique_indices=params["unique_indices"],
+                         mode=params["mode"], fill_value=params["fill_value"])
+        return out, True
     out_nd = len(eqn.outvars[0].aval.shape)
     # the batch is one more window (offset) dimension, the last of the output
     new_dn = dn._replace(offset_dims=tuple(dn.offset_dims) + (out_nd,))
@@ -258,7 +282,22 @@ def _gather(prim, vals, batched, params, size, eqn):
 def _scatter(prim, vals, batched, params, size, eqn):
     operand, indices, updates = vals
     if batched[1]:
-        return _fallback(prim, vals, batched, params, size)
+        # per-environment indices: the batch is a batching dimension of operand, indices
+        # and updates (XLA's batched scatter); in the updates it is the last non-window
+        # position, i.e. the last axis, as the window dims keep their places
+        idx_nd = len(eqn.invars[1].aval.shape)
+        if idx_nd == 0:
+            return _fallback(prim, vals, batched, params, size)
+        if not batched[0]:
+            operand = _broadcast_to_batched(operand, tuple(eqn.invars[0].aval.shape), size)
+        if not batched[2]:
+            updates = _broadcast_to_batched(updates, tuple(eqn.invars[2].aval.shape), size)
+        dn = params["dimension_numbers"]
+        op_nd = len(eqn.invars[0].aval.shape)
+        dn = dn._replace(operand_batching_dims=tuple(dn.operand_batching_dims) + (op_nd,),
+                         scatter_indices_batching_dims=tuple(dn.scatter_indices_batching_dims) + (idx_nd - 1,))
+        new_params = dict(params, dimension_numbers=dn, indices_are_sorted=False)
+        return prim.bind(operand, _batched_indices(indices), updates, **new_params), True
     if not batched[0]:
         operand = _broadcast_to_batched(operand, tuple(eqn.invars[0].aval.shape), size)
     if not batched[2]:
@@ -365,10 +404,28 @@ def _while(prim, vals, batched, params, size, eqn):
 
 
 def _cond(prim, vals, batched, params, size, eqn):
-    if batched[0]:
-        return _fallback(prim, vals, batched, params, size)   # a per-environment branch
     branches = params["branches"]
     ops, ops_b = vals[1:], batched[1:]
+    if batched[0]:
+        # a per-environment branch. When every environment of the batch (block) takes the
+        # same branch, only that branch runs; otherwise all run and each environment
+        # selects its own (JAX's rule). The result is the same either way.
+        index = vals[0]
+        first = index[..., 0]
+
+        def uniform(*a):
+            outs, ob = _switch_unbatched_index(branches, first, list(a), list(ops_b), size)
+            return _make_batched(outs, ob, [True] * len(outs), eqn.outvars, size)
+
+        def mixed(*a):
+            return _fallback(prim, [index] + list(a), batched, params, size, count=False)[0]
+
+        outs = lax.cond(jnp.all(index == first), uniform, mixed, *ops)
+        return list(outs), [True] * len(outs)
+    return _switch_unbatched_index(branches, vals[0], list(ops), list(ops_b), size)
+
+
+def _switch_unbatched_index(branches, index, ops, ops_b, size):
     out_b = [any(bs) for bs in zip(*[_flags_of(br, list(ops_b), size) for br in branches])]
 
     def run(br):
@@ -377,7 +434,7 @@ def _cond(prim, vals, batched, params, size, eqn):
             return _make_batched(outs, ob, out_b, br.jaxpr.outvars, size)
         return f
 
-    return list(lax.switch(vals[0], [run(br) for br in branches], *ops)), out_b
+    return list(lax.switch(index, [run(br) for br in branches], *ops)), out_b
 
 
 _RULES: dict[str, Callable] = {

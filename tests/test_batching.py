@@ -172,12 +172,23 @@ def _f_loops(x, y):
     return c, ys, w[1], w2, f, branch, sw
 
 
+def _f_data_indices(x, y):
+    idx = jnp.argsort(y)[:3]                                        # per-environment indices
+    g = x[idx]                                                      # gather, batched indices
+    t = jnp.take_along_axis(x, jnp.argsort(x, axis=0)[:2], axis=0)
+    s = jnp.zeros((6, 3)).at[idx].add(g * 2.0)                      # scatter-add, batched indices
+    seg = jax.ops.segment_sum(g, idx + 1, num_segments=5)
+    same = jax.lax.cond(y.sum() > -100.0, lambda: g * 3.0, lambda: g)   # per-env, all take one branch
+    return g, t, s, seg, same
+
+
 def _f_random(key, x):
     k1, k2 = jax.random.split(key)
     return jax.random.normal(k1, (3,)) + x[0], jax.random.uniform(k2, ())
 
 
-@pytest.mark.parametrize("fn", [_f_elementwise, _f_indexing, _f_linear_algebra, _f_reductions, _f_loops])
+@pytest.mark.parametrize("fn", [_f_elementwise, _f_indexing, _f_linear_algebra, _f_reductions, _f_loops,
+                                _f_data_indices])
 @pytest.mark.parametrize("in_axes", [(0, 0), (0, None), (None, 0)])
 def test_rules_equal_jax_vmap(fn, in_axes):
     rng = np.random.default_rng(1)
