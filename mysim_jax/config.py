@@ -265,6 +265,8 @@ class AnchorConfig(StrictModel):
 class RopeConfig(StrictModel):
     """A lumped-mass rope (paper Sec. 2.1): ``n_masses`` point masses of ``mass`` each,
     rest length ``length / n_masses`` between interior masses and half that at both ends.
+    ``n_masses: 0`` is one spring-damper segment of rest length ``length`` between the two
+    ends (no mass of its own: whoever lumps the line's mass puts it on the ends).
 
     ``start`` / ``end`` name a point, an anchor, a body (its centre) or ``body.marker``.
     ``model: tension_only`` (default) never pushes; ``linear`` is the two-way spring-damper
@@ -274,7 +276,7 @@ class RopeConfig(StrictModel):
 
     name: Name
     length: PosFloat
-    n_masses: Annotated[int, Field(ge=1, le=MAX_ROPE_MASSES)]
+    n_masses: Annotated[int, Field(ge=0, le=MAX_ROPE_MASSES)]
     mass: PosFloat
     EA: PosFloat
     damping: NonNegFloat = 0.0
@@ -324,11 +326,30 @@ class OutputConfig(StrictModel):
     plot: list[str] = []
 
 
+class LevelConfig(StrictModel):
+    """A named fidelity level of a scene: plain scene values (``dotted.key=value``, as
+    ``--set`` takes them) applied over the file's own, which are the level ``full``."""
+
+    description: str = ""
+    set: Annotated[list[str], Field(min_length=1)]
+
+
+FULL_LEVEL = "full"
+"""The level a scene file's own values are; other levels are listed under ``levels:``."""
+
+
 class SceneConfig(StrictModel):
-    """A whole scene, as written in ``configs/*.yaml``."""
+    """A whole scene, as written in ``configs/*.yaml``.
+
+    ``levels`` names cheaper (or finer) versions of the scene, each a list of scene values
+    over the file's own (the level ``full``); ``level`` picks one when the file is loaded
+    (``--set level=train``): its values are applied first, then the other overrides.
+    """
 
     name: Name
     description: str = ""
+    level: Name = FULL_LEVEL                 # the fidelity level this config was loaded at
+    levels: dict[Name, LevelConfig] = {}
     sim: SimConfig
     gravity: Vec3 = (0.0, 0.0, -9.81)
     baumgarte: BaumgarteConfig = BaumgarteConfig()
@@ -626,11 +647,50 @@ def unaliased(raw: Any) -> Any:
     return copy.deepcopy(raw)
 
 
-def config_from_dict(raw: Any, source: str = "<dict>", overrides: list[str] | tuple[str, ...] = ()) -> SceneConfig:
-    """Validate a raw (YAML-parsed) dict into a :class:`SceneConfig`."""
+def config_from_dict(raw: Any, source: str = "<dict>", overrides: list[str] | tuple[str, ...] = (),
+                     check_levels: bool = True) -> SceneConfig:
+    """Validate a raw (YAML-parsed) dict into a :class:`SceneConfig` (at the ``level`` the
+    overrides or the file pick; with ``check_levels`` every other level of the file is
+    validated too, so a broken level is reported whichever level is loaded)."""
     if not isinstance(raw, dict):
         raise ConfigError(f"{source}: a scene file must be a YAML mapping at the top level")
+    original = raw
+    config = _config_at_level(raw, source, overrides)
+    if check_levels:
+        for name in config.levels:
+            if name != config.level:
+                try:
+                    _config_at_level(original, source, (f"level={name}",))
+                except ConfigError as err:
+                    raise ConfigError(f"{source}: levels.{name}: the level does not load:\n{err}") from None
+    return config
+
+
+def _config_at_level(raw: dict, source: str, overrides) -> SceneConfig:
     raw = unaliased(raw)
+    if FULL_LEVEL in (raw.get("levels") or {}):
+        raise ConfigError(f"{source}: levels.{FULL_LEVEL}: '{FULL_LEVEL}' is the file's own values; "
+                          "name the level otherwise")
+    chosen = unaliased(raw)
+    for ov in overrides:
+        apply_override(chosen, ov)
+    level = chosen.get("level", FULL_LEVEL)
+    if level != FULL_LEVEL:
+        levels = raw.get("levels") or {}
+        if not isinstance(levels, dict) or level not in levels:
+            known = ", ".join([FULL_LEVEL] + sorted(levels if isinstance(levels, dict) else ()))
+            raise ConfigError(f"{source}: level: unknown fidelity level '{level}' (this file has: {known})")
+        entry = levels[level]
+        sets = entry.get("set") if isinstance(entry, dict) else None
+        if not isinstance(sets, list) or not all(isinstance(v, str) for v in sets):
+            raise ConfigError(f"{source}: levels.{level}.set: expected a list of 'dotted.key=value' strings")
+        for ov in sets:
+            if ov.split("=", 1)[0].strip().split(".")[0] in ("level", "levels"):
+                raise ConfigError(f"{source}: levels.{level}.set: '{ov}': a level cannot set level or levels")
+            try:
+                apply_override(raw, ov)
+            except ConfigError as err:
+                raise ConfigError(f"{source}: levels.{level}.set: {err}") from None
     for ov in overrides:
         apply_override(raw, ov)
     try:
@@ -648,4 +708,8 @@ def load_config(path: str | Path, overrides: list[str] | tuple[str, ...] = ()) -
 def dump_config(config: SceneConfig) -> str:
     """The resolved config as YAML (round-trips through :func:`config_from_dict`)."""
     data = config.model_dump(mode="json")
+    # the level's values are in the dump already: it reloads as it is, as the level full
+    if data["level"] != FULL_LEVEL:
+        data["description"] = f"{data['description']} [level {data['level']}]".strip()
+        data["level"] = FULL_LEVEL
     return yaml.safe_dump(data, sort_keys=False)

@@ -65,7 +65,7 @@ def test_wrong_type_and_shape():
         ("ropes.1.length=0", "ropes.1.length"),
         ("ropes.1.EA=-1e5", "ropes.1.EA"),
         ("ropes.3.mass=-1", "ropes.3.mass"),
-        ("ropes.0.n_masses=0", "ropes.0.n_masses"),
+        ("ropes.0.n_masses=-1", "ropes.0.n_masses"),
         ("ropes.0.damping=-1", "ropes.0.damping"),
         ("sim.dt=-1e-4", "sim.dt"),
         ("sim.t_end=0", "sim.t_end"),

@@ -6,7 +6,8 @@ times the mesh spacing apart (default 0.8: the lines start slack and the net sag
 a bowl about a quarter of its side deep; a flat net at full size could only carry its
 own weight by stretching its lines). Every mesh edge (between
 neighbouring knots) is a rope module (:mod:`mysim_jax.net.rope`, paper Fig. rope_model)
-with ``masses_per_edge`` lumped masses; every tether is a rope module from a knot to a
+with ``masses_per_edge`` lumped masses (0: one segment from knot to knot, the line's
+mass lumped on the knots); every tether is a rope module from a knot to a
 marker on a UAV body, ``attach`` below the UAV's centre (UAV body frame). By default the
 four corner knots are tethered to the quadrotors in the order they are listed.
 
@@ -82,7 +83,7 @@ class TetherConfig(StrictModel):
     uavs: Annotated[list[Name], Field(min_length=1)]
     knots: list[tuple[int, int]] | None = None
     length: PosFloat = 1.0                 # m
-    n_masses: Annotated[int, Field(ge=1, le=1000)] = 3
+    n_masses: Annotated[int, Field(ge=0, le=1000)] = 3
     # m, UAV body frame: 1 cm below the centre. The pull of a tether hung further below
     # the centre of mass tilts the UAV (a 3 cm arm gave the default attitude loop more
     # torque than it could hold while the net swung)
@@ -98,7 +99,7 @@ class NetConfig(StrictModel):
     size: PosFloat = 2.0                    # m, side of the square
     center: Vec3
     spread: Annotated[float, Field(gt=0.2, le=1.0)] = 0.8   # start knot spacing / mesh spacing
-    masses_per_edge: Annotated[int, Field(ge=1, le=100)] = 1
+    masses_per_edge: Annotated[int, Field(ge=0, le=100)] = 1
     knot_mass: NonNegFloat = 0.0            # kg, added to every knot
     line: LineConfig = NYLON_TWINE
     tethers: TetherConfig | None = None

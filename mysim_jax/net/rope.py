@@ -23,7 +23,10 @@ import numpy as np
 
 
 def rope_rest_lengths(length: float, n_masses: int) -> np.ndarray:
-    """Rest lengths ``(N + 1,)``: ``[L/2N, L/N, ..., L/N, L/2N]`` (sum = L)."""
+    """Rest lengths ``(N + 1,)``: ``[L/2N, L/N, ..., L/N, L/2N]`` (sum = L); ``[L]`` for
+    N = 0 (one segment between the rope's ends)."""
+    if n_masses == 0:
+        return np.array([float(length)])
     interior = length / n_masses
     rest = np.full(n_masses + 1, interior)
     rest[0] = rest[-1] = 0.5 * interior

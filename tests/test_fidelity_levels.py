@@ -1,0 +1,56 @@
+"""Fidelity levels of a scene file (``levels:``, ``--set level=NAME``) and lines without
+interior masses (``masses_per_edge: 0``, ``n_masses: 0``)."""
+
+import numpy as np
+import pytest
+import yaml
+
+from mysim_jax.config import ConfigError, config_from_dict, dump_config, load_config
+from mysim_jax.net.config import net_mass
+
+from conftest import CONFIGS
+
+SCENE = CONFIGS / "capture_env_falling.yaml"
+
+
+def test_a_level_applies_its_values_and_later_overrides_win():
+    full = load_config(SCENE)
+    train = load_config(SCENE, ["level=train"])
+    assert full.level == "full" and train.level == "train"
+    assert full.net.masses_per_edge == 1 and train.net.masses_per_edge == 0
+    assert train.contact.friction is None and train.sim.dt == pytest.approx(4e-3)
+    assert load_config(SCENE, ["contact.stiffness=400", "level=train"]).contact.stiffness == 400.0
+    # the dump holds the resolved values and reloads as they are
+    again = config_from_dict(yaml.safe_load(dump_config(train)))
+    assert again.level == "full" and again.sim.dt == pytest.approx(4e-3) and again.net.masses_per_edge == 0
+
+
+def test_unknown_or_broken_levels_are_named():
+    with pytest.raises(ConfigError, match="unknown fidelity level 'trian'.*full, train"):
+        load_config(SCENE, ["level=trian"])
+    raw = yaml.safe_load(SCENE.read_text())
+    raw["levels"]["train"]["set"].append("contact.stiffnes=3")
+    with pytest.raises(ConfigError, match="(?s)levels.train.*stiffnes"):
+        config_from_dict(raw, "scene")          # loading the full level still checks it
+    raw = yaml.safe_load(SCENE.read_text())
+    raw["levels"]["full"] = {"set": ["sim.dt=1e-3"]}
+    with pytest.raises(ConfigError, match="levels.full"):
+        config_from_dict(raw, "scene")
+
+
+def test_lines_without_interior_masses_keep_the_net_s_mass_and_size():
+    from mysim_jax.build import build
+
+    for level in ("full", "train"):
+        cfg = load_config(SCENE, [f"level={level}"])
+        scene, params, _ = build(cfg)
+        net = [i for i, n in enumerate(scene.point_names) if n.startswith("net_")]
+        assert np.sum(np.asarray(params.point_mass)[net]) == pytest.approx(
+            net_mass(cfg.net) - 0.5 * len(cfg.net.tethers.uavs) * cfg.net.tethers.line.mass_per_length
+            * cfg.net.tethers.length / (cfg.net.tethers.n_masses + 1),   # the UAV ends' halves
+            rel=1e-6)
+        lines = [k for k, n in enumerate(scene.spring_names) if n.startswith(("net_h", "net_v"))]
+        assert np.sum(np.asarray(params.spring_rest_length)[lines]) == pytest.approx(
+            2 * cfg.net.knots * (cfg.net.knots - 1) * cfg.net.spacing, rel=1e-6)
+    train = load_config(SCENE, ["level=train"])
+    assert build(train)[0].n_points == train.net.knots ** 2
