@@ -26,11 +26,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from mysim_jax.contact.broad_phase import BROAD_PHASE
 from mysim_jax.net.drag import LINE_DRAG
 from mysim_jax.tasks.target import TARGET
 
 # name -> effect, in pipeline order
-EFFECTS = {effect.name: effect for effect in (LINE_DRAG, TARGET)}
+EFFECTS = {effect.name: effect for effect in (BROAD_PHASE, LINE_DRAG, TARGET)}
 
 
 @dataclass(frozen=True)

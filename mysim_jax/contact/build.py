@@ -107,6 +107,7 @@ def build_contact(contact: ContactConfig, point_names, body_names, dtype, segmen
         capsule_pair_capsule=tuple(p[1] for p in cpairs),
         model=contact.model,
         friction=contact.friction is not None,
+        broad_phase=contact.broad_phase is not None and len(cpairs) > 0,
     )
     fr = contact.friction
 

@@ -145,6 +145,18 @@ def segment_touches(segment: Segment, sphere: str, body_names) -> bool:
     return False
 
 
+class BroadPhaseConfig(StrictModel):
+    """Broad phase for sphere–capsule pairs (:mod:`mysim_jax.contact.broad_phase`): once
+    per environment step, each sphere keeps its ``capsules`` nearest capsules; within the
+    step only those pairs are evaluated. A capsule farther than ``margin`` [m] (surface
+    gap) at the start of the step must not reach the sphere within the step: the margin
+    must exceed the largest relative motion in one step (``sim.dt``). When more than
+    ``capsules`` capsules are within the margin, the step evaluates all pairs."""
+
+    capsules: Annotated[int, Field(ge=1, le=4096)] = 8
+    margin: PosFloat = 0.05     # m
+
+
 class ContactConfig(StrictModel):
     """Penalty contact between spheres (and with the ground plane z = 0).
 
@@ -161,6 +173,7 @@ class ContactConfig(StrictModel):
     smoothing: SmoothingConfig = SmoothingConfig()
     groups: Annotated[list[ContactGroupConfig], Field(min_length=1)]
     pairs: Annotated[list[tuple[str, str]], Field(min_length=1)]
+    broad_phase: BroadPhaseConfig | None = None          # None: every sphere–capsule pair, every sub-step
 
     @model_validator(mode="after")
     def _group_names(self):

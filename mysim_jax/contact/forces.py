@@ -169,17 +169,29 @@ def capsule_nodes(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(node_a, np.int32), np.asarray(node_b, np.int32)
 
 
-def capsule_geometry(scene: Scene, params: Params, sphere_pos, node_pos):
-    """``(s, p, distance, n, penetration)`` of every sphere–capsule pair: segment
-    parameter ``(k,)``, closest segment point ``(k, 3)``, its distance to the sphere centre
-    ``(k,)``, unit normal from the segment to the sphere ``(k, 3)`` (+z on the axis) and
-    penetration ``(k,)`` (negative: the gap)."""
-    cs, cp = scene.contact, params.contact
+def capsule_pair_indices(scene: Scene, pairs=None):
+    """``(sphere, capsule, node_a, node_b)`` index arrays ``(k,)`` of the sphere–capsule
+    pairs ``pairs`` (indices into the scene's pair table, traced or static; None: all,
+    static)."""
+    cs = scene.contact
     sph = np.asarray(cs.capsule_pair_sphere, dtype=np.int32)
     cap = np.asarray(cs.capsule_pair_capsule, dtype=np.int32)
     node_a, node_b = capsule_nodes(scene)
+    if pairs is None:
+        return sph, cap, node_a[cap], node_b[cap]
+    return (jnp.asarray(sph)[pairs], jnp.asarray(cap)[pairs], jnp.asarray(node_a[cap])[pairs],
+            jnp.asarray(node_b[cap])[pairs])
+
+
+def capsule_geometry(scene: Scene, params: Params, sphere_pos, node_pos, pairs=None):
+    """``(s, p, distance, n, penetration)`` of the sphere–capsule pairs ``pairs`` (None:
+    all): segment parameter ``(k,)``, closest segment point ``(k, 3)``, its distance to
+    the sphere centre ``(k,)``, unit normal from the segment to the sphere ``(k, 3)`` (+z
+    on the axis) and penetration ``(k,)`` (negative: the gap)."""
+    cp = params.contact
+    sph, cap, end_a, end_b = capsule_pair_indices(scene, pairs)
     x = sphere_pos[sph]
-    s, p = closest_point_on_segment(x, node_pos[node_a[cap]], node_pos[node_b[cap]])
+    s, p = closest_point_on_segment(x, node_pos[end_a], node_pos[end_b])
     dist, n = vecmath.safe_unit(x - p)
     up = jnp.zeros_like(n).at[:, 2].set(1.0)
     n = jnp.where((dist > 0.0)[:, None], n, up)
@@ -187,15 +199,14 @@ def capsule_geometry(scene: Scene, params: Params, sphere_pos, node_pos):
     return s, p, dist, n, depth
 
 
-def _capsule_forces(scene, params, pos, vel, omega, node_pos, node_vel):
+def _capsule_forces(scene, params, pos, vel, omega, node_pos, node_vel, pairs=None):
     """Force on the sphere (world) ``(k, 3)``, its torque (world, None without friction),
-    and the segment parameter ``s`` ``(k,)`` of every sphere–capsule pair."""
+    and the segment parameter ``s`` ``(k,)`` of the sphere–capsule pairs ``pairs`` (None:
+    all)."""
     cs, cp = scene.contact, params.contact
-    sph = np.asarray(cs.capsule_pair_sphere, dtype=np.int32)
-    cap = np.asarray(cs.capsule_pair_capsule, dtype=np.int32)
-    node_a, node_b = capsule_nodes(scene)
-    s, _, _, n, depth = capsule_geometry(scene, params, pos, node_pos)
-    v_seg = (1.0 - s)[:, None] * node_vel[node_a[cap]] + s[:, None] * node_vel[node_b[cap]]
+    sph, _, end_a, end_b = capsule_pair_indices(scene, pairs)
+    s, _, _, n, depth = capsule_geometry(scene, params, pos, node_pos, pairs)
+    v_seg = (1.0 - s)[:, None] * node_vel[end_a] + s[:, None] * node_vel[end_b]
     dv = vel[sph] - v_seg
     fn = _normal_force(scene, cp, depth, -vecmath.dot(dv, n))
     force = fn[:, None] * n
@@ -230,50 +241,77 @@ def _ground_forces(scene, cp, pos, vel, omega):
     return force, torque
 
 
+ALL_PAIRS = "all"
+"""``pairs`` value of :func:`contact_loads`: every sphere–capsule pair of the scene."""
+
+
 def contact_forces(scene: Scene, params: Params, phys: PhysState, nodes=None, inputs=None) -> Loads:
-    """Force stage ``fn(scene, params, phys, nodes, inputs) -> Loads`` of all contacts.
+    """Force stage ``fn(scene, params, phys, nodes, inputs) -> Loads`` of all contacts
+    (of all but the sphere–capsule pairs when the scene has a broad phase for them:
+    :mod:`mysim_jax.contact.broad_phase` adds those).
 
     ``nodes`` is the ``(node_pos, node_vel)`` table (computed here if None); only
     sphere–capsule pairs read it. Sphere forces are summed with one scatter onto the
     sphere table, capsule reactions with one more onto the node table.
     """
+    return contact_loads(scene, params, phys, nodes)
+
+
+def contact_loads(scene: Scene, params: Params, phys: PhysState, nodes=None, pairs=None,
+                  spheres: bool = True) -> Loads:
+    """Contact loads: sphere pairs and ground (``spheres``) and the sphere–capsule pairs
+    ``pairs``: None for all of them unless the scene has a broad phase (then none),
+    :data:`ALL_PAIRS` for all, or a traced ``(k,)`` array of indices into the scene's
+    sphere–capsule pair table (a pair listed twice counts twice)."""
     cs = scene.contact
     cp = params.contact
     pos, vel, omega = sphere_kinematics(scene, phys)
     n_spheres = cs.n_spheres
     rows, index = [], []
     with_torque = cs.friction and len(cs.sphere_body) > 0
-    if cs.n_pairs:
+    if cs.n_pairs and spheres:
         force_b, torque_a, torque_b = _pair_forces(scene, cp, pos, vel, omega)
         if with_torque:
             rows += [jnp.concatenate([-force_b, torque_a], -1), jnp.concatenate([force_b, torque_b], -1)]
         else:
             rows += [-force_b, force_b]
         index += [cs.pair_a, cs.pair_b]
-    if cs.n_ground:
+    if cs.n_ground and spheres:
         force, torque = _ground_forces(scene, cp, pos, vel, omega)
         rows.append(jnp.concatenate([force, torque], -1) if with_torque else force)
         index.append(cs.ground_sphere)
-    if cs.n_capsule_pairs:
+    capsules = cs.n_capsule_pairs and (pairs is not None or not cs.broad_phase)
+    if capsules:
         node_pos, node_vel = node_states(scene, params, phys) if nodes is None else nodes
-        force, torque, s = _capsule_forces(scene, params, pos, vel, omega, node_pos, node_vel)
+        sph, _, end_a, end_b = capsule_pair_indices(scene, None if pairs is ALL_PAIRS else pairs)
+        force, torque, s = _capsule_forces(scene, params, pos, vel, omega, node_pos, node_vel,
+                                           None if pairs is ALL_PAIRS else pairs)
         rows.append(jnp.concatenate([force, torque], -1) if with_torque else force)
-        index.append(cs.capsule_pair_sphere)
+        index.append(sph)
         # the reaction −F shared by the capsule's end nodes: one scatter onto the node table
-        node_a, node_b = capsule_nodes(scene)
-        cap = np.asarray(cs.capsule_pair_capsule, dtype=np.int32)
         on_ends = jnp.concatenate([-(1.0 - s)[:, None] * force, -s[:, None] * force], 0)
-        capsule_node_force = scatter_rows(on_ends, np.concatenate([node_a[cap], node_b[cap]]),
-                                          scene.n_nodes, scene.accumulate)
-    # one scatter of all contributions onto the sphere table
-    per_sphere = scatter_rows(jnp.concatenate(rows, 0), np.concatenate([np.asarray(i, np.int32) for i in index]),
-                              n_spheres, scene.accumulate)
-    n_pt = len(cs.sphere_point)
+        ends = (np.concatenate([end_a, end_b]) if isinstance(end_a, np.ndarray)
+                else jnp.concatenate([end_a, end_b]))
+        capsule_node_force = (scatter_rows(on_ends, ends, scene.n_nodes, scene.accumulate)
+                              if isinstance(ends, np.ndarray)
+                              else jax.ops.segment_sum(on_ends, ends, num_segments=scene.n_nodes))
     dtype = pos.dtype
+    n_pt = len(cs.sphere_point)
+    if not rows:
+        per_sphere = jnp.zeros((n_spheres, 6 if with_torque else 3), dtype=dtype)
+    elif all(isinstance(i, (tuple, np.ndarray)) for i in index):
+        # one scatter of all contributions onto the sphere table
+        per_sphere = scatter_rows(jnp.concatenate(rows, 0),
+                                  np.concatenate([np.asarray(i, np.int32) for i in index]),
+                                  n_spheres, scene.accumulate)
+    else:
+        per_sphere = jax.ops.segment_sum(jnp.concatenate(rows, 0),
+                                         jnp.concatenate([jnp.asarray(i, jnp.int32) for i in index]),
+                                         num_segments=n_spheres)
     node_force = jnp.zeros((scene.n_nodes, 3), dtype=dtype)
     if n_pt:
         node_force = node_force.at[np.asarray(cs.sphere_point, np.int32)].add(per_sphere[:n_pt, :3])
-    if cs.n_capsule_pairs:
+    if capsules:
         node_force = node_force + capsule_node_force
     body_force = jnp.zeros((scene.n_bodies, 3), dtype=dtype)
     body_torque = jnp.zeros((scene.n_bodies, 3), dtype=dtype)

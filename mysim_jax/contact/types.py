@@ -39,6 +39,7 @@ class ContactScene:
     capsule_pair_capsule: tuple[int, ...] = ()   # (n_capsule_pairs,) capsule index
     model: str = "sharp"                   # "sharp" | "smooth"
     friction: bool = False
+    broad_phase: bool = False              # capsule pairs evaluated by mysim_jax.contact.broad_phase
 
     @property
     def n_spheres(self) -> int:

@@ -259,6 +259,12 @@ class CaptureEnv:
             "episode_length": steps,
             "done": done,
         }
+        if "capsule_broad_phase" in sim.effects:
+            # control periods of this team step that fell back to all sphere-capsule pairs,
+            # and that began with a contact the broad phase had not chosen (must stay 0)
+            before, now = state.sim.effects["capsule_broad_phase"], sim.effects["capsule_broad_phase"]
+            info["broad_phase_overflow"] = now.overflow - before.overflow
+            info["broad_phase_missed"] = now.missed - before.missed
         errors = (self._step_errors(jax.random.fold_in(key, 2), state.perception, params, dtype)
                   if self.perception else state.perception)
         after = EnvState(sim=sim, episode=state.episode, steps=steps, held=flags.held, held_time=held_time,
