@@ -23,6 +23,9 @@ Sections (``--only`` takes their letters):
      rope_net_slack (tension-only ropes that start slack) and capture_falling (the closed-loop
      capture scene, sub-steps of its fixed control period) also report the observed order
      of the fixed-step methods across slack-taut switches.
+  i  fidelity levels of the capture scene: team steps/s at B = 256 and 1024 (10 Hz), sub-steps
+     per team step, memory per env, the scripted team's success on the same 256 episodes
+     at each level with the paired difference to full.
   e  capture environment (configs/capture_env_falling.yaml): team (policy) steps/s of
      jit(batching.vmap(CaptureEnv.step)) with the scripted team at batch 1 to 4096 (and
      jax.vmap up to 1024, side by side), compile time,
@@ -74,7 +77,7 @@ COLLISION_HEAVY = ROOT / "configs" / "collision_heavy.yaml"
 ROPE_NET_SLACK = ROOT / "configs" / "rope_net_slack.yaml"
 CAPTURE_FALLING = ROOT / "configs" / "capture_falling.yaml"
 CAPTURE_ENV = ROOT / "configs" / "capture_env_falling.yaml"
-SECTIONS = ("a", "b", "c", "d", "e", "f", "g", "h")
+SECTIONS = ("a", "b", "c", "d", "e", "f", "g", "h", "i")
 TRAIN_CAPTURE = ROOT / "configs" / "train_capture_falling.yaml"
 
 # The throughput setting of the performance targets.
@@ -1655,6 +1658,89 @@ def _env_variant(overrides: list[str]):
     return make_env(load_config(CAPTURE_ENV, overrides))
 
 
+LEVEL_BATCHES = (256, 1024)
+LEVEL_EPISODES = 256          # scripted episodes per level, the same draws for every level
+LEVEL_TARGET = 3000.0         # team steps/s at B = 1024 (10 Hz) the training level should reach
+
+
+def _level_outcomes(env, params, n_episodes: int, seed: int = 2024):
+    """Success (bool ``(n,)``) and any non-finite state of the first episode of each of
+    ``n_episodes`` environments reset from ``seed`` (scripted team; the same keys for
+    every level, so outcomes pair episode by episode)."""
+    keys = jax.random.split(jax.random.PRNGKey(seed), n_episodes)
+
+    def run_env(key):
+        _, s = env.reset(key, params)
+
+        def body(c, k):
+            s, alive, success = c
+            _, s, _, _, _, info = env.step(k, s, env.scripted_actions(s, params), params)
+            success = success | (alive & info["success"])
+            alive = alive & ~info["done"]
+            return (s, alive, success), jnp.any(~jnp.isfinite(s.sim.phys.point_pos))
+        (_, _, success), bad = jax.lax.scan(body, (s, True, False), jax.random.split(key, env.max_steps))
+        return success, jnp.any(bad)
+
+    success, bad = jax.jit(batching.vmap(run_env, chunk=128))(keys)
+    return np.asarray(success), np.asarray(bad)
+
+
+def section_i(cfg, results) -> list[str]:
+    """Fidelity levels of the capture scene side by side (10 Hz policy)."""
+    from mysim_jax.tasks.sweep import paired_difference_interval
+
+    base = load_config(CAPTURE_ENV)
+    levels = ["full"] + list(base.levels)
+    batches = (16, 64) if cfg.quick else LEVEL_BATCHES
+    n_eps = 16 if cfg.quick else LEVEL_EPISODES
+    rows, outcomes = {}, {}
+    for level in tqdm(levels, desc="(i) levels", leave=False):
+        env, params = _env_variant([f"level={level}", "env.policy_rate=10.0"])
+        calls = {b: _env_call(env, params, b, 1) for b in batches}
+        wait_for_quiet(cfg.max_wait_s, "i")
+        times = time_round_robin({b: c.call for b, c in calls.items()}, cfg.env_repeats, section="i")
+        success, bad = _level_outcomes(env, params, n_eps)
+        outcomes[level] = success
+        rows[level] = dict(substeps=env.control_steps * env.scene.substeps, points=env.scene.n_points,
+                           dt=env.scene.dt, sub=env.scene.substeps,
+                           rate={b: b / median(times[b]) for b in batches},
+                           memory={b: calls[b].bytes_per_env() for b in batches},
+                           success=success.mean(), bad=int(bad.sum()))
+    results["levels"] = rows
+    top = batches[-1]
+    lines = [
+        "## (i) Fidelity levels of the capture scene",
+        "",
+        "`configs/capture_env_falling.yaml` at each of its levels (`--set level=NAME`; `full` is the file's own "
+        "values, the others are listed and explained under `levels:` in the file), with the policy at 10 Hz "
+        f"(`env.policy_rate=10`). Team steps/s as in (e): one call = one `CaptureEnv.step` of B environments "
+        f"(scripted team), median of {cfg.env_repeats} timed calls; all batches of one level timed round-robin, "
+        f"levels one after another in this run. Scripted success: the first episode of {n_eps} environments "
+        "reset from the same keys at every level (the same spawns, masses and wind), so the difference to "
+        "`full` is paired episode by episode (95 % interval, `tasks.sweep.paired_difference_interval`). "
+        "Non-finite: episodes whose point-mass state turned NaN/inf.",
+        "",
+        "| level | point masses | control period / sub-steps | sub-steps per team step | "
+        + " | ".join(f"team steps/s B = {b}" for b in batches) + f" | × full (B = {top}) | memory/env [KiB] (B = {top}) "
+        "| scripted success | paired difference to full [points] | non-finite |",
+        "|---|---:|---:|---:|" + "---:|" * len(batches) + "---:|---:|---:|---:|---:|",
+    ]
+    for level, r in rows.items():
+        diff = ("–" if level == "full" else
+                "{:+.1f} ({:+.1f} to {:+.1f})".format(*(100 * x for x in
+                                                          paired_difference_interval(outcomes[level], outcomes["full"]))))
+        lines.append(f"| {level} | {r['points']} | {r['dt'] * 1e3:g} ms / {r['sub']} | {r['substeps']:,} | "
+                     + " | ".join(f"{r['rate'][b]:,.0f}" for b in batches)
+                     + f" | {r['rate'][top] / rows['full']['rate'][top]:.1f}× | {r['memory'][top] / 1024:.1f} | "
+                     f"{r['success']:.1%} | {diff} | {r['bad']} |")
+    train = rows.get("train")
+    if train is not None:
+        lines += ["", f"**Target: the training level at ≥ {LEVEL_TARGET:,.0f} team steps/s at B = 1024 and ≥ 30× "
+                  f"`full` in the same run: "
+                  f"{'MET' if train['rate'].get(1024, 0) >= LEVEL_TARGET and train['rate'].get(1024, 0) >= 30 * rows['full']['rate'].get(1024, 1e9) else 'NOT MET'}**."]
+    return lines + ["", contention_note("i", cfg.env_repeats), ""]
+
+
 def section_e(cfg, results) -> list[str]:
     env, params = _env_variant([])
     scene = env.scene
@@ -2172,7 +2258,7 @@ def main(argv=None) -> int:
     results: dict[str, Any] = {}
     body: list[str] = []
     runners = {"a": section_a, "b": section_b, "c": section_c, "d": section_d, "e": section_e, "f": section_f,
-               "g": section_g, "h": section_h}
+               "g": section_g, "h": section_h, "i": section_i}
     order = [s for s in SECTIONS if s in sections]
     for s in tqdm(order, desc="bench sections", unit="section"):
         t0 = time.perf_counter()
