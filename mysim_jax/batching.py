@@ -281,33 +281,27 @@ def _gather(prim, vals, batched, params, size, eqn):
 
 def _scatter(prim, vals, batched, params, size, eqn):
     operand, indices, updates = vals
-    if batched[1]:
-        # per-environment indices: the batch is a batching dimension of operand, indices
-        # and updates (XLA's batched scatter); in the updates it is the last non-window
-        # position, i.e. the last axis, as the window dims keep their places
-        idx_nd = len(eqn.invars[1].aval.shape)
-        if idx_nd == 0:
-            return _fallback(prim, vals, batched, params, size)
-        if not batched[0]:
-            operand = _broadcast_to_batched(operand, tuple(eqn.invars[0].aval.shape), size)
-        if not batched[2]:
-            updates = _broadcast_to_batched(updates, tuple(eqn.invars[2].aval.shape), size)
-        dn = params["dimension_numbers"]
-        op_nd = len(eqn.invars[0].aval.shape)
-        dn = dn._replace(operand_batching_dims=tuple(dn.operand_batching_dims) + (op_nd,),
-                         scatter_indices_batching_dims=tuple(dn.scatter_indices_batching_dims) + (idx_nd - 1,))
-        new_params = dict(params, dimension_numbers=dn, indices_are_sorted=False)
-        return prim.bind(operand, _batched_indices(indices), updates, **new_params), True
+    idx_nd = len(eqn.invars[1].aval.shape)
+    if batched[1] and idx_nd == 0:
+        return _fallback(prim, vals, batched, params, size)
     if not batched[0]:
         operand = _broadcast_to_batched(operand, tuple(eqn.invars[0].aval.shape), size)
     if not batched[2]:
         updates = _broadcast_to_batched(updates, tuple(eqn.invars[2].aval.shape), size)
     dn = params["dimension_numbers"]
-    upd_nd = len(eqn.invars[2].aval.shape)
+    if batched[1]:
+        # per-environment indices: the batch is a batching dimension of operand, indices
+        # and updates (XLA's batched scatter); in the updates it is the last non-window
+        # position, i.e. the last axis, as the window dims keep their places
+        op_nd = len(eqn.invars[0].aval.shape)
+        dn = dn._replace(operand_batching_dims=tuple(dn.operand_batching_dims) + (op_nd,),
+                         scatter_indices_batching_dims=tuple(dn.scatter_indices_batching_dims) + (idx_nd - 1,))
+        new_params = dict(params, dimension_numbers=dn, indices_are_sorted=False)
+        return prim.bind(operand, _batched_indices(indices), updates, **new_params), True
     # the batch is one more window dimension, the last of the updates
+    upd_nd = len(eqn.invars[2].aval.shape)
     new_dn = dn._replace(update_window_dims=tuple(dn.update_window_dims) + (upd_nd,))
-    new_params = dict(params, dimension_numbers=new_dn)
-    return prim.bind(operand, indices, updates, **new_params), True
+    return prim.bind(operand, indices, updates, **dict(params, dimension_numbers=new_dn)), True
 
 
 def _sort(prim, vals, batched, params, size, eqn):
