@@ -668,13 +668,19 @@ def config_from_dict(raw: Any, source: str = "<dict>", overrides: list[str] | tu
 
 def _config_at_level(raw: dict, source: str, overrides) -> SceneConfig:
     raw = unaliased(raw)
-    if FULL_LEVEL in (raw.get("levels") or {}):
+    levels_raw = raw.get("levels")
+    if levels_raw is not None and not isinstance(levels_raw, dict):
+        raise ConfigError(f"{source}: levels: expected a mapping of level name -> "
+                          f"{{description, set: [dotted.key=value, ...]}}, got {type(levels_raw).__name__}")
+    if FULL_LEVEL in (levels_raw or {}):
         raise ConfigError(f"{source}: levels.{FULL_LEVEL}: '{FULL_LEVEL}' is the file's own values; "
                           "name the level otherwise")
     chosen = unaliased(raw)
     for ov in overrides:
         apply_override(chosen, ov)
     level = chosen.get("level", FULL_LEVEL)
+    if not isinstance(level, str):
+        raise ConfigError(f"{source}: level: expected the name of a fidelity level, got {level!r}")
     if level != FULL_LEVEL:
         levels = raw.get("levels") or {}
         if not isinstance(levels, dict) or level not in levels:

@@ -36,6 +36,12 @@ def test_unknown_or_broken_levels_are_named():
     raw["levels"]["full"] = {"set": ["sim.dt=1e-3"]}
     with pytest.raises(ConfigError, match="levels.full"):
         config_from_dict(raw, "scene")
+    raw = yaml.safe_load(SCENE.read_text())
+    raw["levels"] = 1.0                         # not a mapping: named, not a TypeError
+    with pytest.raises(ConfigError, match="scene: levels: expected a mapping"):
+        config_from_dict(raw, "scene")
+    with pytest.raises(ConfigError, match="scene: level: expected the name"):
+        config_from_dict(yaml.safe_load(SCENE.read_text()), "scene", ["level=[1, 2]"])
 
 
 def test_lines_without_interior_masses_keep_the_net_s_mass_and_size():
