@@ -334,8 +334,26 @@ def _fixpoint_carry(body_fn, carry_b: list[bool]) -> list[bool]:
     return carry_b
 
 
+# Flags of loop bodies already worked out in the current top-level evaluation, by
+# (id(jaxpr), in_b, size) -> (jaxpr, flags); the jaxpr is kept so its id is not reused.
+# Nested loops otherwise redo their inner fix-points at every outer iteration (the
+# tracing cost grows with the power of the nesting depth).
+_FLAGS_MEMO: list[dict] = []
+
+
 def _flags_of(jaxpr: jcore.ClosedJaxpr, in_b: list[bool], size: int) -> list[bool]:
     """Which outputs of ``jaxpr`` are batched for inputs batched as ``in_b`` (abstract)."""
+    memo = _FLAGS_MEMO[-1] if _FLAGS_MEMO else None
+    key = (id(jaxpr), tuple(bool(b) for b in in_b), size)
+    if memo is not None and key in memo and memo[key][0] is jaxpr:
+        return list(memo[key][1])
+    flags = _flags_of_uncached(jaxpr, in_b, size)
+    if memo is not None:
+        memo[key] = (jaxpr, tuple(flags))
+    return flags
+
+
+def _flags_of_uncached(jaxpr: jcore.ClosedJaxpr, in_b: list[bool], size: int) -> list[bool]:
     result = {}
 
     def f(*args):
@@ -549,7 +567,11 @@ def eval_batch_last(fun: Callable, batched_args: Sequence, batched: Sequence[boo
         return fun(*args)
 
     closed, out_shape = jax.make_jaxpr(flat_fun, return_shape=True)(*avals)
-    outs, outs_b = _eval(closed.jaxpr, closed.consts, leaves, in_b, size)
+    _FLAGS_MEMO.append({})
+    try:
+        outs, outs_b = _eval(closed.jaxpr, closed.consts, leaves, in_b, size)
+    finally:
+        _FLAGS_MEMO.pop()
     outs = [o if b else _broadcast_to_batched(o, tuple(v.aval.shape), size)
             for o, b, v in zip(outs, outs_b, closed.jaxpr.outvars)]
     return jax.tree.unflatten(jax.tree.structure(out_shape), outs)

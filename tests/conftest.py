@@ -2,14 +2,32 @@
 
 Tests marked ``@pytest.mark.float64`` run inside ``jax.enable_x64(True)``; all others run
 in JAX's default 32-bit mode, so the switch never leaks into float32 tests.
+
+Compiled programs go to JAX's persistent compilation cache (a folder under the system's
+temporary directory, shared by the pytest-xdist workers and the scripts the tests run as
+subprocesses): many tests compile the same capture environment, and on this CPU a
+compile takes longer than the test's own work. JAX keys each entry by the program, the
+compile options, the device and its own version, so a hit returns the program a compile
+would. ``MYSIM_TEST_XLA_CACHE=off`` turns it off; another path moves it.
 """
 
 from __future__ import annotations
 
+import os
+import tempfile
 from pathlib import Path
 
 import jax
 import pytest
+
+_XLA_CACHE = os.environ.get("MYSIM_TEST_XLA_CACHE", str(Path(tempfile.gettempdir()) / "mysim_jax_test_xla_cache"))
+if _XLA_CACHE != "off":
+    # environment variables reach the scripts started as subprocesses; the config update
+    # covers this process, where jax is imported already
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = _XLA_CACHE
+    os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "1"
+    jax.config.update("jax_compilation_cache_dir", _XLA_CACHE)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "configs"
