@@ -156,18 +156,21 @@ def main(argv=None) -> int:
     if env_note:
         print(env_note, file=sys.stderr)
 
-    from mysim_jax.tasks.evaluate import run_episodes
+    from mysim_jax.tasks.evaluate import run_episodes, run_two_teams
     from mysim_jax.tasks.report import comparison_line, summary_line, write_comparison, write_evaluation
 
     key = jax.random.PRNGKey(args.seed)
-    stats = run_episodes(env, params, policy, args.episodes, args.batch, key, progress=not args.no_progress)
+    if other is None:
+        stats = run_episodes(env, params, policy, args.episodes, args.batch, key, progress=not args.no_progress)
+    else:
+        stats, base = run_two_teams(env, params, policy, other, args.episodes, args.batch, key,
+                                    progress=not args.no_progress)
     metrics = write_evaluation(out, config, env, params, policy, policy_name=args.policy, episodes=args.episodes,
                                batch=args.batch, seed=args.seed, config_path=args.config, overrides=args.overrides,
                                env_note=env_note, progress=not args.no_progress, animate=not args.no_animation,
                                extra={"perception": perception}, stats=stats)
     print(summary_line(config.name, args.policy, metrics, out))
     if other is not None:
-        base = run_episodes(env, params, other, args.episodes, args.batch, key, progress=not args.no_progress)
         result = write_comparison(out, stats, base, names=("policy", "compare"), seed=args.seed,
                                   extra={"policy": args.policy, "compare": args.compare})
         print(comparison_line(result))

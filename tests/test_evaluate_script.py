@@ -6,6 +6,7 @@ import subprocess
 import sys
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -164,30 +165,71 @@ def test_policy_files_are_checked_before_compiling(tmp_path):
 
 
 def test_numbered_episodes_are_the_same_whatever_the_batch_and_the_team():
-    """Episode i is drawn from its own key: batches of 1, 3 and 6 slots run the same six
-    episodes (their returns agree to 2e-3: the compiled programs differ and contact amplifies float32 rounding), and
-    two teams get the same first state in every episode (the paired comparison relies on it)."""
+    """Episode i is drawn from its own key: batches of 1 and 3 slots run the same six
+    episodes (their returns agree to 2e-3: the compiled programs differ and contact
+    amplifies float32 rounding), and two teams get the same first state in every episode
+    (the paired comparison relies on it). One program per batch size flies both teams (the
+    argument picks the team), as the final evaluation of a training run does."""
     from mysim_jax.tasks.capture import make_env
-    from mysim_jax.tasks.evaluate import Evaluator, episode_keys, random_policy, run_episodes, scripted_policy
+    from mysim_jax.tasks.evaluate import Evaluator, episode_keys, random_policy, scripted_policy
     from mysim_jax.tasks.report import compare
 
     env, params = make_env(load_config(CONFIG, ["env={}", *SMALL]))
+    scripted, random = scripted_policy(env), random_policy(env)
+
+    def either(k, obs, state, p, use_random):
+        return jnp.where(use_random, random(k, obs, state, p), scripted(k, obs, state, p))
+
     key = jax.random.PRNGKey(5)
-    runs = [run_episodes(env, params, scripted_policy(env), 6, b, key, progress=False) for b in (1, 3, 6)]
-    for other in runs[1:]:
-        np.testing.assert_array_equal(other.length, runs[0].length)
-        np.testing.assert_array_equal(other.success, runs[0].success)
-        np.testing.assert_allclose(other.returns, runs[0].returns, rtol=0, atol=2e-3)   # measured 2e-4
+    by_batch = {b: Evaluator(env, params, either, batch=b) for b in (1, 3)}
+    runs = [by_batch[b](key, 6, jnp.bool_(False)) for b in (1, 3)]
+    np.testing.assert_array_equal(runs[1].length, runs[0].length)
+    np.testing.assert_array_equal(runs[1].success, runs[0].success)
+    np.testing.assert_allclose(runs[1].returns, runs[0].returns, rtol=0, atol=2e-3)   # measured 2e-4
+    assert np.unique(runs[1].slot).size == 3                                          # slots were reused
     starts = [env.reset(episode_keys(key, i, 0)[0], params)[1] for i in range(6)]
     spawns = np.array([np.asarray(s.sim.phys.body_pos[env.target_body]) for s in starts])
     assert len({tuple(np.round(x, 6)) for x in spawns}) == 6               # six different episodes
-    random = run_episodes(env, params, random_policy(env), 6, 3, key, progress=False)
-    result = compare(runs[0], random, ("scripted", "random"))
+    random_run = by_batch[3](key, 6, jnp.bool_(True))
+    result = compare(runs[0], random_run, ("scripted", "random"))
     assert result["episodes"] == 6 and result["teams"] == ["scripted", "random"]
     assert result["both"] + result["neither"] + result["only_scripted"] + result["only_random"] == 6
     lo, hi = result["difference"]["interval95"]
     assert lo <= result["difference"]["estimate"] <= hi
     with pytest.raises(ValueError, match="same episodes"):
-        compare(runs[0], run_episodes(env, params, random_policy(env), 3, 3, key, progress=False))
+        compare(runs[0], by_batch[3](key, 3, jnp.bool_(True)))
     with pytest.raises(ValueError, match="at least 1"):
         Evaluator(env, params, lambda *a: None, batch=0)
+
+
+def test_tether_tensions_of_tethers_without_interior_masses():
+    """A tether with ``n_masses: 0`` is one segment from the knot to the UAV's marker: the
+    report's tension (from the saved columns: the marker moved with the body's pose and
+    body-frame angular velocity, numpy) equals the spring law at the simulator's own node
+    states (marker kinematics of mysim_jax.dynamics.markers) over a recorded episode."""
+    from mysim_jax.dynamics.forces import spring_tension
+    from mysim_jax.dynamics.markers import node_states
+    from mysim_jax.tasks.capture import make_env
+    from mysim_jax.tasks.episode import record_columns, record_episode
+    from mysim_jax.tasks.evaluate import scripted_policy
+    from mysim_jax.tasks.outcome import tether_tensions
+
+    config = load_config(CONFIG, ["env={}", *SMALL, "net.tethers.n_masses=0", "sim.t_end=0.8"])
+    env, params = make_env(config)
+    rec = record_episode(env, params, scripted_policy(env), jax.random.PRNGKey(4), 0)
+    got = tether_tensions(record_columns(env, rec), env.scene, rec.sim_params, config)
+    scene, sp = env.scene, rec.sim_params
+    pos, vel = jax.vmap(lambda ph: node_states(scene, sp, ph))(rec.trajectory.phys)
+    pos, vel = np.asarray(pos, float), np.asarray(vel, float)
+    assert len(got) == len(config.net.tethers.uavs) == 4
+    for n, uav in enumerate(config.net.tethers.uavs):
+        k = scene.spring_names.index(f"{config.net.name}_t{n}[0]")
+        a, b = scene.spring_node_a[k], scene.spring_node_b[k]
+        d, dv = pos[:, b] - pos[:, a], vel[:, b] - vel[:, a]
+        length = np.linalg.norm(d, axis=-1)
+        rate = np.einsum("ij,ij->i", dv, d / length[:, None])
+        want = np.asarray(spring_tension(float(sp.spring_stiffness[k]), float(sp.spring_damping[k]),
+                                         float(sp.spring_rest_length[k]), length, rate,
+                                         (scene.spring_tension_only[k],)))
+        assert want.max() > 0.02                                  # the tethers were taut
+        np.testing.assert_allclose(got[uav], want, rtol=0, atol=1e-3 * want.max())

@@ -231,3 +231,21 @@ def run_episodes(env, params, policy, n_episodes: int, batch: int, key, chunk: i
     stats = Evaluator(env, params, call, batch, chunk)(key, n_episodes, policy_args, progress=progress)
     stats.wall_s = time.perf_counter() - t0
     return stats
+
+
+def run_two_teams(env, params, policy, other, n_episodes: int, batch: int, key, chunk: int = 8,
+                  progress: bool = True) -> tuple[EpisodeStats, EpisodeStats]:
+    """Episodes ``0 .. n_episodes − 1`` flown by ``policy`` and then by ``other`` (both
+    ``policy(key, obs, state, params)``): one compiled program serves both (an argument
+    picks the team), so the second team compiles nothing. Each step evaluates both
+    teams' actions and keeps one."""
+    if n_episodes < 1 or batch < 1:
+        raise ValueError("run_two_teams: n_episodes and batch must be at least 1")
+
+    def either(k, obs, state, p, use_other):
+        return jnp.where(use_other, other(k, obs, state, p), policy(k, obs, state, p))
+
+    evaluator = Evaluator(env, params, either, batch, chunk)
+    first = evaluator(key, n_episodes, jnp.bool_(False), progress=progress, desc="episodes")
+    second = evaluator(key, n_episodes, jnp.bool_(True), progress=progress, desc="compared team")
+    return first, second

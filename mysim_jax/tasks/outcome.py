@@ -130,9 +130,18 @@ def tether_tensions(columns, scene, params, config) -> dict[str, np.ndarray]:
     for n, uav in enumerate(net.tethers.uavs):
         idx = scene.spring_names.index(f"{net.name}_t{n}[0]")
         a = net.knot_name(*knots[n])
-        b = f"{net.name}_t{n}_0"
-        d = _xyz(columns, b) - _xyz(columns, a)
-        dv = _xyz(columns, b, "v") - _xyz(columns, a, "v")
+        if net.tethers.n_masses > 0:
+            b = f"{net.name}_t{n}_0"
+            p_b, v_b = _xyz(columns, b), _xyz(columns, b, "v")
+        else:
+            # a tether without interior masses is one segment from the knot to the UAV's
+            # marker: its end moves with the body (angular velocity saved in the body frame)
+            q = np.stack([columns[f"{uav}_q{c}"] for c in "wxyz"], axis=-1)
+            r = np.broadcast_to(np.asarray(net.tethers.attach, float), q.shape[:-1] + (3,))
+            p_b = _xyz(columns, uav) + rotate(q, r)
+            v_b = _xyz(columns, uav, "v") + rotate(q, np.cross(_xyz(columns, uav, "w"), r))
+        d = p_b - _xyz(columns, a)
+        dv = v_b - _xyz(columns, a, "v")
         length = np.linalg.norm(d, axis=-1)
         rate = np.einsum("ij,ij->i", dv, d / np.maximum(length, 1e-12)[:, None])
         out[uav] = np.asarray(spring_tension(k_all[idx], c_all[idx], rest_all[idx], length, rate,
