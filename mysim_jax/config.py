@@ -331,7 +331,8 @@ class LevelConfig(StrictModel):
     ``--set`` takes them) applied over the file's own, which are the level ``full``."""
 
     description: str = ""
-    set: Annotated[list[str], Field(min_length=1)]
+    # empty in a resolved file (dump_config), whose own values are the level's already
+    set: list[str]
 
 
 FULL_LEVEL = "full"
@@ -712,10 +713,15 @@ def load_config(path: str | Path, overrides: list[str] | tuple[str, ...] = ()) -
 
 
 def dump_config(config: SceneConfig) -> str:
-    """The resolved config as YAML (round-trips through :func:`config_from_dict`)."""
+    """The resolved config as YAML (round-trips through :func:`config_from_dict`). At a
+    level other than ``full`` the level's values are the file's own values in the dump:
+    it keeps ``level: NAME`` with an empty ``levels.NAME.set`` (so it reloads as it is,
+    under the level's name) and drops the other levels, which were relative to the
+    original file."""
     data = config.model_dump(mode="json")
-    # the level's values are in the dump already: it reloads as it is, as the level full
     if data["level"] != FULL_LEVEL:
-        data["description"] = f"{data['description']} [level {data['level']}]".strip()
-        data["level"] = FULL_LEVEL
+        name = data["level"]
+        entry = data["levels"][name]
+        data["levels"] = {name: {"description": f"{entry['description']} (resolved: the values above are "
+                                                f"this level's)".strip(), "set": []}}
     return yaml.safe_dump(data, sort_keys=False)

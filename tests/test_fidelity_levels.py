@@ -20,9 +20,11 @@ def test_a_level_applies_its_values_and_later_overrides_win():
     assert full.net.masses_per_edge == 1 and train.net.masses_per_edge == 0
     assert train.contact.friction is None and train.sim.dt == pytest.approx(4e-3)
     assert load_config(SCENE, ["contact.stiffness=400", "level=train"]).contact.stiffness == 400.0
-    # the dump holds the resolved values and reloads as they are
+    # the dump holds the resolved values and reloads as they are, under the level's name
     again = config_from_dict(yaml.safe_load(dump_config(train)))
-    assert again.level == "full" and again.sim.dt == pytest.approx(4e-3) and again.net.masses_per_edge == 0
+    assert again.level == "train" and again.sim.dt == pytest.approx(4e-3) and again.net.masses_per_edge == 0
+    assert list(again.levels) == ["train"] and again.levels["train"].set == []
+    assert again.model_dump(exclude={"levels"}) == train.model_dump(exclude={"levels"})
 
 
 def test_unknown_or_broken_levels_are_named():

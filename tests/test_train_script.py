@@ -16,6 +16,7 @@ import time
 from pathlib import Path
 
 import pytest
+import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "scripts" / "train.py"
@@ -122,6 +123,12 @@ def test_sigkill_then_resume_equals_an_uninterrupted_run(tmp_path):
     ("name: t\nenv: {builtin: reach}\nrun: {checkpoint_every: 0}\n", [], "run.checkpoint_every"),
     ("name: t\nenv: [1, 2]\n", [], "env"),
     ("name: t\nenv: {builtin: reach\n", [], "t.yaml"),
+    ("name: t\nenv: {scene: ../configs/capture_env_falling.yaml, eval_level: trian}\n", [],
+     "env.eval_level: ", ),
+    ("name: t\nenv: {scene: ../configs/capture_env_falling.yaml, eval_scene: gone.yaml}\n", [],
+     "give at most one of eval_level"),
+    ("name: t\nenv: {scene: ../configs/capture_env_falling.yaml, eval_level: null, eval_scene: gone.yaml}\n", [],
+     "env.eval_scene: no such file"),
 ])
 def test_bad_configs_exit_2_before_compiling_and_write_nothing(tmp_path, text, sets, message):
     if "../configs" in text:
@@ -151,22 +158,35 @@ def test_an_existing_run_is_not_overwritten(tmp_path):
 def test_capture_environment_end_to_end_tiny(tmp_path):
     """The default training file's path on the capture environment, tiny: behaviour cloning
     from 4 environments x 4 steps, one iteration of 4 environments x 2 steps, model
-    selection on 2 episodes before and after it (--no-eval: the final evaluation is
-    write_evaluation, which scripts/evaluate.py's tests run); the saved policy then loads
+    selection on 2 episodes before and after it, all on the level ``train``; the final
+    evaluation (2 episodes, no baseline) on the level ``full``; the saved policy then loads
     as evaluate.py's --policy RUN/policy and is traced on the environment (jax.eval_shape,
     no compile)."""
     out = tmp_path / "run"
     sets = ["algo.num_envs=4", "algo.num_steps=2", "algo.total_env_steps=8", "algo.num_minibatches=2",
             "algo.bc.num_envs=4", "algo.bc.steps=4", "algo.bc.epochs=2", "algo.bc.holdout=0.25",
-            "run.selection.episodes=2", "run.selection.every=1"]
-    res = _run(["configs/train_capture_falling.yaml", "--out", str(out), "--no-eval",
-                *[a for s in sets for a in ("--set", s)]])
+            "run.selection.episodes=2", "run.selection.every=1", "env.eval_level=full",
+            "run.eval_episodes=2", "run.eval_batch=2", "run.eval_baseline=false", "env.level=train"]
+    res = _run(["configs/train_capture_falling.yaml", "--out", str(out), *[a for s in sets for a in ("--set", s)]])
     assert res.returncode == 0, res.stderr
-    # the run folder is self-contained: its scene is the resolved one (velocity setpoints,
-    # the shaping's discount the trainer's gamma)
+    # the run folder is self-contained: its scene is the resolved training scene (velocity
+    # setpoints, the shaping's discount the trainer's gamma, the level train), and the
+    # evaluation's scene is the level full with the same overrides
     scene_text = (out / "scene.yaml").read_text()
-    assert "setpoint_mode: velocity" in scene_text and "discount: 0.99" in scene_text
+    assert "setpoint_mode: velocity" in scene_text and "discount: 0.99" in scene_text and "level: train" in scene_text
+    from mysim_jax.config import load_config
+
+    trained_on, evaluated_on = load_config(out / "scene.yaml"), load_config(out / "scene_eval.yaml")
+    assert trained_on.level == "train" and trained_on.net.masses_per_edge == 0
+    assert evaluated_on.level == "full" and evaluated_on.net.masses_per_edge == 1
+    assert evaluated_on.env.discount == trained_on.env.discount
+    assert evaluated_on.quadrotors[0].controller == trained_on.quadrotors[0].controller
+    run_file = yaml.safe_load((out / "train.yaml").read_text())
+    assert run_file["env"]["eval_scene"] == "scene_eval.yaml" and run_file["env"]["eval_level"] is None
     summary = json.loads((out / "summary.json").read_text())
+    assert summary["training_level"] == "train" and summary["evaluation"]["level"] == "full"
+    assert summary["evaluation"]["episodes"] == 2
+    assert yaml.safe_load((out / "eval" / "config.yaml").read_text())["level"] == "full"
     assert summary["iterations"] == 1 and summary["env_steps"] == 8 and summary["init"] == "bc"
     bc = json.loads((out / "bc.json").read_text())
     assert bc["pairs"] == 4 * 4 * 4 and bc["holdout_environments"] == 1
@@ -180,11 +200,10 @@ def test_capture_environment_end_to_end_tiny(tmp_path):
     assert json.loads((out / "policy" / "policy.json").read_text())["selected_iteration"] == \
         summary["selection"]["selected_iteration"]
 
-    from mysim_jax.config import load_config
     from mysim_jax.tasks.capture import make_env
     from mysim_jax.tasks.policies import check_policy, policy_maker
 
-    env, params = make_env(load_config(out / "scene.yaml"))
+    env, params = make_env(evaluated_on)
     policy = policy_maker(str(out / "policy"))(env, params)
     check_policy(env, params, policy, str(out / "policy"))
 

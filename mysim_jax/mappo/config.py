@@ -50,6 +50,16 @@ class EnvSection(StrictModel):
     scene: str | None = None
     set: list[str] = []
     builtin: Literal["reach"] | None = None
+    # the scene's fidelity level training runs on (``levels:`` of the scene file; the
+    # same as ``level=NAME`` at the end of ``set``). None: what ``set`` picks, else the
+    # file's own values (the level ``full``)
+    level: Name | None = None
+    # the scene's fidelity level the final evaluation (and its scripted baseline) runs on.
+    # None: evaluate on the training scene as it is
+    eval_level: Name | None = "full"
+    # a resolved scene file (relative to the training file) to evaluate on instead; run
+    # folders use it (their scene.yaml is the training scene, resolved)
+    eval_scene: str | None = None
 
     @model_validator(mode="after")
     def _one_source(self):
@@ -58,6 +68,13 @@ class EnvSection(StrictModel):
                              f"({', '.join(BUILTIN_ENVS)})")
         if self.builtin is not None and self.set:
             raise ValueError("set (scene overrides) applies to a scene file, not to a builtin environment")
+        if self.builtin is not None and self.level is not None:
+            raise ValueError("level (a fidelity level) applies to a scene file, not to a builtin environment")
+        if self.builtin is not None and self.eval_scene is not None:
+            raise ValueError("eval_scene applies to a scene file, not to a builtin environment")
+        if self.eval_scene is not None and self.eval_level is not None:
+            raise ValueError("give at most one of eval_level (a level of env.scene) and eval_scene (a scene file); "
+                             "set eval_level: null with eval_scene")
         return self
 
 
@@ -226,7 +243,7 @@ def load_train_config(path: str | Path, overrides=()) -> TrainConfig:
     """Read, override and validate a training file; its scene file is checked too
     (:func:`load_scene`)."""
     config = train_config_from_dict(read_yaml_file(path, "training file"), str(path), overrides)
-    load_scene(config, path)
+    load_eval_scene(config, path, load_scene(config, path))
     return config
 
 
@@ -238,10 +255,34 @@ def scene_path(config: TrainConfig, train_path: str | Path) -> Path | None:
     return p if p.is_absolute() else Path(train_path).parent / p
 
 
-def load_scene(config: TrainConfig, train_path: str | Path):
+def load_eval_scene(config: TrainConfig, train_path: str | Path, scene=None):
+    """The scene the final evaluation runs on (``env.eval_scene``, or ``env.scene`` at
+    ``env.eval_level``, or the training scene ``scene``), or None for a builtin
+    environment. Raises ConfigError naming the field."""
+    from mysim_jax.config import load_config
+
+    if config.env.scene is None:
+        return None
+    if config.env.eval_scene is not None:
+        p = Path(config.env.eval_scene)
+        path = p if p.is_absolute() else Path(train_path).parent / p
+        if not path.exists():
+            raise ConfigError(f"{train_path}: env.eval_scene: no such file {path} "
+                              "(paths are relative to the training file)")
+        return load_config(path, [f"env.discount={config.algo.gamma!r}"])
+    if config.env.eval_level is None:
+        return scene if scene is not None else load_scene(config, train_path)
+    try:
+        return load_scene(config, train_path, level=config.env.eval_level)
+    except ConfigError as err:
+        raise ConfigError(f"{train_path}: env.eval_level: {err}") from None
+
+
+def load_scene(config: TrainConfig, train_path: str | Path, level: str | None = None):
     """The validated :class:`~mysim_jax.config.SceneConfig` of ``env.scene`` with
-    ``env.set`` applied, or None for a builtin environment. Raises ConfigError naming
-    ``env.scene`` when the file is missing or is not a capture scene with an ``env:`` block."""
+    ``env.set`` applied (then ``level=LEVEL`` when ``level`` is given), or None for a
+    builtin environment. Raises ConfigError naming ``env.scene`` when the file is missing
+    or is not a capture scene with an ``env:`` block."""
     from mysim_jax.config import load_config
 
     path = scene_path(config, train_path)
@@ -257,7 +298,9 @@ def load_scene(config: TrainConfig, train_path: str | Path):
                           f"{' and no '.join(missing)} block")
     # the shaping's discount is the learner's (potential-based shaping keeps the optimal
     # policy only with the discount the learner optimises)
-    scene = load_config(path, [*config.env.set, f"env.discount={config.algo.gamma!r}"])
+    level = config.env.level if level is None else level
+    level_set = [] if level is None else [f"level={level}"]
+    scene = load_config(path, [*config.env.set, *level_set, f"env.discount={config.algo.gamma!r}"])
     missing = [b for b, v in (("net", scene.net), ("target", scene.target), ("quadrotors", scene.quadrotors),
                               ("env", scene.env)) if not v]
     if missing:

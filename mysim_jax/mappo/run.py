@@ -3,7 +3,9 @@
 A run folder ``OUT`` holds
 
 * ``train.yaml`` — the resolved training file, its ``env.scene`` pointing at
-  ``scene.yaml`` (the resolved scene, overrides applied): the folder is self-contained and
+  ``scene.yaml`` (the resolved training scene, overrides and level applied) and, when the
+  final evaluation runs on another fidelity level (``env.eval_level``, default ``full``),
+  its ``env.eval_scene`` at ``scene_eval.yaml``: the folder is self-contained and
   ``--resume OUT`` needs nothing else;
 * ``metrics.csv`` — one row per iteration (env steps, wall time, return, success rate,
   losses, ...), and the same scalars as TensorBoard events under ``tb/``;
@@ -33,10 +35,12 @@ from pathlib import Path
 import yaml
 
 from mysim_jax.config_base import ConfigError
-from mysim_jax.mappo.config import TrainConfig, load_scene, load_train_config, train_config_from_dict
+from mysim_jax.mappo.config import (TrainConfig, load_eval_scene, load_scene, load_train_config,
+                                    train_config_from_dict)
 
 TRAIN_FILE = "train.yaml"
 SCENE_FILE = "scene.yaml"
+EVAL_SCENE_FILE = "scene_eval.yaml"
 CSV_FIELDS = ("iteration", "env_steps", "wall_s", "iteration_s", "episodes", "mean_return", "success_rate",
               "mean_length", "step_reward", "policy_loss", "value_loss", "entropy", "approx_kl", "clip_fraction",
               "explained_variance", "grad_norm", "action_std", "lr", "updates_applied", "policy_coef",
@@ -52,6 +56,15 @@ class Prepared:
     out: Path
     resume: bool
     source: str
+    eval_scene: object | None = None   # the scene of the final evaluation (None: ``scene``)
+
+    @property
+    def evaluates_elsewhere(self) -> bool:
+        """Whether the final evaluation runs on another scene than training."""
+        from mysim_jax.config import dump_config
+
+        return (self.scene is not None and self.eval_scene is not None
+                and dump_config(self.eval_scene) != dump_config(self.scene))
 
 
 def load_run_config(config_path: str, overrides=()) -> Prepared:
@@ -59,7 +72,8 @@ def load_run_config(config_path: str, overrides=()) -> Prepared:
     notebooks): ``out`` is the default ``runs/<name>``, unchecked and not created."""
     config = load_train_config(config_path, overrides)
     scene = load_scene(config, config_path)
-    return Prepared(config, scene, Path("runs") / config.name, False, str(config_path))
+    return Prepared(config, scene, Path("runs") / config.name, False, str(config_path),
+                    load_eval_scene(config, config_path, scene))
 
 
 def prepare(config_path: str | None, overrides=(), out: str | None = None, resume: str | None = None) -> Prepared:
@@ -73,7 +87,8 @@ def prepare(config_path: str | None, overrides=(), out: str | None = None, resum
             raise ConfigError(f"--resume {resume}: not a training run folder (no {TRAIN_FILE} in it)")
         config = load_train_config(run / TRAIN_FILE, overrides)
         scene = load_scene(config, run / TRAIN_FILE)
-        return Prepared(config, scene, run, True, str(run / TRAIN_FILE))
+        return Prepared(config, scene, run, True, str(run / TRAIN_FILE),
+                        load_eval_scene(config, run / TRAIN_FILE, scene))
     if config_path is None:
         raise ConfigError("give a training file, or --resume RUN_DIR")
     config = load_train_config(config_path, overrides)
@@ -83,14 +98,16 @@ def prepare(config_path: str | None, overrides=(), out: str | None = None, resum
     if (target / TRAIN_FILE).exists():
         raise ConfigError(f"--out {target}: holds a training run already; continue it with --resume {target}, "
                           "or choose another folder")
-    return Prepared(config, scene, target, False, str(config_path))
+    return Prepared(config, scene, target, False, str(config_path), load_eval_scene(config, config_path, scene))
 
 
 def describe_run(p: Prepared) -> str:
     """One line: what will run, and where it writes."""
     from mysim_jax.mappo.config import describe
 
-    what = f"builtin:{p.config.env.builtin}" if p.scene is None else p.scene.name
+    what = f"builtin:{p.config.env.builtin}" if p.scene is None else f"{p.scene.name} (level {p.scene.level})"
+    if p.evaluates_elsewhere:
+        what += f", evaluated at level {p.eval_scene.level}"
     return f"{p.config.name} on {what}: {describe(p.config)}; writing {p.out}/" + (" (resuming)" if p.resume else "")
 
 
@@ -101,7 +118,10 @@ def _write_run_files(p: Prepared) -> None:
     data = p.config.model_dump(mode="json")
     if p.scene is not None:
         (p.out / SCENE_FILE).write_text(dump_config(p.scene))
-        data["env"] = {"scene": SCENE_FILE, "set": []}
+        data["env"] = {"scene": SCENE_FILE, "set": [], "level": None, "eval_level": None}
+        if p.evaluates_elsewhere:
+            (p.out / EVAL_SCENE_FILE).write_text(dump_config(p.eval_scene))
+            data["env"]["eval_scene"] = EVAL_SCENE_FILE
     text = yaml.safe_dump(data, sort_keys=False)
     # the run folder is valid by construction; check it anyway before relying on it
     train_config_from_dict(yaml.safe_load(text), str(p.out / TRAIN_FILE))
@@ -122,6 +142,23 @@ def make_environment(p: Prepared):
     from mysim_jax.tasks.capture import make_env
 
     return make_env(p.scene)
+
+
+def make_eval_environment(p: Prepared, env, env_params):
+    """``(env, env_params)`` of the final evaluation: ``env, env_params`` themselves when it
+    runs on the training scene. Raises ConfigError when the evaluation scene's
+    observations or actions differ in shape from training's (levels change physical
+    values, not what the policy sees)."""
+    if not p.evaluates_elsewhere:
+        return env, env_params
+    from mysim_jax.tasks.capture import make_env
+
+    eval_env, eval_params = make_env(p.eval_scene)
+    if (eval_env.obs_size, tuple(eval_env.action_shape)) != (env.obs_size, tuple(env.action_shape)):
+        raise ConfigError(f"{p.source}: env.eval_level: the evaluation scene's observations/actions "
+                          f"({eval_env.obs_size}, {tuple(eval_env.action_shape)}) differ from training's "
+                          f"({env.obs_size}, {tuple(env.action_shape)})")
+    return eval_env, eval_params
 
 
 def _read_rows(path: Path, upto: int) -> list[dict]:
@@ -290,12 +327,14 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
     import numpy as np
 
     from mysim_jax.mappo.checkpoint import Checkpoints, save_policy
-    from mysim_jax.mappo.trainer import Trainer, deterministic_policy
+    from mysim_jax.mappo.trainer import Trainer, deterministic_policy, deterministic_policy_fn
 
     c = p.config
     if not p.resume:
         _write_run_files(p)
     env, env_params = make_environment(p)
+    if evaluate and p.scene is not None:
+        eval_env, eval_params = make_eval_environment(p, env, env_params)   # checked before any compile
     trainer = Trainer(c.algo, env, env_params)
     ckpt = Checkpoints(p.out / "checkpoints", keep=c.run.keep_checkpoints)
     key = jax.random.PRNGKey(c.run.seed)
@@ -416,7 +455,7 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
             "selected_iteration": best_iteration if best_iteration >= 0 else iteration, "train": c.name}
     save_policy(p.out / "policy", arrays, meta)
     base = env.scripted_actions if c.algo.residual else None
-    policy = deterministic_policy(trainer.actor, arrays, c.algo.normalize_obs, base)
+    policy = deterministic_policy(trainer.actor, arrays, c.algo.normalize_obs, base)   # on the training scene
 
     # None (JSON null) when no iteration after the first ran in this process (it compiles)
     per_iteration = float(np.median(iteration_times)) if iteration_times else None
@@ -446,25 +485,36 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
             from mysim_jax.tasks.evaluate import Evaluator, scripted_policy
             from mysim_jax.tasks.report import comparison_line, summary_line, write_comparison, write_evaluation
 
-            # one compiled program flies both teams: the argument says whose actions are used
-            net = trainer.policy_fn()
+            # on the evaluation scene (env.eval_level): the policy's residual base, if any,
+            # is that scene's scripted team
+            eval_base = eval_env.scripted_actions if c.algo.residual else None
+            net = deterministic_policy_fn(trainer.actor, c.algo.normalize_obs, eval_base)
+            eval_policy = deterministic_policy(trainer.actor, arrays, c.algo.normalize_obs, eval_base)
 
+            # one compiled program flies both teams: the argument says whose actions are used
             def either(key, obs, state, params, args):
                 arrays, scripted = args
-                return jnp.where(scripted, env.scripted_actions(state, params), net(key, obs, state, params, arrays))
+                return jnp.where(scripted, eval_env.scripted_actions(state, params),
+                                 net(key, obs, state, params, arrays))
 
-            final = Evaluator(env, env_params, either, batch=c.run.eval_batch)
+            final = Evaluator(eval_env, eval_params, either, batch=c.run.eval_batch)
             eval_key = jax.random.PRNGKey(c.run.eval_seed)
             stats = final(eval_key, c.run.eval_episodes, (arrays, jnp.bool_(False)), progress=progress,
                           desc="evaluation")
-            metrics = write_evaluation(p.out / "eval", p.scene, env, env_params, policy,
+            eval_scene = p.eval_scene if p.evaluates_elsewhere else p.scene
+            eval_file = EVAL_SCENE_FILE if p.evaluates_elsewhere else SCENE_FILE
+            metrics = write_evaluation(p.out / "eval", eval_scene, eval_env, eval_params, eval_policy,
                                        policy_name=str(p.out / "policy"), episodes=c.run.eval_episodes,
                                        batch=c.run.eval_batch, seed=c.run.eval_seed,
-                                       config_path=str(p.out / SCENE_FILE), progress=progress, animate=False,
+                                       config_path=str(p.out / eval_file), progress=progress, animate=False,
                                        stats=stats)
-            log(summary_line(p.scene.name, "trained (MAPPO)", metrics, p.out / "eval"))
+            log(summary_line(p.scene.name, f"trained (MAPPO), evaluated at level {eval_scene.level}"
+                             if p.evaluates_elsewhere else "trained (MAPPO)", metrics, p.out / "eval"))
             summary["evaluation"] = {k: metrics[k] for k in ("episodes", "success", "failures", "timeout",
                                                              "mean_return", "mean_length_steps", "wall_s")}
+            summary["evaluation"]["level"] = eval_scene.level
+            summary["evaluation"]["scene"] = eval_file
+            summary["training_level"] = p.scene.level
             if c.run.eval_baseline:
                 base_stats = final(eval_key, c.run.eval_episodes, (arrays, jnp.bool_(True)), progress=progress,
                                    desc="scripted team")
