@@ -232,4 +232,5 @@ def test_tether_tensions_of_tethers_without_interior_masses():
                                          float(sp.spring_rest_length[k]), length, rate,
                                          (scene.spring_tension_only[k],)))
         assert want.max() > 0.02                                  # the tethers were taut
+        # measured: 1.2e-5 N of 0.1-0.2 N (float32 states; the report computes in float64)
         np.testing.assert_allclose(got[uav], want, rtol=0, atol=1e-3 * want.max())
