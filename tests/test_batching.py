@@ -86,7 +86,7 @@ def test_capture_env_step_equals_jax_vmap(capture_env):
     env, params = capture_env
     n = 6
     keys = jax.random.split(jax.random.PRNGKey(3), n)
-    _, states = jax.vmap(env.reset, in_axes=(0, None))(keys, params)
+    _, states = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))(keys, params)
     actions = jax.random.uniform(jax.random.PRNGKey(4), (n,) + env.action_shape, minval=-1, maxval=1)
     # one env starts the step at its time limit, so the auto-reset path is taken in it
     states = states.replace(steps=states.steps.at[0].set(env.max_steps - 1))
@@ -120,7 +120,7 @@ def test_library_steps_need_no_fallback_but_prng(capture_env):
     env, params = capture_env
     batching.FALLBACK_COUNTS.clear()
     keys = jax.random.split(jax.random.PRNGKey(0), 2)
-    _, states = jax.vmap(env.reset, in_axes=(0, None))(keys, params)
+    _, states = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))(keys, params)
     actions = jnp.zeros((2,) + env.action_shape)
     jax.eval_shape(batching.vmap(lambda k, s, a: env.step(k, s, a, params)), keys, states, actions)
     slow = {name for name in batching.FALLBACK_COUNTS if not name.startswith("random_")}

@@ -34,7 +34,7 @@ def test_capture_iterations_run_in_blocks_sized_from_the_real_state(trainer):
     from mysim_jax import batching
 
     env, params = trainer.env, trainer.env_params
-    state = env.reset(jax.random.PRNGKey(0), params)[1]
+    state = jax.jit(env.reset)(jax.random.PRNGKey(0), params)[1]
     nbytes = sum(np.asarray(x).nbytes for x in jax.tree.leaves(state))
     assert nbytes > 4000                                           # ~5 kB per environment
     assert trainer.block == batching.chunk_for(state) == 128

@@ -49,15 +49,21 @@ def snapshot(target=(0.0, 0.0, 2.8), target_vel=(0.0, 0.0, 0.0), shift=(0.0, 0.0
     return Snapshot(**{k: jnp.asarray(v, jnp.float32) for k, v in fields.items()})
 
 
+@jax.jit
+def _flags_and_terms(snap, catch, touched):
+    flags = checks(snap, target_radius=0.2, line_radius=0.0005, contact_margin=SCALES.contact_margin,
+                   success=SuccessConfig(), failure=FailureConfig())
+    terms = potential_terms(snap, flags, catch_point=catch, slots=jnp.asarray(SLOTS, jnp.float32), scales=SCALES,
+                            touched=touched)
+    terms.update(cost_terms(snap))
+    return flags, terms
+
+
 def evaluate(snap, touched=False, catch_point=None):
     """Flags and every unweighted potential and cost term of a snapshot; the catch point
     defaults to the target's position (a target at the net's height)."""
-    flags = checks(snap, target_radius=0.2, line_radius=0.0005, contact_margin=SCALES.contact_margin,
-                   success=SuccessConfig(), failure=FailureConfig())
     catch = snap.target_pos if catch_point is None else jnp.asarray(catch_point, jnp.float32)
-    terms = potential_terms(snap, flags, catch_point=catch, slots=jnp.asarray(SLOTS, jnp.float32), scales=SCALES,
-                            touched=jnp.asarray(touched))
-    terms.update(cost_terms(snap))
+    flags, terms = _flags_and_terms(snap, catch, jnp.asarray(touched))
     return flags, {k: np.asarray(v) for k, v in terms.items()}
 
 
@@ -217,14 +223,24 @@ def test_sizes_and_first_observation(small):
     assert env.global_state(state).shape == (env.state_size,)
 
 
-def test_same_key_same_trajectory_bit_for_bit_and_other_keys_differ(small):
+@pytest.fixture(scope="module")
+def rolled(small):
+    """12 steps from ``key`` of the scripted team (``hold`` False) or of a team holding zero
+    actions (``hold`` True): one compiled program for the tests below."""
     env, params, _, _ = small
-    run = jax.jit(lambda k: rollout(env, params, k, 12, lambda s: env.scripted_actions(s, params)))
-    a = jax.tree.map(np.asarray, run(jax.random.PRNGKey(7)))
-    b = jax.tree.map(np.asarray, run(jax.random.PRNGKey(7)))
+
+    def team(s, hold):
+        return jnp.where(hold, 0.0, env.scripted_actions(s, params))
+
+    return jax.jit(lambda k, hold: rollout(env, params, k, 12, lambda s: team(s, hold)))
+
+
+def test_same_key_same_trajectory_bit_for_bit_and_other_keys_differ(rolled):
+    a = jax.tree.map(np.asarray, rolled(jax.random.PRNGKey(7), False))
+    b = jax.tree.map(np.asarray, rolled(jax.random.PRNGKey(7), False))
     for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
         np.testing.assert_array_equal(x, y)
-    c = jax.tree.map(np.asarray, run(jax.random.PRNGKey(8)))
+    c = jax.tree.map(np.asarray, rolled(jax.random.PRNGKey(8), False))
     assert not np.array_equal(a[1][0], c[1][0])
 
 
@@ -240,7 +256,7 @@ def test_vmap_step_matches_single_steps_for_64_envs(small):
     env, params, _, step = small
     n = 64                        # the bound below was measured over 1024 environments
     keys = jax.random.split(jax.random.PRNGKey(3), n)
-    _, states = jax.vmap(env.reset, in_axes=(0, None))(keys, params)
+    _, states = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))(keys, params)
     actions = jax.random.uniform(jax.random.PRNGKey(4), (n, 4, 3), minval=-1.0, maxval=1.0)
     batched = jax.jit(jax.vmap(env.step, in_axes=(0, 0, 0, None)))(keys, states, actions, params)
     batched = jax.tree.map(np.asarray, batched)
@@ -259,16 +275,14 @@ def test_vmap_step_matches_single_steps_for_64_envs(small):
     assert max(worst.values()) < 4e-4, sorted(worst.items(), key=lambda kv: -kv[1])[:5]
 
 
-def test_timeout_truncates_and_resets(small):
-    env, params, _, _ = small
-    hold = jnp.zeros((4, 3))     # position mode: the box centre; the episode cannot succeed in 0.4 s
-    state, (obs, r, term, trunc, success, length) = jax.jit(
-        lambda k: rollout(env, params, k, 11, lambda s: hold))(jax.random.PRNGKey(1))
+def test_timeout_truncates_and_resets(rolled):
+    # zero actions in position mode: the box centre; the episode cannot succeed in 0.4 s
+    state, (obs, r, term, trunc, success, length) = rolled(jax.random.PRNGKey(1), True)
     term, trunc, length = map(np.asarray, (term, trunc, length))
     assert not term[:10].any()
     np.testing.assert_array_equal(trunc[:10], [False] * 9 + [True])
-    np.testing.assert_array_equal(length[:11], list(range(1, 11)) + [1])    # reset, then the next episode
-    assert int(state.steps) == 1
+    np.testing.assert_array_equal(length, list(range(1, 11)) + [1, 2])    # reset, then the next episode
+    assert int(state.steps) == 2
 
 
 def test_target_on_the_ground_terminates_and_resets(small):

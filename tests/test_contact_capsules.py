@@ -191,10 +191,11 @@ def test_capsule_forces_balance(friction):
     included in the stage's node forces); without friction, the moments balance too."""
     scene, params, state = build(_small_scene("sharp", friction, box_sphere=False))
     rng = np.random.default_rng(3)
+    nodes_and_loads = jax.jit(lambda phys: (node_states(scene, params, phys),
+                                            contact_forces(scene, params, phys, node_states(scene, params, phys))))
     for _ in range(20):
         phys = _random_phys(rng, state.phys)
-        node_pos, node_vel = node_states(scene, params, phys)
-        loads = contact_forces(scene, params, phys, (node_pos, node_vel))
+        (node_pos, node_vel), loads = nodes_and_loads(phys)
         f = np.asarray(loads.node_force)
         scale = max(1.0, np.abs(f).max())
         np.testing.assert_allclose(f.sum(0), 0.0, atol=1e-10 * scale)
@@ -302,7 +303,7 @@ def test_capsule_gradients_are_finite(model, case):
         p2 = params.replace(contact=cparams)
         return jnp.sum(weights * contact_forces(scene, p2, phys).node_force)
 
-    value, (g_phys, g_params) = jax.value_and_grad(loss, argnums=(0, 1))(phys, params.contact)
+    value, (g_phys, g_params) = jax.jit(jax.value_and_grad(loss, argnums=(0, 1)))(phys, params.contact)
     assert np.isfinite(value)
     for leaf in jax.tree_util.tree_leaves((g_phys, g_params)):
         assert np.all(np.isfinite(np.asarray(leaf)))
@@ -409,10 +410,12 @@ def test_capsule_force_is_minus_the_gradient_of_the_energy_it_counts():
                 - mechanical_energy(scene, params.replace(contact=far), phys))
 
     rng = np.random.default_rng(5)
+    forces = jax.jit(lambda phys: contact_forces(scene, params.replace(contact=cp), phys).node_force[:scene.n_points])
+    gradient = jax.jit(jax.grad(potential))
     for _ in range(10):
         phys = _random_phys(rng, state.phys)
-        force = contact_forces(scene, params.replace(contact=cp), phys).node_force[:scene.n_points]
-        grad = jax.grad(potential)(phys.point_pos, phys)
+        force = forces(phys)
+        grad = gradient(phys.point_pos, phys)
         scale = max(1.0, float(jnp.abs(force).max()))
         np.testing.assert_allclose(np.asarray(grad), -np.asarray(force), rtol=0, atol=2e-14 * scale)
         assert potential(phys.point_pos, phys) >= 0.0

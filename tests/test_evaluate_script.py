@@ -125,11 +125,11 @@ def test_record_episode_stops_at_the_pre_reset_state():
     from mysim_jax.tasks.evaluate import episode_keys
 
     k_reset, _, _ = episode_keys(key, 0, 0)
-    obs, state = env.reset(k_reset, params)
-    step = jax.jit(env.step)
+    obs, state = jax.jit(env.reset)(k_reset, params)
+    step, act = jax.jit(env.step), jax.jit(policy)
     for i in range(rec.length):
         _, k_act, k_step = episode_keys(key, 0, i)
-        obs, state, reward, _, _, info = step(k_step, state, policy(k_act, obs, state, params), params)
+        obs, state, reward, _, _, info = step(k_step, state, act(k_act, obs, state, params), params)
         np.testing.assert_allclose(reward, rec.rewards[i], rtol=1e-4, atol=1e-5)
         if i < rec.length - 1:
             np.testing.assert_allclose(state.sim.phys.body_pos, rec.trajectory.phys.body_pos[i + 1], atol=1e-5)
@@ -187,7 +187,8 @@ def test_numbered_episodes_are_the_same_whatever_the_batch_and_the_team():
     np.testing.assert_array_equal(runs[1].success, runs[0].success)
     np.testing.assert_allclose(runs[1].returns, runs[0].returns, rtol=0, atol=2e-3)   # measured 2e-4
     assert np.unique(runs[1].slot).size == 3                                          # slots were reused
-    starts = [env.reset(episode_keys(key, i, 0)[0], params)[1] for i in range(6)]
+    reset = jax.jit(env.reset)
+    starts = [reset(episode_keys(key, i, 0)[0], params)[1] for i in range(6)]
     spawns = np.array([np.asarray(s.sim.phys.body_pos[env.target_body]) for s in starts])
     assert len({tuple(np.round(x, 6)) for x in spawns}) == 6               # six different episodes
     random_run = by_batch[3](key, 6, jnp.bool_(True))

@@ -15,7 +15,7 @@ import pytest
 from mysim_jax.tasks.env_config import CRASHES, REWARD_TERMS, return_bounds
 
 TRAIN_FILE = "configs/train_capture_falling.yaml"
-EPISODES = 24
+EPISODES = 16
 
 
 @pytest.mark.slow

@@ -68,7 +68,8 @@ def collect(trainer, key) -> Demonstrations:
         return rows
 
     k_reset, k_run = jax.random.split(key)
-    obs, states = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(k_reset, bc.num_envs), params)
+    # jitted: run eagerly, a vmapped reset compiles one small program per primitive
+    obs, states = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))(jax.random.split(k_reset, bc.num_envs), params)
     run = jax.jit(batching.vmap(one_env, chunk=trainer.block))
     obs_rows, teacher, success, done = run(jax.random.split(k_run, bc.num_envs), states, obs)
     # (envs, steps, ...) -> (steps, envs, ...)

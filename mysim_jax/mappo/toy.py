@@ -83,7 +83,7 @@ class ReachEnv:
         state = self._fresh(key)
         return self.observe(state), state
 
-    def step(self, key, state: ReachState, actions, params: ReachParams):
+    def step(self, key, state: ReachState, actions, params: ReachParams, auto_reset: bool = True):
         a = jnp.clip(jnp.where(jnp.isfinite(actions), actions, 0.0), -1.0, 1.0)
         pos = state.pos + params.speed * self.dt * a
         dist = jnp.linalg.norm(pos - state.goal, axis=-1)
@@ -95,7 +95,7 @@ class ReachEnv:
         after = ReachState(pos=pos, goal=state.goal, steps=steps, returns=returns)
         done = success | timeout
         fresh = self._fresh(key)
-        new = jax.tree.map(lambda f, a_: jnp.where(done, f, a_), fresh, after)
+        new = jax.tree.map(lambda f, a_: jnp.where(done, f, a_), fresh, after) if auto_reset else after
         info = {
             "success": success, "done": done, "timeout": timeout,
             "episode_return": returns, "episode_length": steps,

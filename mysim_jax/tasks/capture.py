@@ -200,8 +200,11 @@ class CaptureEnv:
         obs = self._observe(jax.random.fold_in(key, 1), state, params)
         return obs, state
 
-    def step(self, key, state: EnvState, actions, params: EnvParams):
-        """``(obs, state, reward, terminated, truncated, info)`` (module docstring)."""
+    def step(self, key, state: EnvState, actions, params: EnvParams, auto_reset: bool = True):
+        """``(obs, state, reward, terminated, truncated, info)`` (module docstring).
+        ``auto_reset=False`` (a Python bool) returns the state after the step even when the
+        episode ends, and leaves the reset's code out of the traced program: for callers
+        that start episodes themselves (:class:`mysim_jax.tasks.evaluate.Evaluator`)."""
         dtype = state.sim.phys.body_pos.dtype
         nan = ~jnp.isfinite(self.check_actions(actions))
         actions = self.clean_actions(actions, dtype)
@@ -270,6 +273,11 @@ class CaptureEnv:
         after = EnvState(sim=sim, episode=state.episode, steps=steps, held=flags.held, held_time=held_time,
                          touched=touched, returns=returns, potential=potential, perception=errors)
         key_reset, key_obs = jax.random.split(key)
+        if not auto_reset:
+            obs = self._observe(key_obs, after, params)
+            info["final_obs"], info["final_state"] = obs, after
+            info["final_global_state"] = info["global_state"] = self.global_state(after)
+            return obs, after, reward, terminated, timeout, info
         fresh = self._reset_state(key_reset, params)
         # the episode's last observation (before the reset), e.g. to bootstrap a value
         # on truncation

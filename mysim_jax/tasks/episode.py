@@ -61,8 +61,9 @@ def episode_rollout(env, params, policy, key, index=0):
     ``sim`` (the state after the step, before any reset), ``actions`` (as the policy
     gave them), ``reward``, ``terms`` (weighted, per agent),
     ``success``, ``failures``, ``timeout``, ``held``, ``touching``, ``done``, ``returns``
-    (the episode's return so far, per agent). Rows after the first ``done`` belong to the
-    following episodes (the environment auto-resets); :func:`record_episode` drops them.
+    (the episode's return so far, per agent). The environment does not reset
+    (``auto_reset=False``): rows after the first ``done`` step on from the ended episode's
+    state, and :func:`record_episode` drops them.
     """
     from mysim_jax.tasks.evaluate import episode_keys
 
@@ -74,8 +75,8 @@ def episode_rollout(env, params, policy, key, index=0):
         k, obs, state = carry
         _, k_act, k_step = episode_keys(key, index, t)
         actions = policy(k_act, obs, state, params)
-        obs, state, reward, _, _, info = env.step(k_step, state, actions, params)
-        sim = info["final_state"].sim
+        obs, state, reward, _, _, info = env.step(k_step, state, actions, params, auto_reset=False)
+        sim = state.sim
         row = {"sim": sim, "actions": actions, "reward": reward, "terms": info["terms"], "success": info["success"],
                "failures": jnp.stack([info["failures"][f] for f in FAILURES]), "timeout": info["timeout"],
                "held": info["held"], "touching": info["touching"], "done": info["done"],
