@@ -8,6 +8,7 @@ the scripted and random teams on configs/capture_env_falling.yaml.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import jax
@@ -304,6 +305,15 @@ def test_target_on_the_ground_terminates_and_resets(small):
     final = np.asarray(info["final_obs"])
     assert final[0, 13 + 2] + final[0, 2] < 0.3 and obs2[0, 13 + 2] + obs2[0, 2] > 5.0
     np.testing.assert_array_equal(np.asarray(info["global_state"]), np.asarray(env.global_state(new)))
+    # without the auto-reset the step returns the ended episode's state and observation,
+    # the same outcome and reward
+    obs3, ended, reward3, term3, _, info3 = jax.jit(functools.partial(env.step, auto_reset=False))(
+        jax.random.PRNGKey(1), state, jnp.zeros((4, 3)), params)
+    assert bool(term3) and bool(info3["missed"]) and int(ended.steps) == 1
+    for x, y in zip(jax.tree.leaves(ended), jax.tree.leaves(info["final_state"])):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    np.testing.assert_array_equal(np.asarray(obs3), final)
+    np.testing.assert_array_equal(np.asarray(reward3), np.asarray(reward))
 
 
 def test_reward_is_the_sum_of_the_weighted_terms_and_weights_are_traced(small):
