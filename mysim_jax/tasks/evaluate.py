@@ -149,13 +149,10 @@ class Evaluator:
             fresh = env.reset(k_reset, params)
             return jax.lax.scan(lambda c, x: slot_step(c, x, args, key, fresh), carry, None, length=chunk)
 
-        def start_slot(index, key):
-            k_reset, _, _ = episode_keys(key, index, 0)
-            return env.reset(k_reset, params)
-
-        self._start = jax.jit(jax.vmap(start_slot, in_axes=(0, None)))
-        one = jax.eval_shape(lambda: env.reset(jax.random.PRNGKey(0), params)[1])
-        self._batched = batching.vmap(advance, in_axes=(0, None, None), chunk=batching.chunk_for(one))
+        # slots begin idle (episode -1) on placeholder zeros: their first step starts their
+        # first episode from ``advance``'s reset, so no separate reset program is compiled
+        self._blank = jax.eval_shape(lambda: env.reset(jax.random.PRNGKey(0), params))
+        self._batched = batching.vmap(advance, in_axes=(0, None, None), chunk=batching.chunk_for(self._blank[1]))
         self._compiled = {}
 
     def _advance(self, batch: int):
@@ -174,11 +171,10 @@ class Evaluator:
         advance = self._advance(batch)
         t0 = time.perf_counter()
         first = np.arange(batch)
-        obs, state = self._start(jnp.asarray(first, jnp.int32), key)
-        nxt = np.where(first + batch < n, first + batch, -1)
-        queue = batch + int(np.sum(nxt >= 0))          # the next episode number to hand out
-        carry = (obs, state, jnp.asarray(first, jnp.int32), jnp.zeros(batch, jnp.int32),
-                 jnp.asarray(nxt, jnp.int32), jnp.zeros((batch, self._n_terms), jnp.float32))
+        obs, state = jax.tree.map(lambda x: jnp.zeros((batch,) + x.shape, x.dtype), self._blank)
+        queue = batch                                   # the next episode number to hand out
+        carry = (obs, state, jnp.full(batch, -1, jnp.int32), jnp.zeros(batch, jnp.int32),
+                 jnp.asarray(first, jnp.int32), jnp.zeros((batch, self._n_terms), jnp.float32))
         rows = {}
         bar = None
         if progress:
