@@ -16,6 +16,11 @@ A training file names the environment and the algorithm's settings::
       checkpoint_every: 5               # iterations
       eval_episodes: 1000
 
+A file may name ``profiles``: each a list of overrides (``key=value``, as ``--set``) that
+``scripts/train.py --profile NAME`` applies before the command line's ``--set``, so one
+file holds recipes that differ in several values at once (the default capture file's
+``scratch`` learns without cloning). Every profile is checked when the file is loaded.
+
 Instead of ``scene``, ``env.builtin: reach`` selects a small built-in task
 (:mod:`mysim_jax.mappo.toy`) that trains in seconds, for tests and smoke runs.
 
@@ -207,6 +212,8 @@ class TrainConfig(StrictModel):
     env: EnvSection
     algo: AlgoConfig = AlgoConfig()
     run: RunConfig = RunConfig()
+    # named override lists (``--profile NAME``); a run folder's file holds none (it is resolved)
+    profiles: dict[Name, list[str]] = {}
 
     @model_validator(mode="after")
     def _residual_needs_a_team(self):
@@ -229,20 +236,43 @@ def apply_overrides(raw: dict, overrides) -> dict:
     return raw
 
 
-def train_config_from_dict(raw: Any, source: str = "<dict>", overrides=()) -> TrainConfig:
+def train_config_from_dict(raw: Any, source: str = "<dict>", overrides=(), profile: str | None = None) -> TrainConfig:
+    """Validate a raw training file: the overrides of ``profile`` (one of its
+    ``profiles``) first, then ``overrides``. Each profile is checked on its own too, so a
+    broken one is found whichever is run."""
     if not isinstance(raw, dict):
         raise ConfigError(f"{source}: a training file must be a YAML mapping at the top level")
-    raw = apply_overrides(raw, overrides)
+    profiles = raw.get("profiles") or {}
+    if not isinstance(profiles, dict):
+        raise ConfigError(f"{source}: profiles: give a mapping of profile names to lists of key=value overrides")
+    for name, values in profiles.items():
+        if not isinstance(values, list) or not all(isinstance(v, str) for v in values):
+            raise ConfigError(f"{source}: profiles.{name}: give a list of key=value overrides (as --set)")
+        try:
+            applied = apply_overrides(raw, values)
+        except ConfigError as err:
+            raise ConfigError(f"{source}: profiles.{name}: {err}") from None
+        if name != profile:
+            _validate(applied, f"{source} (profile {name})")
+    if profile is not None:
+        if profile not in profiles:
+            known = ", ".join(map(str, profiles)) or "none"
+            raise ConfigError(f"{source}: --profile {profile}: the file has no such profile (it has: {known})")
+        raw = apply_overrides(raw, profiles[profile])
+    return _validate(apply_overrides(raw, overrides), source if profile is None else f"{source} (profile {profile})")
+
+
+def _validate(raw: dict, source: str) -> TrainConfig:
     try:
         return TrainConfig.model_validate(raw)
     except ValidationError as err:
         raise ConfigError(f"{source}: invalid training configuration\n{format_validation_error(err)}") from None
 
 
-def load_train_config(path: str | Path, overrides=()) -> TrainConfig:
-    """Read, override and validate a training file; its scene file is checked too
-    (:func:`load_scene`)."""
-    config = train_config_from_dict(read_yaml_file(path, "training file"), str(path), overrides)
+def load_train_config(path: str | Path, overrides=(), profile: str | None = None) -> TrainConfig:
+    """Read, override (``profile``'s overrides, then ``overrides``) and validate a training
+    file; its scene file is checked too (:func:`load_scene`)."""
+    config = train_config_from_dict(read_yaml_file(path, "training file"), str(path), overrides, profile)
     load_eval_scene(config, path, load_scene(config, path))
     return config
 

@@ -57,6 +57,7 @@ class Prepared:
     resume: bool
     source: str
     eval_scene: object | None = None   # the scene of the final evaluation (None: ``scene``)
+    profile: str | None = None         # the training file's profile applied (``--profile``)
 
     @property
     def evaluates_elsewhere(self) -> bool:
@@ -67,18 +68,20 @@ class Prepared:
                 and dump_config(self.eval_scene) != dump_config(self.scene))
 
 
-def load_run_config(config_path: str, overrides=()) -> Prepared:
+def load_run_config(config_path: str, overrides=(), profile: str | None = None) -> Prepared:
     """A training file and its scene, checked, for use without a run folder (benchmarks,
     notebooks): ``out`` is the default ``runs/<name>``, unchecked and not created."""
-    config = load_train_config(config_path, overrides)
+    config = load_train_config(config_path, overrides, profile)
     scene = load_scene(config, config_path)
     return Prepared(config, scene, Path("runs") / config.name, False, str(config_path),
-                    load_eval_scene(config, config_path, scene))
+                    load_eval_scene(config, config_path, scene), profile)
 
 
-def prepare(config_path: str | None, overrides=(), out: str | None = None, resume: str | None = None) -> Prepared:
-    """Check a training file (or a run folder to resume) and the output folder. Raises
-    ConfigError or OutputError with a one-line message; imports no JAX."""
+def prepare(config_path: str | None, overrides=(), out: str | None = None, resume: str | None = None,
+            profile: str | None = None) -> Prepared:
+    """Check a training file (with its profile ``profile`` applied, then ``overrides``) or a
+    run folder to resume, and the output folder. Raises ConfigError or OutputError with a
+    one-line message; imports no JAX."""
     from mysim_jax.io.output import check_output_dir
 
     if resume is not None:
@@ -91,14 +94,15 @@ def prepare(config_path: str | None, overrides=(), out: str | None = None, resum
                         load_eval_scene(config, run / TRAIN_FILE, scene))
     if config_path is None:
         raise ConfigError("give a training file, or --resume RUN_DIR")
-    config = load_train_config(config_path, overrides)
+    config = load_train_config(config_path, overrides, profile)
     scene = load_scene(config, config_path)
     target = Path(out) if out is not None else Path("runs") / config.name
     check_output_dir(target)
     if (target / TRAIN_FILE).exists():
         raise ConfigError(f"--out {target}: holds a training run already; continue it with --resume {target}, "
                           "or choose another folder")
-    return Prepared(config, scene, target, False, str(config_path), load_eval_scene(config, config_path, scene))
+    return Prepared(config, scene, target, False, str(config_path), load_eval_scene(config, config_path, scene),
+                    profile)
 
 
 def describe_run(p: Prepared) -> str:
@@ -108,6 +112,8 @@ def describe_run(p: Prepared) -> str:
     what = f"builtin:{p.config.env.builtin}" if p.scene is None else f"{p.scene.name} (level {p.scene.level})"
     if p.evaluates_elsewhere:
         what += f", evaluated at level {p.eval_scene.level}"
+    if p.profile is not None:
+        what += f", profile {p.profile}"
     return f"{p.config.name} on {what}: {describe(p.config)}; writing {p.out}/" + (" (resuming)" if p.resume else "")
 
 
@@ -116,6 +122,10 @@ def _write_run_files(p: Prepared) -> None:
 
     p.out.mkdir(parents=True, exist_ok=True)
     data = p.config.model_dump(mode="json")
+    # resolved: the profile's values are in the file; its description names it
+    data["profiles"] = {}
+    if p.profile is not None:
+        data["description"] = f"{data['description']} (profile {p.profile})".lstrip()
     if p.scene is not None:
         (p.out / SCENE_FILE).write_text(dump_config(p.scene))
         data["env"] = {"scene": SCENE_FILE, "set": [], "level": None, "eval_level": None}
