@@ -59,14 +59,15 @@ def rope_net_problem():
 
 def capture_problem():
     """``(env params, reset keys (B, 2), episode(key, params) for one env)``: reset, then
-    ``CAPTURE_POLICY_STEPS`` policy steps of the scripted team in a ``lax.scan``."""
+    ``CAPTURE_POLICY_STEPS`` policy steps of the scripted team in a ``lax.scan``, on the
+    falling-target scene's cheap level ``train`` (sharding does not depend on the level)."""
     import jax
     import jax.numpy as jnp
 
     from mysim_jax.config import load_config
     from mysim_jax.tasks.capture import make_env
 
-    env, params = make_env(load_config(ROOT / "configs" / "capture_env_falling.yaml"))
+    env, params = make_env(load_config(ROOT / "configs" / "capture_env_falling.yaml", ["level=train"]))
 
     def episode(key, params):
         _, state = env.reset(key, params)

@@ -1,5 +1,5 @@
 """Behaviour cloning (mysim_jax/mappo/bc.py) and the trainer's environment blocks, on the
-default training file's capture environment.
+default training file's capture environment (cloning at its cheap level ``train``).
 
 * The clone matches the scripted team's actions on held-out states: environments whose
   states it never trained on (a 512-environment-step demonstration set, 20 % of the
@@ -17,17 +17,24 @@ import pytest
 TRAIN_FILE = "configs/train_capture_falling.yaml"
 
 
-@pytest.fixture(scope="module")
-def trainer():
+SETTINGS = ["algo.init=bc", "algo.num_envs=256", "algo.num_steps=4", "algo.total_env_steps=1024",
+            "algo.num_minibatches=4", "algo.bc.num_envs=32", "algo.bc.steps=16", "algo.bc.holdout=0.2",
+            "algo.bc.epochs=150", "algo.bc.minibatch_size=256"]
+
+
+def _trainer(*overrides):
     from mysim_jax.mappo.run import load_run_config, make_environment
     from mysim_jax.mappo.trainer import Trainer
 
-    run = load_run_config(TRAIN_FILE, ["algo.init=bc", "algo.num_envs=256", "algo.num_steps=4",
-                                       "algo.total_env_steps=1024", "algo.num_minibatches=4",
-                                       "algo.bc.num_envs=32", "algo.bc.steps=16", "algo.bc.holdout=0.2",
-                                       "algo.bc.epochs=150", "algo.bc.minibatch_size=256"])
+    run = load_run_config(TRAIN_FILE, [*SETTINGS, *overrides])
     env, params = make_environment(run)
     return Trainer(run.config.algo, env, params)
+
+
+@pytest.fixture(scope="module")
+def trainer():
+    """On the level ``full`` (the default file's)."""
+    return _trainer()
 
 
 def test_capture_iterations_run_in_blocks_sized_from_the_real_state(trainer):
@@ -46,13 +53,17 @@ def test_capture_iterations_run_in_blocks_sized_from_the_real_state(trainer):
     assert "length=2" in text
 
 
-def test_the_clone_matches_the_scripted_team_on_held_out_states(trainer):
+def test_the_clone_matches_the_scripted_team_on_held_out_states():
+    """On the scene's cheap level ``train`` (cloning does not depend on the level; the
+    demonstrations cost a twentieth of the time on it)."""
     from mysim_jax.mappo import bc
 
+    trainer = _trainer("env.level=train")
     ts = trainer.init(jax.random.PRNGKey(0))
     state, report = bc.clone(trainer, ts, jax.random.PRNGKey(1))
     assert report["pairs"] == 32 * 16 * 4 and report["holdout_environments"] == 6
-    # measured: held-out RMSE 0.04 of actions in [-1, 1] whose spread is ~0.25 horizontally
+    # measured: held-out RMSE 0.04 of actions in [-1, 1] whose spread is ~0.25 horizontally (on
+    # both levels)
     assert report["rmse_holdout"] < 0.08, report
     # horizontal actions; measured R2 0.90-0.97 over runs (float32 reductions in another order
     # change the fit a little); the vertical one has a narrower spread and is not asserted

@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import yaml
 
 from mysim_jax.config_base import ConfigError
 from mysim_jax.mappo.config import AlgoConfig, train_config_from_dict
@@ -172,6 +173,41 @@ def test_the_shipped_training_files_load():
     for path in files:
         cfg = load_train_config(path)
         assert cfg.algo.num_iterations >= 1, path.name
+        for profile in cfg.profiles:
+            assert load_train_config(path, profile=profile).profiles == cfg.profiles, (path.name, profile)
+
+
+def test_a_profile_applies_its_overrides_before_the_command_line(tmp_path):
+    """``--profile NAME`` applies the file's named overrides, then ``--set``; every profile
+    is checked whichever runs; an unknown one names those the file has; the run folder's
+    file is resolved (no profiles) and its description names the profile."""
+    from mysim_jax.mappo.run import _write_run_files, prepare
+
+    raw = {"name": "t", "env": {"builtin": "reach"}, "algo": {"lr": 1e-3},
+           "profiles": {"slow": ["algo.lr=1e-4", "run.seed=3", "name=t_slow"], "other": ["algo.num_envs=8"]}}
+    plain = train_config_from_dict(raw, "t.yaml")
+    assert plain.algo.lr == 1e-3 and plain.name == "t"
+    slow = train_config_from_dict(raw, "t.yaml", profile="slow")
+    assert (slow.algo.lr, slow.run.seed, slow.name, slow.algo.num_envs) == (1e-4, 3, "t_slow", 256)
+    assert train_config_from_dict(raw, "t.yaml", ["algo.lr=5e-4"], "slow").algo.lr == 5e-4
+    with pytest.raises(ConfigError, match=r"--profile fast: the file has no such profile \(it has: slow, other\)"):
+        train_config_from_dict(raw, "t.yaml", profile="fast")
+    broken = {**raw, "profiles": {**raw["profiles"], "bad": ["algo.lr=-1"]}}
+    with pytest.raises(ConfigError, match=r"(?s)profile bad.*algo.lr: Input should be greater than 0"):
+        train_config_from_dict(broken, "t.yaml", profile="slow")
+    for profiles, match in (({"bad": "algo.lr=1"}, "profiles.bad: give a list"),
+                            ({"bad": ["algo.lr"]}, "profiles.bad: --set 'algo.lr': expected key=value"),
+                            (["algo.lr=1"], "profiles: give a mapping")):
+        with pytest.raises(ConfigError, match=match):
+            train_config_from_dict({**raw, "profiles": profiles}, "t.yaml")
+    path = tmp_path / "t.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    prepared = prepare(str(path), ["run.checkpoint_every=2"], str(tmp_path / "run"), profile="slow")
+    _write_run_files(prepared)
+    written = yaml.safe_load((tmp_path / "run" / "train.yaml").read_text())
+    assert written["profiles"] == {} and written["description"] == "(profile slow)"
+    resolved = train_config_from_dict(written, "train.yaml")
+    assert (resolved.algo.lr, resolved.run.seed, resolved.run.checkpoint_every) == (1e-4, 3, 2)
 
 
 def test_residual_policy_adds_the_base_team_and_needs_one():

@@ -146,8 +146,8 @@ def test_batch_not_divisible_by_devices_is_a_clear_error(two_devices):
 
 
 def test_capture_env_steps_sharded_over_two_devices(tmp_path):
-    """Reset and two policy steps (1080 physics sub-steps) of 4 capture environments, params
-    replicated, keys sharded: the same as one device running the 4 environments."""
+    """Reset and two policy steps of 4 capture environments (the scene's level ``train``),
+    params replicated, keys sharded: the same as one device running the 4 environments."""
     arrays, facts = run_worker(tmp_path, "capture", XLA_FLAGS="--xla_force_host_platform_device_count=2")
     assert {k: facts["sharded"][k] for k in TWO_WAY} == TWO_WAY
     assert facts["sharded"]["shard_rows"] == [[2, 2]]

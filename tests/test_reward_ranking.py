@@ -1,4 +1,6 @@
-"""Rewards rank outcomes: on the default training file's environment, three teams (the
+"""Rewards rank outcomes: on the default training file's environment at the scene's cheap
+level ``train`` (where its profile ``scratch`` trains; the reward is computed by the same
+code at every level), three teams (the
 scripted team, a team hovering where it starts, and a team flying apart at full speed,
 which the net's tethers tip over within a second) fly
 the same numbered episodes, and every caught episode returns more than every missed one
@@ -23,7 +25,9 @@ def test_caught_beats_missed_beats_crashed_for_every_team():
     from mysim_jax.mappo.run import load_run_config, make_environment
     from mysim_jax.tasks.evaluate import Evaluator
 
-    env, params = make_environment(load_run_config(TRAIN_FILE))
+    prepared = load_run_config(TRAIN_FILE, ["env.level=train"])
+    assert prepared.scene.level == "train"
+    env, params = make_environment(prepared)
     assert env.scene.quadrotor.setpoint_mode == "velocity"
 
     quads = np.asarray(env.quad_bodies)
