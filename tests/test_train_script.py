@@ -157,14 +157,15 @@ def test_an_existing_run_is_not_overwritten(tmp_path):
 
 def test_capture_environment_end_to_end_tiny(tmp_path):
     """The default training file's path on the capture environment, tiny: behaviour cloning
-    from 4 environments x 4 steps, one iteration of 4 environments x 2 steps, model
+    from 32 environments x 16 steps (the demonstration program of tests/test_bc.py, which
+    then comes from the compilation cache), one iteration of 4 environments x 2 steps, model
     selection on 2 episodes before and after it, all on the level ``train``; the final
     evaluation (2 episodes, no baseline) on the level ``full``; the saved policy then loads
     as evaluate.py's --policy RUN/policy and is traced on the environment (jax.eval_shape,
     no compile)."""
     out = tmp_path / "run"
     sets = ["algo.num_envs=4", "algo.num_steps=2", "algo.total_env_steps=8", "algo.num_minibatches=2",
-            "algo.bc.num_envs=4", "algo.bc.steps=4", "algo.bc.epochs=2", "algo.bc.holdout=0.25",
+            "algo.bc.num_envs=32", "algo.bc.steps=16", "algo.bc.epochs=2", "algo.bc.holdout=0.2",
             "run.selection.episodes=2", "run.selection.every=1", "env.eval_level=full",
             "run.eval_episodes=2", "run.eval_batch=2", "run.eval_baseline=false", "env.level=train"]
     res = _run(["configs/train_capture_falling.yaml", "--out", str(out), *[a for s in sets for a in ("--set", s)]])
@@ -189,7 +190,7 @@ def test_capture_environment_end_to_end_tiny(tmp_path):
     assert yaml.safe_load((out / "eval" / "config.yaml").read_text())["level"] == "full"
     assert summary["iterations"] == 1 and summary["env_steps"] == 8 and summary["init"] == "bc"
     bc = json.loads((out / "bc.json").read_text())
-    assert bc["pairs"] == 4 * 4 * 4 and bc["holdout_environments"] == 1
+    assert bc["pairs"] == 32 * 16 * 4 and bc["holdout_environments"] == 6
     assert summary["behaviour_cloning"] == bc
     assert summary["selection"]["selected_iteration"] in (0, 1) and summary["selection"]["episodes"] == 2
     # iteration 0 is the clone's selection row; the policy saved is the selected one
