@@ -43,39 +43,39 @@ def scene_files() -> list[Path]:
 
 # The README runs the suite with pytest-xdist, ``--dist loadfile --no-loadscope-reorder``:
 # each file runs on one worker, and files are handed out in collection order. Those that
-# take longest go first (seconds of one worker, measured on the 2-core machine), so that
+# take longest go first (as measured with ``--durations=0`` on the 2-core machine), so that
 # the workers finish together instead of one running a long file while the other idles.
 # The order changes only scheduling; a file not listed runs after these, in name order.
 LONGEST_FIRST = (
-    "test_train_script.py",         # ~260 s
-    "test_evaluate_script.py",      # ~200 s
-    "test_capture_env.py",          # ~170 s
-    "test_capture_scene.py",        # ~140 s
-    "test_parallel.py",             # ~90 s
-    "test_batching.py",             # ~80 s
-    "test_bc.py",                   # ~75 s
-    "test_mappo.py",                # ~70 s
-    "test_implicit_springs.py",     # ~65 s
-    "test_detector.py",             # ~65 s
-    "test_broad_phase.py",          # ~60 s
-    "test_stability.py",            # ~60 s
-    "test_tuning.py",               # ~55 s
-    "test_setpoint.py",             # ~55 s
-    "test_contact_hard_cases.py",   # ~55 s
-    "test_collision_scenes.py",     # ~50 s
-    "test_camera.py",               # ~50 s
-    "test_uav_scripts.py",          # ~45 s
-    "test_contact_capsules.py",     # ~45 s
-    "test_detector_refine.py",      # ~40 s
-    "test_joints.py",               # ~40 s
-    "test_contact_gradients.py",    # ~40 s
-    "test_capture_perception.py",   # ~35 s
-    "test_tethered_body.py",        # ~35 s
-    "test_bad_input.py",            # ~35 s
-    "test_rope_net_reference.py",   # ~35 s
-    "test_render.py",               # ~35 s
-    "test_capture_energy.py",       # ~30 s
-    "test_reward_ranking.py",       # ~25 s
+    "test_train_script.py",
+    "test_evaluate_script.py",
+    "test_capture_env.py",
+    "test_capture_scene.py",
+    "test_parallel.py",
+    "test_batching.py",
+    "test_bc.py",
+    "test_mappo.py",
+    "test_implicit_springs.py",
+    "test_detector.py",
+    "test_broad_phase.py",
+    "test_stability.py",
+    "test_tuning.py",
+    "test_setpoint.py",
+    "test_contact_hard_cases.py",
+    "test_collision_scenes.py",
+    "test_camera.py",
+    "test_uav_scripts.py",
+    "test_contact_capsules.py",
+    "test_detector_refine.py",
+    "test_joints.py",
+    "test_contact_gradients.py",
+    "test_capture_perception.py",
+    "test_tethered_body.py",
+    "test_bad_input.py",
+    "test_rope_net_reference.py",
+    "test_render.py",
+    "test_capture_energy.py",
+    "test_reward_ranking.py",
 )
 
 
