@@ -21,6 +21,7 @@ import os
 from pathlib import Path
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 from flax import serialization
 
@@ -51,11 +52,20 @@ class Checkpoints:
 
     def restore(self, iteration: int, like):
         """The state saved at ``iteration``, with the structure of ``like`` (a state of the
-        same run, e.g. a fresh :meth:`Trainer.init`)."""
+        same run, e.g. a fresh :meth:`Trainer.init`). Each leaf is placed as ``like``'s is:
+        orbax returns arrays committed to a device, and a leaf that ``like`` holds
+        uncommitted comes back uncommitted, so the resumed run calls the very program a
+        fresh start compiled (the compilation cache hits) instead of one specialised to
+        committed arguments."""
         target = serialization.to_state_dict(like)
         abstract = jax.tree.map(self._ocp.utils.to_shape_dtype_struct, target)
         tree = self.manager.restore(int(iteration), args=self._ocp.args.StandardRestore(abstract))
-        return serialization.from_state_dict(like, tree)
+
+        def place(saved, fresh):
+            if isinstance(fresh, jax.Array) and not fresh.committed:
+                return jnp.asarray(np.asarray(saved))
+            return saved
+        return serialization.from_state_dict(like, jax.tree.map(place, tree, target))
 
     def close(self) -> None:
         self.manager.close()
