@@ -254,16 +254,18 @@ def test_vmap_step_matches_single_steps_for_64_envs(small):
     mass, where stiff line and contact forces amplify rounding over the 300 sub-steps of
     the policy step; observations and rewards differ by under 4e-6). Flags and counters
     are equal."""
-    env, params, _, step = small
+    env, params, reset, step = small
     n = 64                        # the bound below was measured over 1024 environments
-    keys = jax.random.split(jax.random.PRNGKey(3), n)
-    _, states = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))(keys, params)
-    actions = jax.random.uniform(jax.random.PRNGKey(4), (n, 4, 3), minval=-1.0, maxval=1.0)
-    batched = jax.jit(jax.vmap(env.step, in_axes=(0, 0, 0, None)))(keys, states, actions, params)
+    keys = list(jax.random.split(jax.random.PRNGKey(3), n))
+    # the 64 states from the module's compiled reset, stacked on the host for the batch
+    singles = [reset(k, params)[1] for k in keys]
+    states = jax.tree.map(lambda *x: np.stack(x), *singles)
+    actions = list(jax.random.uniform(jax.random.PRNGKey(4), (n, 4, 3), minval=-1.0, maxval=1.0))
+    batched = jax.jit(jax.vmap(env.step, in_axes=(0, 0, 0, None)))(np.stack(keys), states, np.stack(actions), params)
     batched = jax.tree.map(np.asarray, batched)
     worst = {}
     for i in range(n):
-        single = step(keys[i], jax.tree.map(lambda x: x[i], states), actions[i], params)
+        single = step(keys[i], singles[i], actions[i], params)
         for (path, x), y in zip(jax.tree_util.tree_flatten_with_path(single)[0], jax.tree.leaves(batched)):
             x, y = np.asarray(x), y[i]
             if x.dtype == bool or np.issubdtype(x.dtype, np.integer):
@@ -319,7 +321,7 @@ def test_target_on_the_ground_terminates_and_resets(small):
 def test_reward_is_the_sum_of_the_weighted_terms_and_weights_are_traced(small):
     env, params, reset, step = small
     obs, state = reset(jax.random.PRNGKey(0), params)
-    action = jnp.full((4, 3), 0.1)
+    action = jnp.full((4, 3), 0.1, jnp.float32)      # float32, not weakly typed: the program compiled above
     _, _, reward, _, _, info = step(jax.random.PRNGKey(1), state, action, params)
     np.testing.assert_allclose(reward, sum(np.asarray(v) for v in info["terms"].values()), rtol=1e-6)
     assert set(info["terms"]) == set(REWARD_TERMS)
@@ -341,7 +343,8 @@ def test_shaping_is_potential_based_its_discounted_sum_telescopes(small):
     from mysim_jax.tasks.env_config import SHAPING_TERMS
 
     gamma = float(params.discount)
-    for key, actions in ((0, lambda s: env.scripted_actions(s, params)), (3, lambda s: jnp.full((4, 3), 0.4))):
+    constant = jnp.full((4, 3), 0.4, jnp.float32)
+    for key, actions in ((0, lambda s: env.scripted_actions(s, params)), (3, lambda s: constant)):
         obs, state = reset(jax.random.PRNGKey(key), params)
         phi0 = np.asarray(state.potential).sum(axis=0)
         total = np.zeros(4)
@@ -366,7 +369,7 @@ def test_nan_actions_act_as_zero_and_are_flagged_out_of_range_is_clipped(small):
     assert bool(a[5]["action_nan"]) and not bool(b[5]["action_nan"])
     for x, y in zip(jax.tree.leaves(a[:5]), jax.tree.leaves(b[:5])):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
-    big = step(k, state, jnp.full((4, 3), 7.0), params)
+    big = step(k, state, jnp.full((4, 3), 7.0, jnp.float32), params)
     one = step(k, state, jnp.ones((4, 3)), params)
     np.testing.assert_array_equal(np.asarray(big[0]), np.asarray(one[0]))
 
