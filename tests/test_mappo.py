@@ -307,3 +307,20 @@ def test_model_selection_keeps_the_best_policy():
 def test_bad_bc_and_kl_settings_name_the_field(algo, message):
     with pytest.raises(ConfigError, match=message):
         train_config_from_dict(_raw(**algo), "t.yaml")
+
+
+def test_restored_checkpoint_leaves_are_placed_as_the_fresh_states(tmp_path):
+    """A leaf the fresh state holds uncommitted comes back uncommitted (so a resumed run
+    calls the program a fresh start compiled), a committed one stays committed; values exact."""
+    from mysim_jax.mappo.checkpoint import Checkpoints
+
+    saved = {"w": jnp.arange(6.0).reshape(2, 3), "n": jnp.asarray(7, jnp.int32)}
+    ckpt = Checkpoints(tmp_path / "ckpt")
+    ckpt.save(3, saved)
+    fresh = {"w": jnp.zeros((2, 3)), "n": jax.device_put(jnp.zeros((), jnp.int32), jax.devices()[0])}
+    assert not fresh["w"].committed and fresh["n"].committed
+    back = ckpt.restore(3, fresh)
+    ckpt.close()
+    assert not back["w"].committed and back["n"].committed
+    np.testing.assert_array_equal(np.asarray(back["w"]), np.asarray(saved["w"]))
+    assert int(back["n"]) == 7 and back["n"].dtype == jnp.int32
