@@ -245,24 +245,32 @@ def test_same_key_same_trajectory_bit_for_bit_and_other_keys_differ(rolled):
     assert not np.array_equal(a[1][0], c[1][0])
 
 
-def test_vmap_step_matches_single_steps_for_64_envs(small):
-    """64 environments (different spawns and random actions) stepped as one vmap equal the
-    same 64 stepped one at a time: states and rewards agree to float32 rounding (not bit
-    for bit: XLA compiles reductions differently for a batch and for one environment; the
-    worst difference relative to max(|x|, 1) measured over 1024 environments is 4.2e-5, in
-    the velocity of a net
-    mass, where stiff line and contact forces amplify rounding over the 300 sub-steps of
-    the policy step; observations and rewards differ by under 4e-6). Flags and counters
-    are equal."""
+@pytest.mark.parametrize("how", ["jax.vmap", "batching.vmap"])
+def test_batched_step_matches_single_steps_for_64_envs(small, how):
+    """64 environments (different spawns and random actions; the first at its time limit,
+    so the step takes the auto-reset path there) stepped as one batch equal the same 64
+    stepped one at a time by the module's single-environment step, for ``jax.vmap`` (batch
+    axis first) and for the library's ``batching.vmap`` (batch axis last, the path the
+    trainer and the evaluator take). States and rewards agree to float32 rounding (not
+    bit for bit: XLA compiles reductions differently for a batch and for one environment;
+    the worst difference relative to max(|x|, 1) measured over 1024 environments is
+    4.2e-5, in the velocity of a net mass, where stiff line and contact forces amplify
+    rounding over the 300 sub-steps of the policy step; observations and rewards differ
+    by under 4e-6). Flags, counters and keys are equal."""
+    from mysim_jax import batching
+
     env, params, reset, step = small
     n = 64                        # the bound below was measured over 1024 environments
     keys = list(jax.random.split(jax.random.PRNGKey(3), n))
     # the 64 states from the module's compiled reset, stacked on the host for the batch
     singles = [reset(k, params)[1] for k in keys]
+    singles[0] = singles[0].replace(steps=jnp.asarray(env.max_steps - 1, singles[0].steps.dtype))
     states = jax.tree.map(lambda *x: np.stack(x), *singles)
     actions = list(jax.random.uniform(jax.random.PRNGKey(4), (n, 4, 3), minval=-1.0, maxval=1.0))
-    batched = jax.jit(jax.vmap(env.step, in_axes=(0, 0, 0, None)))(np.stack(keys), states, np.stack(actions), params)
+    vmap = jax.vmap if how == "jax.vmap" else batching.vmap
+    batched = jax.jit(vmap(env.step, in_axes=(0, 0, 0, None)))(np.stack(keys), states, np.stack(actions), params)
     batched = jax.tree.map(np.asarray, batched)
+    assert bool(batched[4][0]) and not batched[4][1:].any()      # truncated, then reset: env 0 only
     worst = {}
     for i in range(n):
         single = step(keys[i], singles[i], actions[i], params)
