@@ -355,10 +355,11 @@ def simulate(scene: Scene, params: Params, state: State, run, progress: bool = T
              policy=None) -> Trajectory:
     """Run the scene from ``state`` to ``run.t_end``, saving every ``run.output_dt``
     (``run``: :class:`~mysim_jax.config.RunSettings`, e.g. ``config.run_settings()``; it is
-    not part of the compiled step, so another ``t_end`` or ``output_dt`` reuses it).
+    not part of the physics: it sets how many steps run and which are saved).
 
     Fixed-step integrators run as jitted ``lax.scan`` chunks of ``chunk`` outputs with a
-    progress bar between chunks; adaptive solvers run as one diffrax solve (with diffrax's
+    progress bar between chunks (a run of fewer outputs runs one chunk of the next power
+    of two, so a short run does not pay for a whole chunk); adaptive solvers run as one diffrax solve (with diffrax's
     progress meter). Scenes with quadrotors always step (their controller acts once per
     step). Accelerations are evaluated exactly at the saved states, with the actuator
     inputs the controller holds from there.
@@ -374,7 +375,8 @@ def simulate(scene: Scene, params: Params, state: State, run, progress: bool = T
     hashable (a frozen dataclass, or a module-level function).
 
     The compiled functions are cached per Scene (``params`` and ``state`` are arguments,
-    not constants): a second call with new params or a new state does not recompile.
+    not constants): a second call with new params or a new state does not recompile, nor
+    does another ``t_end`` with as many chunks of the same size.
     This runs one environment, so the scene is run as :func:`single_env_scene` makes it.
     """
     scene = single_env_scene(scene)
@@ -382,6 +384,8 @@ def simulate(scene: Scene, params: Params, state: State, run, progress: bool = T
     if scene.integrator in FIXED_STEP or scene.quadrotor is not None or scene.effects:
         every = steps_per_output(scene, run)
         n_out = len(times) - 1
+        if 0 < n_out < chunk:          # one chunk: the next power of two, not a whole chunk
+            chunk = 1 << (n_out - 1).bit_length()
         pieces = [jax.tree.map(lambda a: np.asarray(a)[None], state)]
         failure = _non_finite(scene, pieces[0], times, 0)
         done = 0

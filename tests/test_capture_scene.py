@@ -273,7 +273,7 @@ def test_scripted_team_catches_the_falling_target_on_the_default_seed():
     assert uav_z.min() > 2.0
     # without the team the target is not held: the net does not come to it, and the target
     # falls past it to the ground (radius 0.15 m; it touches down about 1.5 s in)
-    hold = load_config(FALLING, ["team.policy=hold", "sim.t_end=2"])
+    hold = load_config(FALLING, ["team.policy=hold", "sim.t_end=1.6"])
     traj_hold = simulate(scene, params, state, hold.run_settings(), progress=False, policy=team_policy(hold, scene))
     columns_hold = trajectory_columns(scene, traj_hold)
     assert not capture_outcome(columns_hold, hold).caught
@@ -293,9 +293,9 @@ def test_simulate_script_writes_the_capture_outputs_and_refuses_a_bad_tether(tmp
     script = ROOT / "scripts" / "simulate.py"
     out = tmp_path / "capture"
     res = subprocess.run([sys.executable, str(script), str(FALLING), "--out", str(out), "--no-progress",
-                          "--set", "sim.t_end=0.4"], capture_output=True, text=True, cwd=ROOT)
+                          "--set", "sim.t_end=0.2", "--set", "sim.output_dt=0.05"], capture_output=True, text=True, cwd=ROOT)
     assert res.returncode == 0, res.stderr
-    assert "target not caught" in res.stdout          # 0.4 s: it is still falling
+    assert "target not caught" in res.stdout          # 0.2 s: it is still falling
     for name in ("capture_top.png", "capture_side.png", "capture_distances.png", "capture_tensions.png"):
         assert (out / name).stat().st_size > 10_000
     assert (out / "capture.gif").read_bytes()[:6] in (b"GIF89a", b"GIF87a")

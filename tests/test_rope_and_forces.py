@@ -152,3 +152,27 @@ def test_vmap_over_params_matches_single_runs():
     single = [jax.jit(lambda s: _payload_z_after(s, 1000))(s) for s in scales]
     np.testing.assert_allclose(batched, single, rtol=1e-12, atol=1e-15)
     assert np.min(np.abs(np.diff(np.asarray(batched)))) > 1e-5   # the samples really differ
+
+
+def test_simulate_steps_a_short_run_in_one_chunk_of_the_next_power_of_two(monkeypatch):
+    """simulate() runs a fixed-step scene in compiled chunks of ``chunk`` outputs; a run of
+    fewer outputs steps one chunk of the next power of two (not a whole chunk), a longer
+    one whole chunks, and both save the same states on the grid they share."""
+    from mysim_jax import sim
+
+    config = load_config(CONFIGS / "rope_net.yaml", ["sim.precision=float32", "sim.t_end=0.05",
+                                                     "sim.output_dt=0.01"])
+    scene, params, state = build(config)
+    calls, advance = [], sim._advance
+
+    def counted(scene, params, state, n_steps, every, policy=None):
+        calls.append(n_steps // every)
+        return advance(scene, params, state, n_steps, every, policy)
+
+    monkeypatch.setattr(sim, "_advance", counted)
+    short = sim.simulate(scene, params, state, config.run_settings(), progress=False)       # 5 outputs
+    assert calls == [8] and len(short.time) == 6 and short.time[-1] == pytest.approx(0.05)
+    calls.clear()
+    long = sim.simulate(scene, params, state, config.run_settings(), progress=False, chunk=2)
+    assert calls == [2, 2, 2] and len(long.time) == 6
+    np.testing.assert_allclose(long.phys.point_pos, short.phys.point_pos, rtol=0, atol=1e-6)
