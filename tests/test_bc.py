@@ -41,15 +41,17 @@ def test_capture_iterations_run_in_blocks_sized_from_the_real_state(trainer):
     from mysim_jax import batching
 
     env, params = trainer.env, trainer.env_params
-    state = jax.jit(env.reset)(jax.random.PRNGKey(0), params)[1]
-    nbytes = sum(np.asarray(x).nbytes for x in jax.tree.leaves(state))
+    # one environment's state, traced (shapes and dtypes, as the trainer sizes blocks from)
+    state = jax.eval_shape(env.reset, jax.random.PRNGKey(0), params)[1]
+    nbytes = sum(int(np.prod(x.shape)) * x.dtype.itemsize for x in jax.tree.leaves(state))
     assert nbytes > 4000                                           # ~5 kB per environment
     assert trainer.block == batching.chunk_for(state) == 128
-    # abstract shapes give the same size as the arrays
-    assert batching.chunk_for(jax.eval_shape(lambda: state)) == batching.chunk_for(state)
+    # arrays of those shapes give the same size as the abstract shapes
+    zeros = jax.tree.map(lambda x: np.zeros(x.shape, x.dtype), state)
+    assert batching.chunk_for(zeros) == batching.chunk_for(state)
     # the jitted iteration maps over 256 / 128 = 2 blocks of environments (the other loops
-    # have 4 steps: policy steps, epochs, minibatches)
-    text = str(jax.make_jaxpr(trainer._iteration)(trainer.init(jax.random.PRNGKey(0))))
+    # have 4 steps: policy steps, epochs, minibatches); traced, not compiled
+    text = str(jax.make_jaxpr(trainer._iteration)(jax.eval_shape(trainer.init, jax.random.PRNGKey(0))))
     assert "length=2" in text
 
 
