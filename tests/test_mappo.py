@@ -234,15 +234,17 @@ def test_target_kl_stops_the_epochs_and_the_critic_warm_up_holds_the_policy():
     env = ReachEnv()
     params = env.default_params()
     key = jax.random.PRNGKey(0)
-    free = Trainer(AlgoConfig(total_env_steps=32 * 16 * 4, **SMALL), env, params)
-    stopped = Trainer(AlgoConfig(total_env_steps=32 * 16 * 4, target_kl=1e-9, **SMALL), env, params)
+    # the KL limit is an argument of the compiled iteration: both trainers run one program
+    # (and the anchored one below the next test's, which plans as many iterations)
+    free = Trainer(AlgoConfig(total_env_steps=32 * 16 * 8, **SMALL), env, params)
+    stopped = Trainer(AlgoConfig(total_env_steps=32 * 16 * 8, target_kl=1e-9, **SMALL), env, params)
     _, m_free = free.iteration(free.init(key))
     _, m_stop = stopped.iteration(stopped.init(key))
     assert float(m_free["updates_applied"]) == 1.0
     # 4 epochs x 4 minibatches: the first update is applied, the KL check stops the rest
     assert float(m_stop["updates_applied"]) == pytest.approx(1 / 16)
 
-    warm = Trainer(AlgoConfig(total_env_steps=32 * 16 * 4, init="bc", **SMALL), env, params)
+    warm = Trainer(AlgoConfig(total_env_steps=32 * 16 * 8, init="bc", **SMALL), env, params)
     assert warm.critic_warmup == 2
     ts0 = warm.init(key)
     ts1, m = warm.iteration(ts0)

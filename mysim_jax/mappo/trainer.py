@@ -147,10 +147,28 @@ class Trainer:
                                                 self.config.init_std))
         object.__setattr__(self, "critic", Critic(tuple(self.config.hidden), self.config.activation))
         object.__setattr__(self, "tx", self._optimizer())
-        object.__setattr__(self, "iteration", jax.jit(self._iteration))
+        object.__setattr__(self, "_iteration_jit", jax.jit(self._iteration))
         object.__setattr__(self, "_init", jax.jit(self._init_state))
         one = jax.eval_shape(lambda k: self.env.reset(k, self.env_params)[1], jax.random.PRNGKey(0))
         object.__setattr__(self, "block", batching.chunk_for(one))
+
+    def iteration(self, ts: "TrainerState"):
+        """One iteration (module docstring): ``(new state, metrics)``, one jitted call. The
+        KL limit and the anchor's schedule are arguments of the compiled program, not
+        constants in it: trainers that differ only in ``target_kl``, ``bc.anchor_coef``,
+        ``bc.anchor_iterations`` or ``bc.critic_warmup`` run the same program."""
+        return self._iteration_jit(ts, self.knobs())
+
+    def knobs(self) -> dict:
+        """The settings the iteration takes as arguments (float32 scalars): the KL past which
+        an iteration's remaining minibatches are skipped (inf without ``target_kl``), and
+        the anchor schedule's weight, length and critic warm-up (0 without ``init: bc``)."""
+        c = self.config
+        anchor = self.uses_anchor
+        return {"kl_stop": jnp.float32(np.inf if c.target_kl is None else 1.5 * c.target_kl),
+                "anchor_coef": jnp.float32(c.bc.anchor_coef if anchor else 0.0),
+                "anchor_iterations": jnp.float32(c.bc.anchor_iterations),
+                "critic_warmup": jnp.float32(self.critic_warmup)}
 
     # --- pieces ----------------------------------------------------------------------
     def _schedule(self):
@@ -285,18 +303,17 @@ class Trainer:
         """Iterations at the start that train only the critic."""
         return self.config.bc.critic_warmup if self.config.init == "bc" else 0
 
-    def schedule(self, iteration):
+    def schedule(self, iteration, knobs: dict | None = None):
         """``(policy_coef, anchor_coef)`` of iteration ``iteration`` (0-based): the policy is
         held (0) during the critic's warm-up; the anchor decays linearly to 0 over
-        ``bc.anchor_iterations`` after it."""
-        c = self.config
+        ``bc.anchor_iterations`` after it (``knobs``: :meth:`knobs`, by default this
+        trainer's)."""
+        k = self.knobs() if knobs is None else knobs
         it = jnp.asarray(iteration, jnp.float32)
-        warm = float(self.critic_warmup)
+        warm = k["critic_warmup"]
         policy_coef = jnp.where(it < warm, 0.0, 1.0)
-        if not self.uses_anchor:
-            return policy_coef, jnp.float32(0.0)
-        left = jnp.clip(1.0 - (it - warm) / c.bc.anchor_iterations, 0.0, 1.0)
-        return policy_coef, jnp.float32(c.bc.anchor_coef) * left
+        left = jnp.clip(1.0 - (it - warm) / k["anchor_iterations"], 0.0, 1.0)
+        return policy_coef, k["anchor_coef"] * left
 
     def anchor_means(self, anchor: dict, raw_obs):
         """The anchor policy's action means ``(..., act)`` at raw observations ``(..., obs_size)``."""
@@ -304,14 +321,15 @@ class Trainer:
         mean, _ = self.actor.apply(anchor["actor"], self._norm_obs(stats, raw_obs))
         return mean
 
-    def _iteration(self, ts: TrainerState):
+    def _iteration(self, ts: TrainerState, knobs: dict | None = None):
         c = self.config
+        knobs = self.knobs() if knobs is None else knobs
         env_state, obs, gstate, key, traj = self._rollout(ts)
         last_value = self._values(ts.params, ts.ret_stats, ts.state_stats, gstate)
         dones = jnp.broadcast_to(traj.done[..., None], traj.reward.shape)
         adv, targets = gae(traj.reward, traj.value, dones, last_value, c.gamma, c.gae_lambda)
         ret_stats = ts.ret_stats.update(targets) if c.value_norm else ts.ret_stats
-        policy_coef, anchor_coef = self.schedule(ts.iteration)
+        policy_coef, anchor_coef = self.schedule(ts.iteration, knobs)
 
         def to_critic_units(x):
             return (x - ret_stats.mean) / ret_stats.std if c.value_norm else x
@@ -324,7 +342,7 @@ class Trainer:
         if self.uses_anchor:
             data["anchor_mean"] = self.anchor_means(ts.anchor, traj.raw_obs)
         data = jax.tree.map(lambda x: x.reshape((n,) + x.shape[2:]), data)
-        kl_stop = np.inf if c.target_kl is None else 1.5 * c.target_kl
+        kl_stop = knobs["kl_stop"]
 
         def epoch(carry, k):
             params, opt_state, stopped = carry
