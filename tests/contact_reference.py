@@ -104,7 +104,7 @@ class CollisionNetReference(RopeNetReference):
         import jax.numpy as jnp
 
         n = len(self.mass)
-        idx_a, idx_b, fix_a, fix_b, rest, k, c, tonly = self._segment_arrays()
+        idx_a, idx_b, fix_a, fix_b, rest, k, c, tonly, _ = self._segment_arrays()
         seg_in = np.zeros((n + 1, len(rest)))
         seg_in[idx_a, np.arange(len(rest))] += 1.0
         seg_in[idx_b, np.arange(len(rest))] -= 1.0

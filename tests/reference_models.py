@@ -60,7 +60,9 @@ class RopeNetReference:
         return ("fix", anchors[ref]) if ref in anchors else where[ref]
 
     def _segment_arrays(self):
-        """Vectorised form of the segment list: ends as DOF indices or fixed points."""
+        """Vectorised form of the segment list: ends as rows of the DOF positions padded
+        with one zero row (fixed ends add their point), and the incidence matrix that sums
+        segment forces onto the DOFs (+ at end a, - at end b)."""
         if not hasattr(self, "_arrays"):
             n = len(self.mass)
             idx_a = np.array([a[1] if a[0] == "dof" else n for a, *_ in self.segs])
@@ -68,26 +70,25 @@ class RopeNetReference:
             fix_a = np.array([np.zeros(3) if a[0] == "dof" else a[1] for a, *_ in self.segs])
             fix_b = np.array([np.zeros(3) if b[0] == "dof" else b[1] for _, b, *_ in self.segs])
             rest, k, c, tonly = (np.array([s[i] for s in self.segs]) for i in (2, 3, 4, 5))
-            self._arrays = (idx_a, idx_b, fix_a, fix_b, rest, k, c, tonly.astype(bool))
+            incidence = np.zeros((n + 1, len(self.segs)))
+            incidence[idx_a, np.arange(len(self.segs))] += 1.0
+            incidence[idx_b, np.arange(len(self.segs))] -= 1.0
+            self._arrays = (idx_a, idx_b, fix_a, fix_b, rest, k, c, tonly.astype(bool), incidence[:n])
         return self._arrays
 
     def accelerations(self, x, v):
         n = len(self.mass)
-        idx_a, idx_b, fix_a, fix_b, rest, k, c, tonly = self._segment_arrays()
-        # row n is a sink for fixed ends: position from fix_*, velocity zero
-        xp = np.vstack([x, np.zeros(3)])
-        vp = np.vstack([v, np.zeros(3)])
-        xa = np.where((idx_a == n)[:, None], fix_a, xp[idx_a])
-        xb = np.where((idx_b == n)[:, None], fix_b, xp[idx_b])
-        d = xb - xa
-        s = np.linalg.norm(d, axis=1)
+        idx_a, idx_b, fix_a, fix_b, rest, k, c, tonly, incidence = self._segment_arrays()
+        # row n is a sink for fixed ends: position zero plus the fixed point, velocity zero
+        xp = np.zeros((n + 1, 3))
+        vp = np.zeros((n + 1, 3))
+        xp[:n], vp[:n] = x, v
+        d = (xp[idx_b] + fix_b) - (xp[idx_a] + fix_a)
+        s = np.sqrt(np.einsum("ij,ij->i", d, d))
         u = d / s[:, None]
-        t = k * (s - rest) + c * np.sum((vp[idx_b] - vp[idx_a]) * u, axis=1)
+        t = k * (s - rest) + c * np.einsum("ij,ij->i", vp[idx_b] - vp[idx_a], u)
         t = np.where(tonly, np.where(s > rest, np.maximum(t, 0.0), 0.0), t)
-        f = np.zeros((n + 1, 3))
-        np.add.at(f, idx_a, t[:, None] * u)
-        np.add.at(f, idx_b, -t[:, None] * u)
-        return f[:n] / self.mass[:, None] + self.g
+        return (incidence @ (t[:, None] * u)) / self.mass[:, None] + self.g
 
     def solve(self, t_end, t_eval, rtol=1e-10, atol=1e-12):
         n = len(self.mass)
