@@ -359,8 +359,8 @@ def simulate(scene: Scene, params: Params, state: State, run, progress: bool = T
 
     Fixed-step integrators run as jitted ``lax.scan`` chunks of ``chunk`` outputs with a
     progress bar between chunks (a run of fewer outputs runs one chunk of the next power
-    of two, so a short run does not pay for a whole chunk); adaptive solvers run as one diffrax solve (with diffrax's
-    progress meter). Scenes with quadrotors always step (their controller acts once per
+    of two, so a short run does not pay for a whole chunk); adaptive solvers run as one
+    diffrax solve (with diffrax's progress meter). Scenes with quadrotors always step (their controller acts once per
     step). Accelerations are evaluated exactly at the saved states, with the actuator
     inputs the controller holds from there.
 

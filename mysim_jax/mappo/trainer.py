@@ -149,6 +149,7 @@ class Trainer:
         object.__setattr__(self, "tx", self._optimizer())
         object.__setattr__(self, "_iteration_jit", jax.jit(self._iteration))
         object.__setattr__(self, "_init", jax.jit(self._init_state))
+        object.__setattr__(self, "_knobs", self._make_knobs())
         one = jax.eval_shape(lambda k: self.env.reset(k, self.env_params)[1], jax.random.PRNGKey(0))
         object.__setattr__(self, "block", batching.chunk_for(one))
 
@@ -157,9 +158,13 @@ class Trainer:
         KL limit and the anchor's schedule are arguments of the compiled program, not
         constants in it: trainers that differ only in ``target_kl``, ``bc.anchor_coef``,
         ``bc.anchor_iterations`` or ``bc.critic_warmup`` run the same program."""
-        return self._iteration_jit(ts, self.knobs())
+        return self._iteration_jit(ts, self._knobs)
 
     def knobs(self) -> dict:
+        """The settings the iteration takes as arguments (:meth:`_make_knobs`, made once)."""
+        return self._knobs
+
+    def _make_knobs(self) -> dict:
         """The settings the iteration takes as arguments (float32 scalars): the KL past which
         an iteration's remaining minibatches are skipped (inf without ``target_kl``), and
         the anchor schedule's weight, length and critic warm-up (0 without ``init: bc``)."""
