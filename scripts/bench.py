@@ -77,7 +77,7 @@ COLLISION_HEAVY = ROOT / "configs" / "collision_heavy.yaml"
 ROPE_NET_SLACK = ROOT / "configs" / "rope_net_slack.yaml"
 CAPTURE_FALLING = ROOT / "configs" / "capture_falling.yaml"
 CAPTURE_ENV = ROOT / "configs" / "capture_env_falling.yaml"
-SECTIONS = ("a", "b", "c", "d", "e", "f", "g", "h", "i")
+SECTIONS = ("a", "b", "c", "d", "e", "f", "g", "h", "i", "j")
 TRAIN_CAPTURE = ROOT / "configs" / "train_capture_falling.yaml"
 
 # The throughput setting of the performance targets.
@@ -1508,6 +1508,10 @@ def plot_throughput(results, plots_dir: Path) -> Path | None:
 
 def summary_lines(results) -> list[str]:
     out = ["## Summary", ""]
+    if "emitter_speedup" in results:
+        out.append("- XLA CPU code generation (j): XLA's older emitters (the test suite's) run the same programs "
+                   + ", ".join(f"{x:.2f}×" for x in results["emitter_speedup"].values())
+                   + " as fast as its default fusion emitters (capture env train, capture env full, rope net).")
     if "ours_4096" in results:
         v = results["ours_4096"]
         out.append(f"- Throughput (a) at B = {HEADLINE_BATCH}: **{v:,.0f} env-steps/s** — target ≥ {TARGET_ENV_STEPS:,}: "
@@ -1623,7 +1627,8 @@ def summary_lines(results) -> list[str]:
 # =========================================================================================
 
 
-def _env_call(env, params, batch: int, n_steps: int, kind: str = "env", vmap: Callable = batching.vmap):
+def _env_call(env, params, batch: int, n_steps: int, kind: str = "env", vmap: Callable = batching.vmap,
+              compiler_options: dict | None = None):
     """AOT-compiled ``jit(vmap(...))`` over ``batch`` environments reset from distinct keys
     (``vmap``: the library's batch-last ``mysim_jax.batching.vmap`` or ``jax.vmap``):
     ``kind="env"``: ``n_steps`` team steps (:meth:`CaptureEnv.step` with the scripted team's
@@ -1648,7 +1653,8 @@ def _env_call(env, params, batch: int, n_steps: int, kind: str = "env", vmap: Ca
 
     if vmap is batching.vmap:      # the library's batched path: cache-sized blocks of environments
         vmap = partial(batching.vmap, chunk=batching.chunk_for(jax.tree.map(lambda x: x[0], states)))
-    compiled, compile_s, memory = aot_compile(jax.jit(vmap(run_env)), keys, states)
+    compiled, compile_s, memory = aot_compile(jax.jit(vmap(run_env)), keys, states,
+                                              compiler_options=compiler_options)
     return Compiled(kind, batch, n_steps, lambda: compiled(keys, states), compile_s, memory)
 
 
@@ -1739,6 +1745,59 @@ def section_i(cfg, results) -> list[str]:
                   f"`full` in the same run: "
                   f"{'MET' if train['rate'].get(1024, 0) >= LEVEL_TARGET and train['rate'].get(1024, 0) >= 30 * rows['full']['rate'].get(1024, 1e9) else 'NOT MET'}**."]
     return lines + ["", contention_note("i", cfg.env_repeats), ""]
+
+
+EMITTERS = {"older (LLVM) emitters": {"xla_cpu_use_fusion_emitters": False},
+            "fusion emitters (XLA's default)": {"xla_cpu_use_fusion_emitters": True}}
+
+
+def section_j(cfg, results) -> list[str]:
+    """XLA's two CPU code generators for fusions, on the same programs side by side."""
+    scene, params, state = _throughput_scene()
+    rope_b = 64 if cfg.quick else 1024
+    rope_k = steps_for_batch(rope_b, cfg.env_steps_per_call)
+    train_b, full_b = (16, 16) if cfg.quick else (1024, 256)
+    train_env, train_params = _env_variant(["level=train", "env.policy_rate=10.0"])
+    full_env, full_params = _env_variant(["env.policy_rate=10.0"])
+    programs = {
+        f"capture env, level train, B = {train_b} (1 team step at 10 Hz)":
+            lambda o: _env_call(train_env, train_params, train_b, 1, compiler_options=o),
+        f"capture env, level full, B = {full_b} (1 team step at 10 Hz)":
+            lambda o: _env_call(full_env, full_params, full_b, 1, compiler_options=o),
+        f"rope net (a), B = {rope_b}, {rope_k} steps":
+            lambda o: compile_batched("rope", library_run_env(scene, rope_k), params, state, rope_b, rope_k,
+                                      compiler_options=o),
+    }
+    compiled = {}
+    for name, make in tqdm(programs.items(), desc="(j) emitters", leave=False):
+        for emitter, options in EMITTERS.items():
+            compiled[name, emitter] = make(options)
+    wait_for_quiet(cfg.max_wait_s, "j")
+    times = time_round_robin({f"{k[0]} / {k[1]}": c.call for k, c in compiled.items()}, cfg.env_repeats,
+                             section="j")
+    older, default = EMITTERS
+    lines = [
+        "## (j) XLA CPU code generation: older emitters vs fusion emitters",
+        "",
+        "Each program compiled twice in this process, once per code generator "
+        "(`.lower().compile(compiler_options={'xla_cpu_use_fusion_emitters': ...})`, which overrides `XLA_FLAGS`), "
+        f"and the six timed round-robin (median of {cfg.env_repeats} calls); the environments blocked as the "
+        "library blocks them (`batching.chunk_for`). The library runs with XLA's default; the test suite compiles "
+        "with the older emitters (`tests/conftest.py`), which compile faster.",
+        "",
+        f"| program | compile [s] {older} | compile [s] {default} | call [ms] {older} | call [ms] {default} "
+        "| speed-up of the older emitters |",
+        "|---|---:|---:|---:|---:|---:|",
+    ]
+    ratios = {}
+    for name in programs:
+        a, b = compiled[name, older], compiled[name, default]
+        ta, tb = median(times[f"{name} / {older}"]), median(times[f"{name} / {default}"])
+        ratios[name] = tb / ta
+        lines.append(f"| {name} | {a.compile_s:.1f} | {b.compile_s:.1f} | {1e3 * ta:,.1f} | {1e3 * tb:,.1f} | "
+                     f"{tb / ta:.2f}× |")
+    results["emitter_speedup"] = ratios
+    return lines + ["", contention_note("j", cfg.env_repeats), ""]
 
 
 def section_e(cfg, results) -> list[str]:
@@ -2258,7 +2317,7 @@ def main(argv=None) -> int:
     results: dict[str, Any] = {}
     body: list[str] = []
     runners = {"a": section_a, "b": section_b, "c": section_c, "d": section_d, "e": section_e, "f": section_f,
-               "g": section_g, "h": section_h, "i": section_i}
+               "g": section_g, "h": section_h, "i": section_i, "j": section_j}
     order = [s for s in SECTIONS if s in sections]
     for s in tqdm(order, desc="bench sections", unit="section"):
         t0 = time.perf_counter()

@@ -25,6 +25,19 @@ from pathlib import Path
 import jax
 import pytest
 
+# XLA's CPU code generator for the tests: its older LLVM emitters
+# (``--xla_cpu_use_fusion_emitters=false``), not the MLIR fusion emitters XLA uses by
+# default. The suite's time is mostly XLA compiling, and the older emitters compile the
+# same programs faster (README, "Run the tests"); the programs compute the same values to
+# float round-off (the suite passes under both; ``scripts/bench.py --only j`` compares
+# their speed). The library itself keeps XLA's default, whose code runs faster.
+# ``MYSIM_TEST_XLA_EMITTERS=default`` runs the suite with XLA's default. Set before any
+# backend starts (XLA reads XLA_FLAGS then) and inherited by the scripts the tests start.
+TEST_XLA_FLAGS = "--xla_cpu_use_fusion_emitters=false"
+if os.environ.get("MYSIM_TEST_XLA_EMITTERS", "older") != "default" and "fusion_emitters" not in os.environ.get(
+        "XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = " ".join(f for f in (os.environ.get("XLA_FLAGS", ""), TEST_XLA_FLAGS) if f)
+
 _XLA_CACHE = os.environ.get("MYSIM_TEST_XLA_CACHE", str(Path(tempfile.gettempdir()) / "mysim_jax_test_xla_cache"))
 if _XLA_CACHE != "off":
     # environment variables reach the scripts started as subprocesses (every program); the

@@ -42,11 +42,18 @@ TIMEOUT = 240   # s per child process; they take a few seconds to ~40 s on 2 sha
 
 def child_env(**extra) -> dict:
     """This process's environment for a child: our ``mysim_jax`` first on the path, no
-    64-bit switch, no inherited ``XLA_FLAGS`` unless given, one thread pool per child."""
+    64-bit switch, no inherited ``XLA_FLAGS`` but the code generator's unless given, one
+    thread pool per child."""
     env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAX_ENABLE_X64")}
     env["PYTHONPATH"] = os.pathsep.join([str(ROOT)] + [p for p in [os.environ.get("PYTHONPATH")] if p])
     env["JAX_PLATFORMS"] = "cpu"
     env.update(extra)
+    # the code generator the suite compiles with (tests/conftest.py), so that children and
+    # this process compile the same code
+    codegen = [f for f in os.environ.get("XLA_FLAGS", "").split() if "fusion_emitters" in f]
+    flags = " ".join([*env.get("XLA_FLAGS", "").split(), *codegen])
+    if flags:
+        env["XLA_FLAGS"] = flags
     return env
 
 

@@ -78,10 +78,12 @@ ropes:
 T_END = 1.0
 OUT_DT = 1e-3
 TOLERANCE_M = 1e-5          # the requirement: positions within 1e-5 m of the reference
-# Measured 9.6e-9 m (tsit5, rtol 1e-10, atol 1e-12); kept ~7x above that.
-MEASURED_BOUND_M = 7e-8
-# Measured body angular velocity error 7.2e-8 rad/s.
-ANGVEL_BOUND = 1e-6
+# Measured (tsit5, rtol 1e-10, atol 1e-12) 6.0e-8 m and 1.1e-6 rad/s with the XLA CPU
+# code generator the suite compiles with (tests/conftest.py), 2.4e-8 m and 1.8e-7 rad/s
+# with XLA's default one: the rounding of either moves the slack/taut switching times the
+# adaptive solver resolves. Kept ~10x above the larger.
+MEASURED_BOUND_M = 6e-7
+ANGVEL_BOUND = 1e-5
 
 
 def _raw():

@@ -189,7 +189,7 @@ class Compiled:
 
 def compile_batched(label: str, run_env: Callable, params, state, batch: int, n_steps: int,
                     batch_params: bool = False, chunk: int | None = None, keep_hlo: bool = False,
-                    vmap: Callable = batching.vmap) -> Compiled:
+                    vmap: Callable = batching.vmap, compiler_options: dict | None = None) -> Compiled:
     """``jit(vmap(run_env))`` over a batch of ``batch`` copies of ``state``; ``vmap`` is
     the library's ``mysim_jax.batching.vmap`` (batch axis last, the default) or
     ``jax.vmap`` (batch axis first).
@@ -218,16 +218,18 @@ def compile_batched(label: str, run_env: Callable, params, state, batch: int, n_
         fn = jax.jit(chunked)
     pb = broadcast(params, batch) if batch_params else params
     sb = broadcast(state, batch)
-    compiled, compile_s, memory = aot_compile(fn, pb, sb)
+    compiled, compile_s, memory = aot_compile(fn, pb, sb, compiler_options=compiler_options)
     return Compiled(label, batch, n_steps, lambda: compiled(pb, sb), compile_s, memory,
                     compiled.as_text() if keep_hlo else "")
 
 
-def aot_compile(fn, *args):
-    """``(compiled, compile seconds, memory stats or None)`` of a jitted ``fn`` on ``args``."""
+def aot_compile(fn, *args, compiler_options: dict | None = None):
+    """``(compiled, compile seconds, memory stats or None)`` of a jitted ``fn`` on ``args``;
+    ``compiler_options`` (XLA debug options by name) override ``XLA_FLAGS`` for this
+    program only."""
     jax.block_until_ready(args)
     t0 = time.perf_counter()
-    compiled = fn.lower(*args).compile()
+    compiled = fn.lower(*args).compile(compiler_options=compiler_options)
     compile_s = time.perf_counter() - t0
     try:
         memory = compiled.memory_analysis()
