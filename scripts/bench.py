@@ -1982,10 +1982,10 @@ def splice_sections(old: list[str], new: list[str], rerun: list[str]) -> list[st
     summary = [ln for ln in summary if ln.strip()] + kept_summary
     out = header + [note, "", "## Summary", ""] + summary + [""]
     for s in SECTIONS:
-        if s in sections:
-            out += sections[s]
-        elif s in kept:
-            out += old_sections[s]
+        block = sections.get(s) if s in sections else old_sections.get(s) if s in kept else None
+        if block:
+            # the last section of a file lost its trailing blank line when it was written
+            out += block + ([""] if block[-1].strip() else [])
     return out
 
 
