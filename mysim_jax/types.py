@@ -26,14 +26,11 @@ from typing import TYPE_CHECKING
 import jax.numpy as jnp
 from flax import struct
 
-from mysim_jax import xla_cpu
 from mysim_jax.contact.types import ContactParams, ContactScene
 
 if TYPE_CHECKING:  # annotations only: these modules import this one
     from mysim_jax.control.pid import ControlParams, ControlState
     from mysim_jax.dynamics.quadrotor import QuadrotorParams, QuadrotorScene
-
-xla_cpu.install()   # before any program of the simulator is lowered (see the module)
 
 
 @dataclass(frozen=True)

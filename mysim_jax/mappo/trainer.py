@@ -45,11 +45,9 @@ import numpy as np
 import optax
 from flax import struct
 
-from mysim_jax import batching, xla_cpu
+from mysim_jax import batching
 from mysim_jax.mappo.losses import (RunningStats, gae, gaussian_entropy, gaussian_log_prob, normalize_advantages,
                                     policy_loss, value_loss)
-
-xla_cpu.install()   # before any program is lowered (mysim_jax.xla_cpu)
 
 _ACTIVATIONS = {"tanh": nn.tanh, "relu": nn.relu}
 

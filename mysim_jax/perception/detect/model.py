@@ -63,11 +63,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import serialization
 
-from mysim_jax import xla_cpu
 from mysim_jax.perception.camera import PerceptionError
 from mysim_jax.perception.detect import Detection
-
-xla_cpu.install()   # before any program is lowered (mysim_jax.xla_cpu)
 
 STRIDE = 4          # px of network input per output cell
 PYRAMID_NMS_IOU = 0.5   # boxes of pyramid levels overlapping more than this are one detection
