@@ -74,6 +74,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from mysim_jax import rng
 from mysim_jax.build import build
 from mysim_jax.control.setpoint import setpoint_from_action
 from mysim_jax.dynamics.quaternion import quat_rotate
@@ -311,8 +312,12 @@ class CaptureEnv:
         leaves_low, treedef = jax.tree.flatten(ranges.low)
         leaves_high = jax.tree.leaves(ranges.high)
         keys = jax.random.split(key, len(leaves_low))
-        drawn = [jax.random.uniform(k, lo.shape, dtype=lo.dtype, minval=lo, maxval=hi)
-                 for k, lo, hi in zip(keys, leaves_low, leaves_high)]
+        dtypes = {lo.dtype for lo in leaves_low}
+        if len(dtypes) == 1:     # one draw for all fields (rng: the same values, less code)
+            drawn = rng.uniform_each(keys, [lo.shape for lo in leaves_low], dtypes.pop(), leaves_low, leaves_high)
+        else:
+            drawn = [jax.random.uniform(k, lo.shape, dtype=lo.dtype, minval=lo, maxval=hi)
+                     for k, lo, hi in zip(keys, leaves_low, leaves_high)]
         return jax.tree.unflatten(treedef, drawn)
 
     def episode_params(self, params: EnvParams, ep: Episode) -> Params:
@@ -387,17 +392,19 @@ class CaptureEnv:
         """Errors drawn from their stationary distributions (an episode's first)."""
         keys = jax.random.split(key, 4)
         sigma = params.perception[:, 0].astype(dtype)
-        return PerceptionErrors(**{name: sigma[i] * jax.random.normal(k, shape, dtype)
-                                   for i, (k, (name, shape)) in enumerate(zip(keys, self._error_shapes().items()))})
+        shapes = self._error_shapes()
+        xi = rng.normal_each(keys, list(shapes.values()), dtype)
+        return PerceptionErrors(**{name: sigma[i] * xi[i] for i, name in enumerate(shapes)})
 
     def _step_errors(self, key, errors: PerceptionErrors, params: EnvParams, dtype) -> PerceptionErrors:
         """One policy period of every Gauss-Markov error: ``e' = rho e + sigma √(1 - rho²) ξ``."""
         keys = jax.random.split(key, 4)
         sigma, rho = params.perception[:, 0].astype(dtype), params.perception[:, 1].astype(dtype)
         drive = sigma * jnp.sqrt(jnp.maximum(1.0 - rho * rho, 0.0))
-        return PerceptionErrors(**{
-            name: (rho[i] * getattr(errors, name) + drive[i] * jax.random.normal(k, shape, dtype)).astype(dtype)
-            for i, (k, (name, shape)) in enumerate(zip(keys, self._error_shapes().items()))})
+        shapes = self._error_shapes()
+        xi = rng.normal_each(keys, list(shapes.values()), dtype)
+        return PerceptionErrors(**{name: (rho[i] * getattr(errors, name) + drive[i] * xi[i]).astype(dtype)
+                                   for i, name in enumerate(shapes)})
 
     def estimates(self, state: EnvState):
         """``(uav_pos (n, 3), uav_vel (n, 3), target_pos (3,), target_vel (3,))`` as the team
@@ -442,12 +449,12 @@ class CaptureEnv:
         quads = np.asarray(self.quad_bodies, dtype=np.int32)
         knots = np.asarray(self.knot_points, dtype=np.int32)
         sigma = state.episode.noise.astype(dtype)
-        k = jax.random.split(key, 4)
+        xi = rng.normal_each(jax.random.split(key, 4), [(n, 3)] * 4, dtype)
         est_pos, est_vel, est_tpos, est_tvel = self.estimates(state)
-        pos = est_pos + sigma[0] * jax.random.normal(k[0], (n, 3), dtype)
-        vel = est_vel + sigma[1] * jax.random.normal(k[1], (n, 3), dtype)
-        tpos = est_tpos + sigma[2] * jax.random.normal(k[2], (n, 3), dtype)
-        tvel = est_tvel + sigma[3] * jax.random.normal(k[3], (n, 3), dtype)
+        pos = est_pos + sigma[0] * xi[0]
+        vel = est_vel + sigma[1] * xi[1]
+        tpos = est_tpos + sigma[2] * xi[2]
+        tvel = est_tvel + sigma[3] * xi[3]
         c_net = jnp.mean(phys.point_pos[knots], axis=0)
         v_net = jnp.mean(phys.point_vel[knots], axis=0)
         # each agent's own prediction of the catch point, from its measurement of the target

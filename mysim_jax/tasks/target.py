@@ -34,7 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from mysim_jax import vecmath
+from mysim_jax import rng, vecmath
 from mysim_jax.dynamics.forces import Loads
 
 SPEED_LIMIT_TIME_CONSTANT = 0.25   # s, braking back to max_speed
@@ -87,10 +87,9 @@ def evasive_command(static: TargetScene, tp: TargetParams, memory: TargetMemory,
     """``(a_cmd (3,), memory)``: the evasive behaviour's commanded acceleration (module docstring)."""
     key, k_angle, k_interval = jax.random.split(memory.key, 3)
     redraw = t >= memory.next_jink
-    angle = jax.random.uniform(k_angle, (), dtype=t.dtype, maxval=2.0 * jnp.pi)
+    angle, interval = rng.uniform_each(jnp.stack([k_angle, k_interval]), [(), ()], t.dtype,
+                                       (0.0, tp.jink_interval_low), (2.0 * jnp.pi, tp.jink_interval_high))
     new_jink = tp.jink_acceleration * jnp.stack([jnp.cos(angle), jnp.sin(angle), jnp.zeros_like(angle)])
-    interval = jax.random.uniform(k_interval, (), dtype=t.dtype, minval=tp.jink_interval_low,
-                                  maxval=tp.jink_interval_high)
     jink = jnp.where(redraw, new_jink, memory.jink)
     next_jink = jnp.where(redraw, t + interval, memory.next_jink)
 
@@ -199,8 +198,8 @@ def spawn_target(scene, params, state, key):
     tp = params.effects["target"]
     k_pos, k_vel, k_next = jax.random.split(key, 3)
     dtype = state.phys.body_pos.dtype
-    pos = jax.random.uniform(k_pos, (3,), dtype=dtype, minval=tp.spawn_pos_low, maxval=tp.spawn_pos_high)
-    vel = jax.random.uniform(k_vel, (3,), dtype=dtype, minval=tp.spawn_vel_low, maxval=tp.spawn_vel_high)
+    pos, vel = rng.uniform_each(jnp.stack([k_pos, k_vel]), [(3,), (3,)], dtype,
+                                (tp.spawn_pos_low, tp.spawn_vel_low), (tp.spawn_pos_high, tp.spawn_vel_high))
     b = static.body
     phys = state.phys.replace(
         body_pos=state.phys.body_pos.at[b].set(pos),

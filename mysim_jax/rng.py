@@ -1,0 +1,64 @@
+"""Several independent random draws computed as one: ``jax.random``'s values, bit for bit.
+
+A program that draws ``n`` arrays from ``n`` keys (``jax.random.uniform(keys[i], shape_i)``)
+contains ``n`` copies of the Threefry hash, each a loop that XLA compiles separately on
+the CPU; under ``jax.vmap`` each costs about a second of compile time on this project's
+machine. The functions here draw them in one call, ``jax.vmap`` over the keys of a flat
+draw as long as the largest shape, and cut each array out of its row. The values are
+``jax.random``'s own: with JAX's partitionable Threefry (``jax_threefry_partitionable``,
+the default since JAX 0.5) element ``j`` of a draw depends only on its key and ``j``, so
+a shape's draw is the first ``size`` elements of any longer flat draw from the same key
+(``tests/test_rng.py`` checks the draws against ``jax.random``'s, eagerly, jitted and
+vmapped; the functions refuse to run when the setting is off). Arithmetic on the draws
+inside a larger program may still round differently after the change, as after any
+change that makes XLA fuse a program differently.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+
+
+def _check_partitionable() -> None:
+    if not jax.config.jax_threefry_partitionable:
+        raise RuntimeError("mysim_jax.rng needs jax_threefry_partitionable=True (JAX's default): with the "
+                           "older Threefry layout a short draw is not the start of a longer one")
+
+
+def _rows(kind, keys, shapes, dtype):
+    _check_partitionable()
+    shapes = [tuple(s) for s in shapes]
+    if len(shapes) != keys.shape[0]:
+        raise ValueError(f"{len(shapes)} shapes for {keys.shape[0]} keys")
+    longest = max([1] + [math.prod(s) for s in shapes])
+    rows = jax.vmap(lambda k: kind(k, (longest,), dtype))(keys)
+    return [rows[i, :math.prod(s)].reshape(s) for i, s in enumerate(shapes)]
+
+
+def uniform_each(keys, shapes, dtype=float, minvals=None, maxvals=None) -> list:
+    """``[jax.random.uniform(keys[i], shapes[i], dtype, minvals[i], maxvals[i]) for i]`` as one
+    draw. ``keys`` ``(n, 2)`` (raw ``uint32`` keys, e.g. ``jax.random.split(key, n)``);
+    ``minvals``/``maxvals`` sequences of ``n`` values broadcastable to their shapes
+    (default 0 and 1)."""
+    dtype = jax.dtypes.canonicalize_dtype(dtype)
+    unit = _rows(jax.random.uniform, keys, shapes, dtype)
+    n = len(unit)
+    minvals = [0.0] * n if minvals is None else list(minvals)
+    maxvals = [1.0] * n if maxvals is None else list(maxvals)
+    return [_scale(u, jnp.asarray(lo, dtype), jnp.asarray(hi, dtype)) for u, lo, hi in zip(unit, minvals, maxvals)]
+
+
+@jax.jit
+def _scale(unit, low, high):
+    # jax.random.uniform's own arithmetic on its [0, 1) floats, compiled as it compiles it
+    # (eagerly, the product and the sum would round separately)
+    return jax.lax.max(jnp.broadcast_to(low, unit.shape), unit * (high - low) + low)
+
+
+def normal_each(keys, shapes, dtype=float) -> list:
+    """``[jax.random.normal(keys[i], shapes[i], dtype) for i]`` as one draw (``keys`` as in
+    :func:`uniform_each`)."""
+    return _rows(jax.random.normal, keys, shapes, jax.dtypes.canonicalize_dtype(dtype))
