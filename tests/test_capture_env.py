@@ -212,6 +212,7 @@ def rollout(env, params, key, n, actions_fn):
 def test_sizes_and_first_observation(small):
     env, params, reset, _ = small
     assert (env.n_agents, env.control_steps, env.max_steps) == (4, 20, 10)
+    assert not env.observation_noise                                   # env.noise all zero: no draws
     obs, state = reset(jax.random.PRNGKey(0), params)
     assert obs.shape == (4, env.obs_size) and obs.dtype == jnp.float32
     np.testing.assert_array_equal(obs[:, -5:-1], np.eye(4))           # one-hot ids
@@ -397,7 +398,7 @@ def test_randomisation_draws_inside_the_ranges():
         "env.randomize.wind={low: [-0.3, -0.2, 0.0], high: [0.3, 0.2, 0.0]}",
         "env.noise.target_position={low: 0.1, high: 0.1}"])
     env, params = make_env(config)
-    assert env.scene.quadrotor.has_wind
+    assert env.scene.quadrotor.has_wind and env.observation_noise
     keys = jax.random.split(jax.random.PRNGKey(0), 256)
     obs, states = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))(keys, params)
     ep = jax.tree.map(np.asarray, states.episode)

@@ -33,7 +33,9 @@ and the time to it (in ``CATCH_TIME_SCALE``), from its own measurement of the ta
 (:meth:`CaptureEnv.catch_point`: the drag-aware fall of a falling target to the net
 centre's height; a maneuvering target's position); its one-hot id; the fraction of the
 episode left. Own and target measurements carry Gaussian noise (``env.noise``, standard
-deviations drawn per episode), independent per agent. With ``env.perception`` the team flies
+deviations drawn per episode), independent per agent; a file whose ``env.noise`` ranges are
+all zero (the default) makes an environment without the noise's draws in its programs
+(:attr:`CaptureEnv.observation_noise`; ``EnvParams.ranges.noise`` then has no effect). With ``env.perception`` the team flies
 on estimates: the UAVs' positions and velocities and the target's carry correlated
 estimation errors (first-order Gauss-Markov, :class:`PerceptionErrors` in the state), in
 the observations and in what the scripted team sees (:meth:`CaptureEnv.estimates`).
@@ -80,7 +82,7 @@ from mysim_jax.control.setpoint import setpoint_from_action
 from mysim_jax.dynamics.quaternion import quat_rotate
 from mysim_jax.sim import step as sim_step
 from mysim_jax.tasks.env_config import (COST_TERMS, CRASHES, FAILURES, MISSES, OUTCOME_TERMS, REWARD_TERMS,
-                                        SHAPING_TERMS)
+                                        SHAPING_TERMS, NoiseConfig)
 from mysim_jax.tasks.intercept import CatchPoint, predict_catch
 from mysim_jax.tasks.outcome import border_knots
 from mysim_jax.tasks.rewards import Snapshot, checks, cost_terms, outcome_terms, potential_terms
@@ -180,6 +182,7 @@ class CaptureEnv:
     target_drag_per_mass: float = 0.0    # 1/m, nominal k / m of the target: what the team assumes
     gravity: tuple[float, float, float] = (0.0, 0.0, -9.81)   # m/s^2, world
     perception: bool = False             # the team flies on estimates (levels: EnvParams.perception)
+    observation_noise: bool = True       # env.noise has a nonzero range (else no noise is drawn)
 
     # --- sizes ------------------------------------------------------------------------
     @property
@@ -449,12 +452,15 @@ class CaptureEnv:
         quads = np.asarray(self.quad_bodies, dtype=np.int32)
         knots = np.asarray(self.knot_points, dtype=np.int32)
         sigma = state.episode.noise.astype(dtype)
-        xi = rng.normal_each(jax.random.split(key, 4), [(n, 3)] * 4, dtype)
         est_pos, est_vel, est_tpos, est_tvel = self.estimates(state)
-        pos = est_pos + sigma[0] * xi[0]
-        vel = est_vel + sigma[1] * xi[1]
-        tpos = est_tpos + sigma[2] * xi[2]
-        tvel = est_tvel + sigma[3] * xi[3]
+        if self.observation_noise:
+            xi = rng.normal_each(jax.random.split(key, 4), [(n, 3)] * 4, dtype)
+            pos = est_pos + sigma[0] * xi[0]
+            vel = est_vel + sigma[1] * xi[1]
+            tpos = est_tpos + sigma[2] * xi[2]
+            tvel = est_tvel + sigma[3] * xi[3]
+        else:   # sigma is 0 in every episode: the same values without the draws' code
+            pos, vel, tpos, tvel = (jnp.broadcast_to(x, (n, 3)) for x in (est_pos, est_vel, est_tpos, est_tvel))
         c_net = jnp.mean(phys.point_pos[knots], axis=0)
         v_net = jnp.mean(phys.point_vel[knots], axis=0)
         # each agent's own prediction of the catch point, from its measurement of the target
@@ -600,7 +606,8 @@ def make_env(config) -> tuple[CaptureEnv, EnvParams]:
         falling=config.target.behaviour == "falling",
         target_drag_per_mass=float(config.target.drag_constant / config.target.mass),
         gravity=tuple(float(g) for g in config.gravity),
-        perception=env_cfg.perception is not None)
+        perception=env_cfg.perception is not None,
+        observation_noise=any(getattr(env_cfg.noise, f).high > 0.0 for f in NoiseConfig.model_fields))
     weights = env_cfg.weights()
     env_params = EnvParams(sim=params, start=state,
                            weights=jnp.asarray([weights[k] for k in REWARD_TERMS], scene.dtype),
