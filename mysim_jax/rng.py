@@ -62,3 +62,15 @@ def normal_each(keys, shapes, dtype=float) -> list:
     """``[jax.random.normal(keys[i], shapes[i], dtype) for i]`` as one draw (``keys`` as in
     :func:`uniform_each`)."""
     return _rows(jax.random.normal, keys, shapes, jax.dtypes.canonicalize_dtype(dtype))
+
+
+def as_matrix(init):
+    """A convolution kernel initialiser that draws the kernel ``(..., in, out)`` as the
+    ``(fan_in, out)`` matrix it multiplies with: the same values as ``init`` on the full
+    shape (a draw in C order, and the same fan-in) for fan-in scaled and fixed-scale
+    initialisers (``he_normal``, ``lecun_normal``, ``normal``), not for fan-out or fan-avg
+    ones. A rank-2 draw compiles several times faster than a rank-4 one on the CPU."""
+    def matrix_init(key, shape, dtype=jnp.float32):
+        shape = tuple(shape)
+        return init(key, (math.prod(shape[:-1]), shape[-1]), dtype).reshape(shape)
+    return matrix_init

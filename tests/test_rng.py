@@ -52,3 +52,15 @@ def test_one_key_per_shape_and_the_partitionable_layout_are_required():
     with jax.threefry_partitionable(False):
         with pytest.raises(RuntimeError, match="jax_threefry_partitionable"):
             rng.uniform_each(keys, [(1,), (2,)])
+
+
+@pytest.mark.parametrize("name, init", [("he_normal", jax.nn.initializers.he_normal()),
+                                        ("lecun_normal", jax.nn.initializers.lecun_normal()),
+                                        ("normal", jax.nn.initializers.normal(1e-3))])
+def test_kernels_drawn_as_matrices_equal_the_initialisers_own(name, init):
+    """The detector's convolution kernels (mysim_jax/perception/detect) use rng.as_matrix."""
+    for i, shape in enumerate([(3, 3, 16, 32), (1, 1, 48, 4), (3, 3, 3, 24), (5, 7)]):
+        key = jax.random.PRNGKey(100 + i)
+        a, b = np.asarray(init(key, shape)), np.asarray(rng.as_matrix(init)(key, shape))
+        assert a.shape == b.shape == shape
+        np.testing.assert_array_equal(a.view(np.uint32), b.view(np.uint32), err_msg=f"{name} {shape}")

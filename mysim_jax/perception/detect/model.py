@@ -63,6 +63,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import serialization
 
+from mysim_jax import rng
 from mysim_jax.perception.camera import PerceptionError
 from mysim_jax.perception.detect import Detection
 
@@ -79,7 +80,8 @@ class CenterNet(nn.Module):
 
     @nn.compact
     def __call__(self, x):
-        conv = partial(nn.Conv, kernel_size=(3, 3), padding="SAME", kernel_init=nn.initializers.he_normal())
+        conv = partial(nn.Conv, kernel_size=(3, 3), padding="SAME",
+                       kernel_init=rng.as_matrix(nn.initializers.he_normal()))
         feats = []
         for k, c in enumerate(self.widths):
             x = nn.relu(conv(c, strides=(2, 2), name=f"down{k}")(x))
@@ -92,11 +94,13 @@ class CenterNet(nn.Module):
             c = self.widths[k]
             b, h, w, _ = feats[k].shape
             y = jax.image.resize(y, (b, h, w, y.shape[-1]), method="nearest")
-            y = nn.Conv(c, (1, 1), name=f"lat{k}")(y) + feats[k]
+            lateral = nn.Conv(c, (1, 1), name=f"lat{k}", kernel_init=rng.as_matrix(nn.initializers.lecun_normal()))
+            y = lateral(y) + feats[k]
             y = nn.relu(conv(c, name=f"up{k}")(y))
         head = nn.relu(conv(self.widths[1], name="head")(y))
-        heat = nn.Conv(1, (1, 1), name="heat", bias_init=nn.initializers.constant(-4.0))(head)
-        box = nn.Conv(4, (1, 1), name="box", kernel_init=nn.initializers.normal(1e-3))(head)
+        heat = nn.Conv(1, (1, 1), name="heat", kernel_init=rng.as_matrix(nn.initializers.lecun_normal()),
+                       bias_init=nn.initializers.constant(-4.0))(head)
+        box = nn.Conv(4, (1, 1), name="box", kernel_init=rng.as_matrix(nn.initializers.normal(1e-3)))(head)
         return jnp.concatenate([heat, box], axis=-1)
 
 

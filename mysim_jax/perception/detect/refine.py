@@ -48,6 +48,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from mysim_jax import rng
+
 POS_IOU = 0.25       # a candidate at least this IoU with a counted target is a positive
 IGNORE_IOU = 0.1     # below POS_IOU but above this (or above this with an ignored target): no label
 
@@ -61,7 +63,8 @@ class RefineNet(nn.Module):
 
     @nn.compact
     def __call__(self, x):
-        conv = partial(nn.Conv, kernel_size=(3, 3), padding="SAME", kernel_init=nn.initializers.he_normal())
+        conv = partial(nn.Conv, kernel_size=(3, 3), padding="SAME",
+                       kernel_init=rng.as_matrix(nn.initializers.he_normal()))
         for k, c in enumerate(self.widths):
             x = nn.relu(conv(c, strides=(1, 1) if k == 0 else (2, 2), name=f"down{k}")(x))
             if k > 0:
