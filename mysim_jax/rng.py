@@ -2,8 +2,7 @@
 
 A program that draws ``n`` arrays from ``n`` keys (``jax.random.uniform(keys[i], shape_i)``)
 contains ``n`` copies of the Threefry hash, each a loop that XLA compiles separately on
-the CPU; under ``jax.vmap`` each costs about a second of compile time on this project's
-machine. The functions here draw them in one call, ``jax.vmap`` over the keys of a flat
+the CPU, and under ``jax.vmap`` each adds noticeably to the program's compile time. The functions here draw them in one call, ``jax.vmap`` over the keys of a flat
 draw as long as the largest shape, and cut each array out of its row. The values are
 ``jax.random``'s own: with JAX's partitionable Threefry (``jax_threefry_partitionable``,
 the default since JAX 0.5) element ``j`` of a draw depends only on its key and ``j``, so
@@ -69,7 +68,7 @@ def as_matrix(init):
     ``(fan_in, out)`` matrix it multiplies with: the same values as ``init`` on the full
     shape (a draw in C order, and the same fan-in) for fan-in scaled and fixed-scale
     initialisers (``he_normal``, ``lecun_normal``, ``normal``), not for fan-out or fan-avg
-    ones. A rank-2 draw compiles several times faster than a rank-4 one on the CPU."""
+    ones. A rank-2 draw compiles faster than a rank-4 one on the CPU."""
     def matrix_init(key, shape, dtype=jnp.float32):
         shape = tuple(shape)
         return init(key, (math.prod(shape[:-1]), shape[-1]), dtype).reshape(shape)
