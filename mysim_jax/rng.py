@@ -2,8 +2,9 @@
 
 A program that draws ``n`` arrays from ``n`` keys (``jax.random.uniform(keys[i], shape_i)``)
 contains ``n`` copies of the Threefry hash, each a loop that XLA compiles separately on
-the CPU, and under ``jax.vmap`` each adds noticeably to the program's compile time. The functions here draw them in one call, ``jax.vmap`` over the keys of a flat
-draw as long as the largest shape, and cut each array out of its row. The values are
+the CPU, and under ``jax.vmap`` each adds noticeably to the program's compile time. The
+functions here draw them in one call, ``jax.vmap`` over the keys of a flat draw as long
+as the largest shape, and cut each array out of its row. The values are
 ``jax.random``'s own: with JAX's partitionable Threefry (``jax_threefry_partitionable``,
 the default since JAX 0.5) element ``j`` of a draw depends only on its key and ``j``, so
 a shape's draw is the first ``size`` elements of any longer flat draw from the same key
