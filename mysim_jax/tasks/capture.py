@@ -315,12 +315,8 @@ class CaptureEnv:
         leaves_low, treedef = jax.tree.flatten(ranges.low)
         leaves_high = jax.tree.leaves(ranges.high)
         keys = jax.random.split(key, len(leaves_low))
-        dtypes = {lo.dtype for lo in leaves_low}
-        if len(dtypes) == 1:     # one draw for all fields (rng: the same values, less code)
-            drawn = rng.uniform_each(keys, [lo.shape for lo in leaves_low], dtypes.pop(), leaves_low, leaves_high)
-        else:
-            drawn = [jax.random.uniform(k, lo.shape, dtype=lo.dtype, minval=lo, maxval=hi)
-                     for k, lo, hi in zip(keys, leaves_low, leaves_high)]
+        # one draw for every field (the scene's dtype), each from its own key
+        drawn = rng.uniform_each(keys, [lo.shape for lo in leaves_low], leaves_low[0].dtype, leaves_low, leaves_high)
         return jax.tree.unflatten(treedef, drawn)
 
     def episode_params(self, params: EnvParams, ep: Episode) -> Params:

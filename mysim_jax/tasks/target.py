@@ -85,9 +85,10 @@ def _static(scene) -> TargetScene:
 
 def evasive_command(static: TargetScene, tp: TargetParams, memory: TargetMemory, phys, t):
     """``(a_cmd (3,), memory)``: the evasive behaviour's commanded acceleration (module docstring)."""
-    key, k_angle, k_interval = jax.random.split(memory.key, 3)
+    keys = jax.random.split(memory.key, 3)
+    key = keys[0]
     redraw = t >= memory.next_jink
-    angle, interval = rng.uniform_each(jnp.stack([k_angle, k_interval]), [(), ()], t.dtype,
+    angle, interval = rng.uniform_each(keys[1:], [(), ()], t.dtype,
                                        (0.0, tp.jink_interval_low), (2.0 * jnp.pi, tp.jink_interval_high))
     new_jink = tp.jink_acceleration * jnp.stack([jnp.cos(angle), jnp.sin(angle), jnp.zeros_like(angle)])
     jink = jnp.where(redraw, new_jink, memory.jink)
@@ -196,9 +197,10 @@ def spawn_target(scene, params, state, key):
     over keys to spawn a batch. The other bodies and points are not touched."""
     static = _static(scene)
     tp = params.effects["target"]
-    k_pos, k_vel, k_next = jax.random.split(key, 3)
+    keys = jax.random.split(key, 3)      # position, velocity, the target's next key
+    k_next = keys[2]
     dtype = state.phys.body_pos.dtype
-    pos, vel = rng.uniform_each(jnp.stack([k_pos, k_vel]), [(3,), (3,)], dtype,
+    pos, vel = rng.uniform_each(keys[:2], [(3,), (3,)], dtype,
                                 (tp.spawn_pos_low, tp.spawn_vel_low), (tp.spawn_pos_high, tp.spawn_vel_high))
     b = static.body
     phys = state.phys.replace(
