@@ -473,6 +473,8 @@ class SceneConfig(StrictModel):
                 claim(f"{r.name}_{j}", f"ropes.{i} (its mass {j})")
         for i, s in enumerate(self.springs):
             claim(s.name, f"springs.{i}")
+        for i, j in enumerate(self.joints):
+            claim(j.name, f"joints.{i}")
 
         attachable = self.attachment_names()
         for i, r in enumerate(self.ropes):

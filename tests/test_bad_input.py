@@ -140,6 +140,9 @@ def test_unusable_output_folders_are_refused_before_any_work(tmp_path):
     _rejected(tmp_path, ROPE, "--out", tmp_path / ("x" * 300), expect="longer than the file system allows")
     _rejected(tmp_path, ROPE, "--out", "", expect="--out: empty path")
     _rejected(tmp_path, ROPE, "--out", "   ", expect="--out: empty path")
+    # writable by their permission bits for root, yet no folder can be made there
+    for special in ("/proc/x", "/sys/x"):
+        _rejected(tmp_path, ROPE, "--out", special, expect="cannot make a folder in")
 
 
 def test_an_unwritable_output_folder_is_refused(tmp_path, monkeypatch):
@@ -285,6 +288,18 @@ def test_joints_that_cannot_be_solved_are_named(tmp_path):
     raw["joints"].append({"name": "again", "type": "fixed", "marker_i": "pivot", "marker_j": "bob.top"})
     path.write_text(yaml.safe_dump(raw))
     _rejected(tmp_path, path, expect=("'hinge'", "'again'", "more than once"))
+
+
+def test_joints_share_the_scene_names_and_are_refused_when_named_alike(tmp_path):
+    path = tmp_path / "joint.yaml"
+    raw = _pendulum("universal", [0.7071067811865476, 0.7071067811865476, 0, 0])
+    raw["joints"].append(dict(raw["joints"][0]))                       # two joints 'hinge'
+    path.write_text(yaml.safe_dump(raw))
+    _rejected(tmp_path, path, expect="joints.1: name 'hinge' is already used by joints.0")
+    raw = _pendulum("universal", [0.7071067811865476, 0.7071067811865476, 0, 0])
+    raw["joints"][0]["name"] = "bob"                                   # a joint named like the body
+    path.write_text(yaml.safe_dump(raw))
+    _rejected(tmp_path, path, expect="joints.0: name 'bob' is already used by bodies.0")
 
 
 # --- runs that turn non-finite -----------------------------------------------------------------

@@ -3,8 +3,9 @@
 ``check_output_dir(path)`` tells, before anything is loaded or compiled, whether a run
 could write to ``path``: not empty, not an existing file or device, no part of it an
 existing non-directory, every name within the file system's length limit, and the
-nearest existing folder writable. It raises :class:`OutputError` saying which of these
-fails.
+nearest existing folder writable (a folder is made in it and removed again, as the
+permission bits do not tell about read-only mounts or /proc). It raises
+:class:`OutputError` saying which of these fails.
 
 ``staged_output(path)`` is where a run writes: a hidden temporary folder beside the
 destination. Only when the ``with`` block finishes do its files move into ``path``
@@ -68,6 +69,14 @@ def check_output_dir(path: str | os.PathLike, flag: str = "--out") -> Path:
         raise OutputError(f"{flag} {text}: '{existing}' is a file, not a folder, so nothing can be made under it")
     if not os.access(existing, os.W_OK | os.X_OK):
         raise OutputError(f"{flag} {text}: no permission to write into '{existing}'")
+    # what staged_output will do first: make a folder in ``existing``. Permission bits do
+    # not tell everything (a read-only mount, /proc or /sys, where even root cannot)
+    try:
+        probe = tempfile.mkdtemp(prefix=f".{out.name or 'out'}.check-", dir=existing)
+    except OSError as exc:
+        raise OutputError(f"{flag} {text}: cannot make a folder in '{existing}': "
+                          f"{exc.strerror or exc}") from None
+    os.rmdir(probe)
     return out
 
 
