@@ -407,7 +407,10 @@ def simulate(scene: Scene, params: Params, state: State, run, progress: bool = T
     else:
         ts = jnp.asarray(times, dtype=scene.dtype)
         ys, result, n_steps = _solve_on_grid(scene, params, state.phys, ts, bool(progress))
-        phys = jax.tree.map(np.asarray, ys)
+        # row 0 is the initial state itself; a solve that gives up on its first output
+        # interval leaves every saved row unfilled (inf), that one included
+        phys = jax.tree.map(lambda y, y0: np.concatenate([np.asarray(y0, np.asarray(y).dtype)[None],
+                                                          np.asarray(y)[1:]]), ys, state.phys)
         states = State(phys=phys, time=times.astype(phys.point_pos.dtype))
         failure = _non_finite(scene, states, times, 0)
         if result != diffrax.RESULTS.successful:

@@ -337,6 +337,24 @@ def test_an_adaptive_solve_that_runs_out_of_steps_says_so(tmp_path):
     assert json.loads((out / "metrics.json").read_text())["status"] == "failed"
 
 
+def test_a_solve_that_gives_up_on_its_first_interval_keeps_the_initial_row(tmp_path):
+    """One solver step allowed: no output interval is reached, and OUT holds the t = 0 row
+    (the initial state), as the message says. In-process: float32 keeps the process in
+    32-bit mode."""
+    out = tmp_path / "first"
+    code, err = _main(CONFIGS / "collision_light.yaml", "--out", out, "--set", "sim.max_steps=1",
+                      "--set", "sim.t_end=0.1", "--set", "sim.precision=float32", "--set", "sim.rtol=1e-5",
+                      "--set", "sim.atol=1e-5", "--no-progress")
+    assert code == 3 and "Traceback" not in err, err
+    assert "gave up after t = 0 s" in err and "wrote the finite part" in err
+    cols = read_trajectory_csv(out / "trajectory.csv")
+    assert list(cols["time"]) == [0.0] and json.loads((out / "metrics.json").read_text())["n_outputs"] == 1
+    from mysim_jax.config import load_config
+
+    ball = load_config(CONFIGS / "collision_light.yaml").points[1]                  # released at z = 0.5 m
+    np.testing.assert_allclose([cols[f"{ball.name}_{a}"][0] for a in "xyz"], ball.pos, rtol=0, atol=1e-7)
+
+
 def test_a_failed_run_leaves_nothing_half_written(tmp_path, monkeypatch):
     """Outputs go to a hidden temporary folder first: if writing fails half-way (here:
     the plot step raises), OUT does not appear and no temporary folder is left."""
