@@ -55,6 +55,13 @@ def main(argv=None) -> int:
 
             overrides = gain_overrides(args.gains, args.config) + overrides
         config = load_config(args.config, overrides)
+        # a run without a team: block flies the quadrotors' references, so a controlled
+        # quadrotor needs one (a scene without them is driven by setpoints passed to step)
+        unflown = [i for i, q in enumerate(config.quadrotors) if q.controller is not None and q.reference is None]
+        if unflown and config.team is None:
+            raise ConfigError(f"{args.config}: quadrotors.{unflown[0]}.reference: missing; simulate.py flies each "
+                              "controlled quadrotor along its reference, or a team: block flies them (a scene "
+                              "without either is driven by setpoints passed to step() from Python)")
         out = check_output_dir(args.out)
     except (ConfigError, OutputError) as err:
         print(f"error: {err}", file=sys.stderr)

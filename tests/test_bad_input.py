@@ -290,6 +290,13 @@ def test_joints_that_cannot_be_solved_are_named(tmp_path):
     _rejected(tmp_path, path, expect=("'hinge'", "'again'", "more than once"))
 
 
+def test_a_controlled_quadrotor_without_a_reference_or_a_team_is_refused(tmp_path):
+    """Allowed by the schema (setpoints passed to step() drive it), but simulate.py would
+    have nothing to fly: one line naming the field, before any work."""
+    _rejected(tmp_path, UAV, "--set", "quadrotors.0.reference=null",
+              expect=("quadrotors.0.reference: missing", "team: block"))
+
+
 def test_joints_share_the_scene_names_and_are_refused_when_named_alike(tmp_path):
     path = tmp_path / "joint.yaml"
     raw = _pendulum("universal", [0.7071067811865476, 0.7071067811865476, 0, 0])
