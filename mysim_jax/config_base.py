@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import stat
 import typing
 from pathlib import Path
@@ -148,11 +149,46 @@ class StrictModel(BaseModel):
         return out
 
 
+# the names pydantic gives the members of a union in an error's location (field names
+# are snake_case words, never these)
+_PLAIN_TAGS = {"int", "float", "str", "bool", "none", "list", "dict", "tuple"}
+_TAG_PREFIXES = ("constrained-", "function-", "lax-or-strict", "json-or-python", "tagged-union", "is-instance",
+                 "literal[", "nullable[")
+
+
+def _readable_tag(tag: str) -> str:
+    """A union member's schema name as a reader would say it: validators dropped, tuples of
+    numbers counted (``tuple[function-after[_bounded(), float], ...]`` -> ``3 numbers``)."""
+    prev = None
+    while prev != tag:
+        prev = tag
+        tag = re.sub(r"function-(?:after|before|wrap|plain)\[[^\[\]]*?,\s*([^\[\]]+?)\]", r"\1", tag)
+    tag = re.sub(r"constrained-(int|float)", r"\1", tag)
+    tag = re.sub(r"^literal\[(.*)\]$", r"\1", tag)
+    tag = re.sub(r"tuple\[(float(?:, float)*)\]", lambda m: f"{m.group(1).count('float')} numbers", tag)
+    return re.sub(r"tuple\[((\d+) numbers(?:, \2 numbers)*)\]",
+                  lambda m: f"{m.group(1).count('numbers')} x {m.group(2)} numbers", tag)
+
+
+def _split_location(loc) -> tuple[list[str], list[str]]:
+    """The path as the user wrote it, and the union members the error went through."""
+    path, members = [], []
+    for part in loc:
+        part = str(part)
+        if "[" in part or "(" in part or part in _PLAIN_TAGS or part.startswith(_TAG_PREFIXES):
+            members.append(_readable_tag(part))
+        else:
+            path.append(part)
+    return path, members
+
+
 def format_validation_error(err: ValidationError) -> str:
-    """One line per problem: ``dotted.path: message (got value)``."""
+    """One line per problem: ``dotted.path: message (got value)``; an error inside one
+    member of a union (a value that may be written in several forms) says which form
+    it was read as: ``bodies.0.inertia (as 3 numbers): too few entries``."""
     lines = []
     for e in err.errors():
-        loc = [str(p) for p in e["loc"]]
+        loc, members = _split_location(e["loc"])
         kind, msg = e["type"], e["msg"]
         if msg.startswith("Value error, "):
             msg = msg[len("Value error, "):]
@@ -166,10 +202,11 @@ def format_validation_error(err: ValidationError) -> str:
             msg = "too many entries"
         elif kind not in ("missing", "value_error") and not isinstance(e.get("input"), (dict, list)):
             shown = f" (got {_short(e['input'])})"
+        form = f" (as {', '.join(members)})" if members else ""
         if not loc:  # whole-model checks already name their fields
             lines.extend(f"  {part}" for part in msg.split("; "))
         else:
-            lines.append(f"  {'.'.join(loc)}: {msg}{shown}")
+            lines.append(f"  {'.'.join(loc)}{form}: {msg}{shown}")
     return "\n".join(lines)
 
 
@@ -262,9 +299,9 @@ def read_text_file(path: str | Path, what: str = "config file") -> str:
     """Read ``path`` as UTF-8 text. Raises :class:`ConfigError` naming the file and saying
     what is wrong with it (missing, a directory or device, unreadable, too large, binary,
     not UTF-8)."""
+    if os.fspath(path).strip() == "":          # Path("") would be "." (a directory)
+        raise ConfigError(f"empty path given for the {what}: name a YAML file")
     path = Path(path)
-    if str(path) == "":
-        raise ConfigError(f"empty path given for the {what}")
     try:
         info = os.stat(path)
     except FileNotFoundError:

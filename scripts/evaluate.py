@@ -85,7 +85,8 @@ def main(argv=None) -> int:
     parser.add_argument("--policy", required=True, help="scripted, random, a trained policy folder (RUN/policy), or a Python file defining make_policy")
     parser.add_argument("--episodes", type=int, required=True, help="number of episodes (>= 1)")
     parser.add_argument("--out", required=True, help="output directory (created if missing)")
-    parser.add_argument("--batch", type=int, default=64, help="environments run side by side (default 64)")
+    parser.add_argument("--batch", type=int, default=None, help="environments run side by side (default 64, "
+                        "at most --episodes)")
     parser.add_argument("--seed", type=int, default=0, help="PRNG seed of the whole evaluation (default 0)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="override a config value, e.g. --set env.policy_rate=10 (repeatable)")
@@ -98,8 +99,12 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
 
     for flag, value, low in (("--episodes", args.episodes, 1), ("--batch", args.batch, 1), ("--seed", args.seed, 0)):
-        if value < low:
+        if value is not None and value < low:
             return _error(f"{flag} {value}: must be at least {low}")
+    if args.batch is not None and args.batch > args.episodes:
+        print(f"note: --batch {args.batch} is more than --episodes {args.episodes}: running {args.episodes} "
+              "side by side", file=sys.stderr)
+    args.batch = min(64 if args.batch is None else args.batch, args.episodes)
 
     from mysim_jax.config import ConfigError, load_config
     from mysim_jax.io.output import OutputError, check_output_dir

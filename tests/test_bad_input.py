@@ -112,6 +112,24 @@ def test_scene_files_that_are_not_utf8_yaml_text_are_named(tmp_path):
     _rejected(tmp_path, files / "empty.yaml", expect="must be a YAML mapping")
 
 
+def test_an_empty_scene_path_is_named_as_such(tmp_path):
+    for empty in ("", "  "):
+        _rejected(tmp_path, empty, expect="empty path given for the config file")
+
+
+def test_a_value_of_the_wrong_form_is_named_by_its_path_and_the_forms_it_may_take(tmp_path):
+    """An inertia is 3 numbers (the diagonal) or 3 x 3 numbers: the error says which form
+    each problem was read as, with the path as written in the file."""
+    code, err = _main(UAV, "--out", tmp_path / "o", "--set", "bodies.0.inertia=[1, 2]")
+    assert code == 2
+    assert "bodies.0.inertia (as 3 numbers): too few entries" in err
+    assert "bodies.0.inertia (as 3 x 3 numbers): too few entries" in err
+    assert "function-after" not in err and "tuple[" not in err
+    code, err = _main(ROPE, "--out", tmp_path / "o", "--set", "sim.substeps=x")
+    assert code == 2 and "sim.substeps (as int): " in err and "sim.substeps (as 'auto'): " in err
+    assert "constrained-int" not in err
+
+
 def test_gains_files_that_are_broken_are_named(tmp_path):
     files = tmp_path / "files"
     files.mkdir()

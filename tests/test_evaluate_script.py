@@ -105,6 +105,15 @@ def test_bad_input_exits_2_and_writes_nothing(tmp_path, case):
     assert not out.exists() and not list(tmp_path.glob(".eval*"))
 
 
+def test_a_batch_larger_than_the_episodes_is_said(tmp_path):
+    """Not an error (the batch becomes the episode count), but announced in one line; the
+    missing scene then ends the run before anything loads."""
+    res = _run(tmp_path / "nope.yaml", "--policy", "scripted", "--episodes", 2, "--batch", 64, "--out", tmp_path / "o")
+    assert res.returncode == 2
+    assert "note: --batch 64 is more than --episodes 2: running 2 side by side" in res.stderr
+    assert "no such config file" in res.stderr and "Traceback" not in res.stderr
+
+
 def test_record_episode_stops_at_the_pre_reset_state():
     from mysim_jax.tasks.capture import make_env
     from mysim_jax.tasks.episode import record_episode

@@ -158,16 +158,19 @@ def test_capture_environment_end_to_end_tiny(tmp_path):
     from 32 environments x 16 steps (the demonstration program of tests/test_bc.py, which
     then comes from the compilation cache), one iteration of 4 environments x 2 steps, model
     selection on 2 episodes before and after it, all on the level ``train``; the final
-    evaluation (2 episodes, no baseline) on the level ``full``; the saved policy then loads
+    evaluation (2 episodes, no baseline; a batch of 4 asked for, 2 run) on the level ``full``; the saved policy then loads
     as evaluate.py's --policy RUN/policy and is traced on the environment (jax.eval_shape,
     no compile)."""
     out = tmp_path / "run"
     sets = ["algo.num_envs=4", "algo.num_steps=2", "algo.total_env_steps=8", "algo.num_minibatches=2",
             "algo.bc.num_envs=32", "algo.bc.steps=16", "algo.bc.epochs=2", "algo.bc.holdout=0.2",
             "run.selection.episodes=2", "run.selection.every=1", "env.eval_level=full",
-            "run.eval_episodes=2", "run.eval_batch=2", "run.eval_baseline=false", "env.level=train"]
+            "run.eval_episodes=2", "run.eval_batch=4", "run.eval_baseline=false", "env.level=train"]
     res = _run(["configs/train_capture_falling.yaml", "--out", str(out), *[a for s in sets for a in ("--set", s)]])
     assert res.returncode == 0, res.stderr
+    # a batch larger than the episodes is not an error, but it is said
+    assert "note: run.eval_batch 4 is more than run.eval_episodes 2: the final evaluation runs 2 side by side" \
+        in res.stdout
     # the run folder is self-contained: its scene is the resolved training scene (velocity
     # setpoints, the shaping's discount the trainer's gamma, the level train), and the
     # evaluation's scene is the level full with the same overrides

@@ -345,6 +345,9 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
     env, env_params = make_environment(p)
     if evaluate and p.scene is not None:
         eval_env, eval_params = make_eval_environment(p, env, env_params)   # checked before any compile
+        if c.run.eval_batch > c.run.eval_episodes:
+            log(f"note: run.eval_batch {c.run.eval_batch} is more than run.eval_episodes {c.run.eval_episodes}: "
+                f"the final evaluation runs {c.run.eval_episodes} side by side")
     trainer = Trainer(c.algo, env, env_params)
     ckpt = Checkpoints(p.out / "checkpoints", keep=c.run.keep_checkpoints)
     key = jax.random.PRNGKey(c.run.seed)
