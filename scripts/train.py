@@ -62,7 +62,12 @@ def main(argv=None) -> int:
     except (ConfigError, OutputError) as err:
         return _error(str(err))
     print(describe_run(prepared))
-    summary = train_run(prepared, progress=not args.no_progress, evaluate=not args.no_eval)
+    from mysim_jax.mappo.checkpoint import CheckpointError
+
+    try:
+        summary = train_run(prepared, progress=not args.no_progress, evaluate=not args.no_eval)
+    except CheckpointError as err:
+        return _error(str(err))
     print(json.dumps({k: v for k, v in summary.items() if k != "evaluation"}, indent=None))
     return 0
 

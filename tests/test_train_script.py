@@ -15,6 +15,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
@@ -68,19 +69,30 @@ def test_outputs_and_learning(tmp_path):
         policy_maker(str(out / "policy"))(ReachEnv(n_agents=3), None)
 
 
-def test_sigkill_then_resume_equals_an_uninterrupted_run(tmp_path):
+ITERATIONS, EVERY = 60, 5
+
+
+@pytest.fixture(scope="module")
+def whole_run(tmp_path_factory):
+    """An uninterrupted reach run of 60 iterations, checkpointed every 5 (the last two
+    kept: 55 and 60), without evaluation. Run first: the runs below then find the
+    iteration's program in the compilation cache (a resumed run calls the program of a
+    fresh start)."""
+    tmp = tmp_path_factory.mktemp("whole")
+    cfg = tmp / "reach.yaml"
+    cfg.write_text(REACH % (32 * 16 * ITERATIONS, EVERY))
+    res = _run([str(cfg), "--out", str(tmp / "whole"), "--no-eval"])
+    assert res.returncode == 0, res.stderr
+    return cfg, tmp / "whole"
+
+
+def test_sigkill_then_resume_equals_an_uninterrupted_run(tmp_path, whole_run):
     """Killed with SIGKILL once a checkpoint at iteration 10 or later exists, resumed: the policy
     and every iteration's metrics equal the uninterrupted run's exactly (bit for bit;
     tolerance 0), timing columns aside."""
-    iterations, every = 60, 5
-    cfg = tmp_path / "reach.yaml"
-    cfg.write_text(REACH % (32 * 16 * iterations, every))
-    whole, killed = tmp_path / "whole", tmp_path / "killed"
-    # the uninterrupted run first: the run to be killed and its resumption then find the
-    # iteration's program in the compilation cache (a resumed run calls the program of a
-    # fresh start)
-    res = _run([str(cfg), "--out", str(whole), "--no-eval"])
-    assert res.returncode == 0, res.stderr
+    iterations = ITERATIONS
+    cfg, whole = whole_run
+    killed = tmp_path / "killed"
     proc = subprocess.Popen([sys.executable, str(SCRIPT), str(cfg), "--out", str(killed), "--no-eval",
                              "--no-progress"], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
@@ -108,6 +120,75 @@ def test_sigkill_then_resume_equals_an_uninterrupted_run(tmp_path):
     assert len(a) == len(b) == iterations
     for ra, rb in zip(a, b):
         assert {k: v for k, v in ra.items() if k not in TIMING} == {k: v for k, v in rb.items() if k not in TIMING}
+
+
+def _damage(step_dir: Path, how: str) -> None:
+    """Overwrite every data file of a checkpoint with random bytes, or empty them."""
+    rng = np.random.default_rng(0)
+    files = [f for f in step_dir.rglob("*") if f.is_file() and "d" in f.relative_to(step_dir).parts]
+    assert files, step_dir
+    for f in files:
+        size = f.stat().st_size
+        f.write_bytes(rng.integers(0, 256, size, dtype=np.uint8).tobytes() if how == "random" else b"")
+
+
+def test_resume_skips_a_damaged_checkpoint_and_refuses_when_none_is_usable(tmp_path, whole_run):
+    """The last checkpoint (60) damaged three ways; the one before (55) intact. Resuming
+    takes 55 and says why 60 was skipped: its files differ from their checksums (random
+    bytes), or, with the checksum file gone too, restoring it fails (emptied files). Through
+    train.py the resumed run then ends with the uninterrupted run's policy, bit for bit.
+    With both damaged, resuming is refused with one error naming the folder."""
+    import shutil
+
+    import jax
+
+    from mysim_jax.mappo.checkpoint import CheckpointError, Checkpoints
+    from mysim_jax.mappo.run import make_environment, prepare
+    from mysim_jax.mappo.trainer import Trainer
+
+    _, whole = whole_run
+    assert sorted(p.name for p in (whole / "checkpoints").glob("*.sha256.json")) == ["55.sha256.json",
+                                                                                      "60.sha256.json"]
+    p = prepare(None, [], None, str(whole), None)
+    env, env_params = make_environment(p)
+    like = jax.eval_shape(Trainer(p.config.algo, env, env_params).init, jax.random.PRNGKey(0))
+    for case in ("random", "empty, no checksum file", "both"):
+        run = tmp_path / case.split(",")[0]
+        shutil.copytree(whole, run)
+        ckpt = run / "checkpoints"
+        _damage(ckpt / "60", "random" if case == "random" else "empty")
+        if case != "random":
+            (ckpt / "60.sha256.json").unlink()
+        if case == "both":
+            _damage(ckpt / "55", "random")
+        said = []
+        checkpoints = Checkpoints(ckpt)
+        if case == "both":
+            with pytest.raises(CheckpointError, match=f"{ckpt}: none of the 2 checkpoints can be resumed from") as err:
+                checkpoints.restore_newest(like, log=said.append)
+            assert "checkpoint 60: restoring it failed" in str(err.value)
+            assert "checkpoint 55: " in str(err.value) and "differ from their checksums" in str(err.value)
+            continue
+        step, state = checkpoints.restore_newest(like, log=said.append)
+        assert step == 55 and int(state.iteration) == 55
+        assert len(said) == 2 and said[0].startswith(f"skipping checkpoint 60 in {ckpt}: ")
+        assert ("differ from their checksums" if case == "random" else "restoring it failed") in said[0]
+        assert said[1] == f"moved the damaged checkpoint 60 to {ckpt / 'damaged-60'}"
+        assert sorted(p.name for p in ckpt.iterdir() if p.is_dir()) == ["55", "damaged-60"]
+    # through the script: the damaged run resumes from 55 and ends where the whole run ended
+    shutil.rmtree(tmp_path / "random")
+    shutil.copytree(whole, tmp_path / "random")
+    _damage(tmp_path / "random" / "checkpoints" / "60", "random")
+    res = _run(["--resume", str(tmp_path / "random"), "--no-eval"])
+    assert res.returncode == 0, res.stderr
+    assert "skipping checkpoint 60" in res.stdout and "resuming" in res.stdout
+    assert (tmp_path / "random" / "policy" / "policy.msgpack").read_bytes() == \
+        (whole / "policy" / "policy.msgpack").read_bytes()
+    before = sorted(str(p.relative_to(tmp_path)) for p in (tmp_path / "both").rglob("*"))
+    res = _run(["--resume", str(tmp_path / "both"), "--no-eval"])
+    assert res.returncode == 2 and "Traceback" not in res.stderr
+    assert f"error: {tmp_path / 'both' / 'checkpoints'}: none of the 2 checkpoints" in res.stderr
+    assert sorted(str(p.relative_to(tmp_path)) for p in (tmp_path / "both").rglob("*")) == before
 
 
 @pytest.mark.parametrize("text, sets, message", [

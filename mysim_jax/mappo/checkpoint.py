@@ -5,8 +5,16 @@
 ``RUN/checkpoints/<iteration>/``, written synchronously through an orbax
 ``CheckpointManager``. Orbax writes each checkpoint into a temporary folder and renames it
 when complete, so a run killed at any moment (SIGKILL included) leaves its last complete
-checkpoint readable; :meth:`Checkpoints.latest` ignores unfinished ones. Restoring gives
-the state bit for bit, so a resumed run continues exactly where the checkpoint was taken.
+checkpoint readable; :meth:`Checkpoints.latest` ignores unfinished ones. Beside each one,
+``<iteration>.sha256.json`` holds the SHA-256 of every file in it, written once the
+checkpoint is complete. :meth:`Checkpoints.restore_newest` resumes from the newest
+checkpoint whose files match their checksums and that restores, and says which newer
+ones it skipped and why (files changed or missing, or the restore failing; a checkpoint
+without a checksum file, as left by a run stopped between the two writes, is tried as
+it is); the skipped ones are renamed ``damaged-<iteration>``, so the resumed run writes
+those iterations again. When none is usable it raises :class:`CheckpointError` and
+changes nothing. Restoring gives the state bit for bit, so a resumed run continues exactly where
+the checkpoint was taken.
 
 **Policy** (:func:`save_policy`, :func:`load_policy`): the deterministic policy alone, for
 evaluation and deployment: ``policy.json`` (the network's shape and the environment it was
@@ -16,6 +24,7 @@ flax serialisation).
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 from pathlib import Path
@@ -27,6 +36,23 @@ from flax import serialization
 
 POLICY_JSON = "policy.json"
 POLICY_PARAMS = "policy.msgpack"
+
+
+class CheckpointError(ValueError):
+    """No checkpoint of a run can be restored. The message names the folder and each reason."""
+
+
+def _digests(folder: Path) -> dict[str, str]:
+    """SHA-256 of every file under ``folder``, by path relative to it."""
+    out = {}
+    for path in sorted(folder.rglob("*")):
+        if path.is_file():
+            h = hashlib.sha256()
+            with path.open("rb") as f:
+                for block in iter(lambda: f.read(1 << 20), b""):
+                    h.update(block)
+            out[path.relative_to(folder).as_posix()] = h.hexdigest()
+    return out
 
 
 class Checkpoints:
@@ -44,11 +70,80 @@ class Checkpoints:
         tree = serialization.to_state_dict(state)
         self.manager.save(int(iteration), args=self._ocp.args.StandardSave(tree), force=True)
         self.manager.wait_until_finished()
+        sums = self.folder / f"{int(iteration)}.sha256.json"
+        tmp = sums.with_name(sums.name + ".tmp")
+        tmp.write_text(json.dumps(_digests(self.folder / str(int(iteration))), indent=0))
+        os.replace(tmp, sums)
+        kept = {str(s) for s in self.manager.all_steps()}
+        for old in self.folder.glob("*.sha256.json"):          # of checkpoints orbax deleted
+            if old.name.split(".")[0] not in kept:
+                old.unlink(missing_ok=True)
+
+    def check(self, iteration: int) -> str | None:
+        """Why checkpoint ``iteration``'s files do not match their checksums (None: they do,
+        or no checksum file was written)."""
+        sums = self.folder / f"{int(iteration)}.sha256.json"
+        if not sums.is_file():
+            return None
+        try:
+            want = json.loads(sums.read_text())
+        except (OSError, ValueError) as exc:
+            return f"its checksum file {sums.name} is unreadable ({type(exc).__name__})"
+        have = _digests(self.folder / str(int(iteration)))
+        missing = sorted(set(want) - set(have))
+        if missing:
+            return f"{len(missing)} of its files are missing ({missing[0]}, ...)"
+        changed = sorted(k for k in want if have[k] != want[k])
+        if changed:
+            return f"{len(changed)} of its files differ from their checksums ({changed[0]}, ...)"
+        return None
+
+    def restore_newest(self, like, log=print):
+        """``(iteration, state)`` of the newest checkpoint that verifies and restores, or
+        ``(None, like)`` when there is none at all. Each newer one skipped is logged with its
+        reason; raises :class:`CheckpointError` when checkpoints exist but none is usable."""
+        self.manager.reload()
+        steps = sorted(self.manager.all_steps(), reverse=True)
+        reasons, skipped = [], []
+        for step in steps:
+            reason = self.check(step)
+            if reason is None:
+                try:
+                    state = self.restore(step, like)
+                except Exception as exc:          # noqa: BLE001: any failure of a damaged checkpoint
+                    first = (str(exc).strip().splitlines() or [""])[0][:160]
+                    reason = f"restoring it failed: {type(exc).__name__}: {first}"
+                else:
+                    self._set_aside(skipped, log)
+                    return step, state
+            reasons.append(f"checkpoint {step}: {reason}")
+            skipped.append(step)
+            log(f"skipping checkpoint {step} in {self.folder}: {reason}")
+        if steps:
+            raise CheckpointError(f"{self.folder}: none of the {len(steps)} checkpoints can be resumed from: "
+                                  + "; ".join(reasons))
+        return None, like
 
     def latest(self) -> int | None:
         """The last complete checkpoint's iteration, or None."""
         self.manager.reload()
         return self.manager.latest_step()
+
+    def _set_aside(self, steps, log) -> None:
+        """Rename damaged checkpoints to ``damaged-<iteration>`` (kept for inspection), so
+        that the resumed run can write those iterations again."""
+        for step in steps:
+            n = 0
+            while (self.folder / f"damaged-{step}{'' if n == 0 else f'-{n}'}").exists():
+                n += 1
+            name = f"damaged-{step}{'' if n == 0 else f'-{n}'}"
+            os.replace(self.folder / str(step), self.folder / name)
+            sums = self.folder / f"{step}.sha256.json"
+            if sums.exists():
+                os.replace(sums, self.folder / f"{name}.sha256.json")
+            log(f"moved the damaged checkpoint {step} to {self.folder / name}")
+        if steps:
+            self.manager.reload()
 
     def restore(self, iteration: int, like):
         """The state saved at ``iteration``, with the structure of ``like`` (a state of the

@@ -358,9 +358,8 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
     previous_wall = 0.0
     restored = False
     if p.resume:
-        last = ckpt.latest()
+        last, state = ckpt.restore_newest(state, log=log)
         if last is not None:
-            state = ckpt.restore(last, state)
             start_iteration = int(state.iteration)
             restored = True
     rows = _read_rows(p.out / "metrics.csv", start_iteration)
