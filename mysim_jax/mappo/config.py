@@ -330,7 +330,12 @@ def load_scene(config: TrainConfig, train_path: str | Path, level: str | None = 
     # policy only with the discount the learner optimises)
     level = config.env.level if level is None else level
     level_set = [] if level is None else [f"level={level}"]
-    scene = load_config(path, [*config.env.set, *level_set, f"env.discount={config.algo.gamma!r}"])
+    try:
+        scene = load_config(path, [*config.env.set, *level_set, f"env.discount={config.algo.gamma!r}"])
+    except ConfigError as err:
+        if str(err).startswith("--set "):          # an entry of env.set that is not key=value
+            raise ConfigError(f"{train_path}: env.set: {err}") from None
+        raise
     missing = [b for b, v in (("net", scene.net), ("target", scene.target), ("quadrotors", scene.quadrotors),
                               ("env", scene.env)) if not v]
     if missing:
