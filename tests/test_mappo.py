@@ -326,3 +326,19 @@ def test_restored_checkpoint_leaves_are_placed_as_the_fresh_states(tmp_path):
     assert not back["w"].committed and back["n"].committed
     np.testing.assert_array_equal(np.asarray(back["w"]), np.asarray(saved["w"]))
     assert int(back["n"]) == 7 and back["n"].dtype == jnp.int32
+
+
+def test_network_memory_is_checked_against_what_the_machine_has():
+    """The estimate is a lower bound that grows with the square of the layer widths; the
+    check refuses, naming algo.hidden, only what exceeds the memory it is given."""
+    from mysim_jax.config_base import ConfigError
+    from mysim_jax.mappo.config import AlgoConfig, check_memory, network_memory_bytes
+
+    small, wide = AlgoConfig(hidden=[128, 128]), AlgoConfig(hidden=[4096, 4096])
+    # 2 networks x 4 copies (weights, gradients, 2 moments) x 4 bytes of 128 * 128 + 3 * 128
+    # numbers, and 2 x 2 x 4 bytes of activations of a minibatch x 256 units
+    assert network_memory_bytes(small) == 4 * 2 * (4 * (128 * 128 + 128 + 256) + 2 * small.minibatch_size * 256)
+    assert network_memory_bytes(wide) > 100 * network_memory_bytes(small)     # 32x wider: 1024x the weights
+    check_memory(small, "t.yaml", available=2**30)
+    with pytest.raises(ConfigError, match=r"t.yaml: algo.hidden \[4096, 4096\] .* needs at least 0.6 GiB"):
+        check_memory(wide, "t.yaml", available=2**28)

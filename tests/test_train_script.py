@@ -208,6 +208,8 @@ def test_resume_skips_a_damaged_checkpoint_and_refuses_when_none_is_usable(tmp_p
      "give at most one of eval_level"),
     ("name: t\nenv: {scene: ../configs/capture_env_falling.yaml, eval_level: null, eval_scene: gone.yaml}\n", [],
      "env.eval_scene: no such file"),
+    # networks far larger than any machine's memory (about 1.2 TB): refused before anything starts
+    ("name: t\nenv: {builtin: reach}\n", ["algo.hidden=[200000, 200000]"], "algo.hidden [200000, 200000]"),
 ])
 def test_bad_configs_exit_2_before_compiling_and_write_nothing(tmp_path, text, sets, message):
     if "../configs" in text:

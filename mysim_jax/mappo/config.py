@@ -34,6 +34,7 @@ naming the field.
 from __future__ import annotations
 
 import copy
+import os
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -347,6 +348,45 @@ def load_scene(config: TrainConfig, train_path: str | Path, level: str | None = 
 def _set_blocks(overrides) -> set[str]:
     """Top-level blocks an override list sets (``env={}`` or ``env.x=1`` set ``env``)."""
     return {ov.split("=", 1)[0].split(".", 1)[0].strip() for ov in overrides if "=" in ov}
+
+
+def available_memory_bytes() -> int | None:
+    """Memory the machine can still give (Linux ``MemAvailable``; elsewhere the free
+    physical pages), or None when it cannot be read."""
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def network_memory_bytes(algo: AlgoConfig) -> int:
+    """A lower bound on the memory the two networks take while training (float32): the
+    weights between hidden layers (the input and output layers left out, as they depend
+    on the environment) of actor and critic, each held as parameters, gradients and
+    Adam's two moments, plus one minibatch's activations through them, kept for the
+    backward pass."""
+    h = algo.hidden
+    weights = sum(a * b + b for a, b in zip(h, h[1:])) + sum(h)
+    activations = algo.minibatch_size * sum(h)
+    return 4 * 2 * (4 * weights + 2 * activations)
+
+
+def check_memory(algo: AlgoConfig, source: str, available: int | None = None) -> None:
+    """Refuse sizes that cannot fit in the machine's memory, before anything compiles."""
+    available = available_memory_bytes() if available is None else available
+    need = network_memory_bytes(algo)
+    if available is not None and need > available:
+        raise ConfigError(
+            f"{source}: algo.hidden {list(algo.hidden)} (with algo.num_envs x num_steps / num_minibatches = "
+            f"{algo.minibatch_size:,} per minibatch) needs at least {need / 2**30:,.1f} GiB for the two networks "
+            f"(weights, gradients, Adam's moments and activations, float32); this machine has "
+            f"{available / 2**30:,.1f} GiB available: use narrower layers")
 
 
 def describe(config: TrainConfig) -> str:

@@ -84,17 +84,21 @@ def prepare(config_path: str | None, overrides=(), out: str | None = None, resum
     one-line message; imports no JAX."""
     from mysim_jax.io.output import check_output_dir
 
+    from mysim_jax.mappo.config import check_memory
+
     if resume is not None:
         run = Path(resume)
         if not (run / TRAIN_FILE).is_file():
             raise ConfigError(f"--resume {resume}: not a training run folder (no {TRAIN_FILE} in it)")
         config = load_train_config(run / TRAIN_FILE, overrides)
+        check_memory(config.algo, str(run / TRAIN_FILE))
         scene = load_scene(config, run / TRAIN_FILE)
         return Prepared(config, scene, run, True, str(run / TRAIN_FILE),
                         load_eval_scene(config, run / TRAIN_FILE, scene))
     if config_path is None:
         raise ConfigError("give a training file, or --resume RUN_DIR")
     config = load_train_config(config_path, overrides, profile)
+    check_memory(config.algo, str(config_path))
     scene = load_scene(config, config_path)
     target = Path(out) if out is not None else Path("runs") / config.name
     check_output_dir(target)
