@@ -362,7 +362,11 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
     previous_wall = 0.0
     restored = False
     if p.resume:
-        last, state = ckpt.restore_newest(state, log=log)
+        try:
+            last, state = ckpt.restore_newest(state, log=log)
+        except Exception:
+            ckpt.close()               # orbax's threads end before the error reaches the script
+            raise
         if last is not None:
             start_iteration = int(state.iteration)
             restored = True
