@@ -30,6 +30,7 @@ from mysim_jax.build import build
 from mysim_jax.config import ConfigError, apply_override, config_from_dict, load_config
 
 from conftest import CONFIGS
+from yaml_edits import edit, yaml_paths
 
 SCENES = {p.name: yaml.safe_load(p.read_text()) for p in sorted(CONFIGS.glob("*.yaml"))
           if not p.name.startswith("train_")}     # training files are not scenes
@@ -37,19 +38,7 @@ FUZZ = settings(derandomize=True, deadline=None, max_examples=250,
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 
 
-def _paths(node, prefix=()):
-    """Every path (tuple of keys / indices) to a value in a parsed YAML document."""
-    out = [prefix] if prefix else []
-    if isinstance(node, dict):
-        for k, v in node.items():
-            out += _paths(v, prefix + (k,))
-    elif isinstance(node, list):
-        for i, v in enumerate(node):
-            out += _paths(v, prefix + (i,))
-    return out
-
-
-PATHS = {name: _paths(raw) for name, raw in SCENES.items()}
+PATHS = {name: yaml_paths(raw) for name, raw in SCENES.items()}
 
 numbers = st.one_of(
     st.floats(allow_nan=True, allow_infinity=True),
@@ -69,35 +58,10 @@ junk = st.one_of(
 )
 
 
-def _set(raw, path, value):
-    node = raw
-    for key in path[:-1]:
-        node = node[key]
-    node[path[-1]] = value
-
-
 @st.composite
 def edited_scenes(draw):
     name = draw(st.sampled_from(sorted(SCENES)))
-    raw = copy.deepcopy(SCENES[name])
-    for _ in range(draw(st.integers(1, 3))):
-        paths = _paths(raw)
-        if not paths:
-            break
-        path = draw(st.sampled_from(paths))
-        parent = raw
-        for key in path[:-1]:
-            parent = parent[key]
-        action = draw(st.sampled_from(["replace", "replace", "replace", "delete", "unknown_key", "duplicate"]))
-        if action == "replace":
-            _set(raw, path, draw(junk))
-        elif action == "delete":
-            del parent[path[-1]]
-        elif action == "unknown_key" and isinstance(parent, dict):
-            parent[draw(st.sampled_from(["bogus", "Mass", "ea", "t_stop"]))] = draw(junk)
-        elif action == "duplicate" and isinstance(parent, list):
-            parent.append(copy.deepcopy(parent[path[-1]]))
-    return name, raw
+    return name, edit(draw, SCENES[name], junk, ["bogus", "Mass", "ea", "t_stop"], duplicate=True)
 
 
 def _assert_finite_build(config):

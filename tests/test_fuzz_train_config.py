@@ -17,7 +17,6 @@ profiles included.
 
 from __future__ import annotations
 
-import copy
 import re
 
 import pytest
@@ -30,22 +29,12 @@ from mysim_jax.io.output import OutputError
 from mysim_jax.mappo.run import describe_run, prepare
 
 from conftest import CONFIGS
+from yaml_edits import edit
 
 FILES = {p.name: yaml.safe_load(p.read_text()) for p in sorted(CONFIGS.glob("train_*.yaml"))}
 FUZZ = settings(derandomize=True, deadline=None, max_examples=120,
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large,
                                        HealthCheck.function_scoped_fixture])
-
-
-def _paths(node, prefix=()):
-    out = [prefix] if prefix else []
-    if isinstance(node, dict):
-        for k, v in node.items():
-            out += _paths(v, prefix + (k,))
-    elif isinstance(node, list):
-        for i, v in enumerate(node):
-            out += _paths(v, prefix + (i,))
-    return out
 
 
 numbers = st.one_of(
@@ -67,22 +56,7 @@ junk = st.one_of(
 @st.composite
 def edited_files(draw):
     name = draw(st.sampled_from(sorted(FILES)))
-    raw = copy.deepcopy(FILES[name])
-    for _ in range(draw(st.integers(1, 3))):
-        paths = _paths(raw)
-        if not paths:
-            break
-        path = draw(st.sampled_from(paths))
-        parent = raw
-        for key in path[:-1]:
-            parent = parent[key]
-        action = draw(st.sampled_from(["replace", "replace", "replace", "delete", "unknown_key"]))
-        if action == "replace":
-            parent[path[-1]] = draw(junk)
-        elif action == "delete":
-            del parent[path[-1]]
-        elif action == "unknown_key" and isinstance(parent, dict):
-            parent[draw(st.sampled_from(["bogus", "LR", "num_env", "eval_every"]))] = draw(junk)
+    raw = edit(draw, FILES[name], junk, ["bogus", "LR", "num_env", "eval_every"])
     profile = None
     if isinstance(raw, dict) and isinstance(raw.get("profiles"), dict) and raw["profiles"] and draw(st.booleans()):
         profile = draw(st.sampled_from(sorted(map(str, raw["profiles"]))))
