@@ -10,8 +10,8 @@ checkpoint readable; :meth:`Checkpoints.latest` ignores unfinished ones. Beside 
 checkpoint is complete. :meth:`Checkpoints.restore_newest` resumes from the newest
 checkpoint whose files match their checksums and that restores, and says which newer
 ones it skipped and why (files changed or missing, or the restore failing; a checkpoint
-without a checksum file, as left by a run stopped between the two writes, is tried as
-it is); the skipped ones are renamed ``damaged-<iteration>``, so the resumed run writes
+without a checksum file, as left by a run stopped between the two writes, is first
+restored in a child process, where a failure cannot leave orbax's reads behind); the skipped ones are renamed ``damaged-<iteration>``, so the resumed run writes
 those iterations again. When none is usable it raises :class:`CheckpointError` and
 changes nothing. Restoring gives the state bit for bit, so a resumed run continues exactly where
 the checkpoint was taken.
@@ -27,6 +27,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 from pathlib import Path
 
 import jax
@@ -82,7 +83,7 @@ class Checkpoints:
     def check(self, iteration: int) -> str | None:
         """Why checkpoint ``iteration``'s files do not match their checksums (None: they do,
         or no checksum file was written)."""
-        sums = self.folder / f"{int(iteration)}.sha256.json"
+        sums = self._sums(iteration)
         if not sums.is_file():
             return None
         try:
@@ -107,6 +108,8 @@ class Checkpoints:
         reasons, skipped = [], []
         for step in steps:
             reason = self.check(step)
+            if reason is None and not self._sums(step).is_file():
+                reason = self._trial_restore(step)
             if reason is None:
                 try:
                     state = self.restore(step, like)
@@ -123,6 +126,29 @@ class Checkpoints:
             raise CheckpointError(f"{self.folder}: none of the {len(steps)} checkpoints can be resumed from: "
                                   + "; ".join(reasons))
         return None, like
+
+    def _sums(self, step: int) -> Path:
+        return self.folder / f"{int(step)}.sha256.json"
+
+    def _trial_restore(self, step: int) -> str | None:
+        """Restore checkpoint ``step`` in a child process (on the CPU) and say why it failed
+        (None: it restored). For checkpoints without a checksum file: orbax abandons a
+        failed restore with reads still in flight, whose completions then print tracebacks
+        from its closed event loop; in a child they end with it."""
+        import subprocess
+        import sys
+
+        code = ("import sys, orbax.checkpoint as ocp\n"
+                "m = ocp.CheckpointManager(sys.argv[1])\n"
+                "m.restore(int(sys.argv[2]), args=ocp.args.StandardRestore())\n"
+                "m.close()\n")
+        res = subprocess.run([sys.executable, "-c", code, str(self.folder), str(int(step))], capture_output=True,
+                             text=True, env={**os.environ, "JAX_PLATFORMS": "cpu"})
+        if res.returncode == 0:
+            return None
+        errors = [line for line in res.stderr.splitlines()
+                  if re.match(r"^[\w.]*(Error|Exception)\b", line) and "Event loop is closed" not in line]
+        return f"restoring it failed: {(errors or ['exit code %d' % res.returncode])[-1][:160]}"
 
     def latest(self) -> int | None:
         """The last complete checkpoint's iteration, or None."""
