@@ -632,6 +632,11 @@ def vmap(fun: Callable, in_axes: int | None | Sequence[int | None] = 0, chunk: i
     return chunked_fun
 
 
+def tree_nbytes(tree) -> int:
+    """Bytes of a pytree's array leaves, concrete or abstract (``jax.eval_shape`` output)."""
+    return sum(_leaf_nbytes(leaf) for leaf in jax.tree.leaves(tree))
+
+
 def _leaf_nbytes(leaf) -> int:
     """Bytes of one array leaf from its shape and dtype: works for concrete arrays and for
     abstract ones (``jax.ShapeDtypeStruct`` from ``jax.eval_shape``), which hold no data.
@@ -653,7 +658,7 @@ def chunk_for(state, cache_bytes: int = 16 << 20, per_env_factor: float = 16.0) 
     capture environment (blocks of 128–256 ran fastest at B = 1024 on a 2-core EPYC,
     twice the unblocked speed; ``scripts/bench.py`` section e times the result); the rope
     net, with a state a tenth the size, is not blocked."""
-    nbytes = sum(_leaf_nbytes(leaf) for leaf in jax.tree.leaves(state))
+    nbytes = tree_nbytes(state)
     if nbytes == 0:
         return None
     c = 1

@@ -67,6 +67,20 @@ GRID_TOLERANCE = 1e-6
 Quat = tuple[Finite, Finite, Finite, Finite]
 
 
+def check_output_memory(config, source: str, available: int | None = None) -> None:
+    """Refuse, before anything compiles, a run whose saved outputs
+    (:meth:`SceneConfig.output_memory_bytes`) exceed the memory the machine has."""
+    from mysim_jax.config_base import available_memory_bytes
+
+    available = available_memory_bytes() if available is None else available
+    need = config.output_memory_bytes()
+    if available is not None and need > available:
+        rows, columns = config.output_size()
+        raise ConfigError(f"{source}: sim: the run's saved outputs need about {need / 2**30:,.1f} GiB ({rows:,} rows "
+                          f"of {columns:,} columns); this machine has {available / 2**30:,.1f} GiB available: "
+                          "raise sim.output_dt or shorten sim.t_end")
+
+
 @dataclass(frozen=True)
 class RunSettings:
     """What one run of a scene saves: not part of the compiled Scene, so changing any of it
@@ -441,13 +455,11 @@ class SceneConfig(StrictModel):
         if n_objects > MAX_OBJECTS:
             raise ValueError(f"the scene has {n_objects:,} point masses and bodies (rope masses and cameras "
                              f"included): more than {MAX_OBJECTS:,}")
-        n_points = len(self.points) + sum(r.n_masses for r in self.ropes)
-        # as scripts/simulate.py writes them (mysim_jax/io/trajectory.py)
-        columns = 1 + 9 * n_points + 16 * (n_objects - n_points) + 8 * len(self.quadrotors)
-        values = (self.sim.n_outputs + 1) * columns
+        rows, columns = self.output_size()
+        values = rows * columns
         if values > MAX_OUTPUT_VALUES:
             raise ValueError(
-                f"sim: the run would save {self.sim.n_outputs + 1:,} rows of {columns:,} columns ({values:.3g} "
+                f"sim: the run would save {rows:,} rows of {columns:,} columns ({values:.3g} "
                 f"values, more than {MAX_OUTPUT_VALUES:.3g}); raise sim.output_dt or shorten sim.t_end")
 
         def claim(name: str, where: str):
@@ -535,6 +547,20 @@ class SceneConfig(StrictModel):
     def frame_names(self) -> set[str]:
         """Names a joint may use: ``body.marker`` and anchors."""
         return self.marker_names() | self.anchor_names()
+
+    def output_size(self) -> tuple[int, int]:
+        """``(rows, columns)`` of the trajectory a run of this file saves, as
+        scripts/simulate.py writes it (:mod:`mysim_jax.io.trajectory`)."""
+        n_points = len(self.points) + sum(r.n_masses for r in self.ropes)
+        n_bodies = len(self.bodies) + sum(len(q.cameras) for q in self.quadrotors)
+        return self.sim.n_outputs + 1, 1 + 9 * n_points + 16 * n_bodies + 8 * len(self.quadrotors)
+
+    def output_memory_bytes(self) -> int:
+        """An estimate of the memory a run's saved outputs take at once: every saved value
+        at the scene's precision as the run returns it, and again as the float64 column
+        written to the CSV file."""
+        rows, columns = self.output_size()
+        return rows * columns * ((8 if self.sim.precision == "float64" else 4) + 8)
 
     def run_settings(self) -> RunSettings:
         """The run settings of this scene file (exact multiples of ``sim.dt``)."""

@@ -338,3 +338,18 @@ def read_text_file(path: str | Path, what: str = "config file") -> str:
 def read_yaml_file(path: str | Path, what: str = "config file") -> Any:
     """Read and parse a YAML file (see the module docstring for what is refused)."""
     return parse_yaml(read_text_file(path, what), str(path), what)
+
+
+def available_memory_bytes() -> int | None:
+    """Memory the machine can still give (Linux ``MemAvailable``; elsewhere the free
+    physical pages), or None when it cannot be read."""
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return None

@@ -45,7 +45,7 @@ def main(argv=None) -> int:
                         "gains.yaml of scripts/tune_pid.py); --set overrides still apply on top")
     args = parser.parse_args(argv)
 
-    from mysim_jax.config import ConfigError, dump_config, load_config
+    from mysim_jax.config import ConfigError, check_output_memory, dump_config, load_config
     from mysim_jax.io.output import OutputError, check_output_dir
 
     try:
@@ -62,6 +62,7 @@ def main(argv=None) -> int:
             raise ConfigError(f"{args.config}: quadrotors.{unflown[0]}.reference: missing; simulate.py flies each "
                               "controlled quadrotor along its reference, or a team: block flies them (a scene "
                               "without either is driven by setpoints passed to step() from Python)")
+        check_output_memory(config, args.config)
         out = check_output_dir(args.out)
     except (ConfigError, OutputError) as err:
         print(f"error: {err}", file=sys.stderr)

@@ -66,7 +66,7 @@ def main(argv=None) -> int:
 
     try:
         summary = train_run(prepared, progress=not args.no_progress, evaluate=not args.no_eval)
-    except CheckpointError as err:
+    except (CheckpointError, ConfigError) as err:
         return _error(str(err))
     print(json.dumps({k: v for k, v in summary.items() if k != "evaluation"}, indent=None))
     return 0

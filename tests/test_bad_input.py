@@ -427,3 +427,22 @@ def test_simulate_reports_an_infinite_state_and_keeps_no_non_finite_row():
                     progress=False)
     assert not traj.ok and "at t = 0 s" in traj.failure and "point 'r0_2' (vel)" in traj.failure
     assert len(traj.time) == 0 and traj.phys.point_pos.shape == (0, 21, 3) and traj.acc.point_acc.shape[0] == 0
+
+
+def test_saved_outputs_larger_than_the_memory_are_refused_before_the_run():
+    """simulate.py's check (before anything compiles): the saved outputs' estimate
+    (rows x columns x (the scene's float size + 8 bytes of CSV column)) against the memory
+    the machine has, naming the fields that size it."""
+    from mysim_jax.config import ConfigError, check_output_memory, load_config
+
+    config = load_config(ROPE)
+    rows, columns = config.output_size()
+    assert rows == config.sim.n_outputs + 1
+    n_points = len(config.points) + sum(r.n_masses for r in config.ropes)
+    assert columns == 1 + 9 * n_points + 16 * len(config.bodies) + 8 * len(config.quadrotors)
+    need = config.output_memory_bytes()
+    assert need == rows * columns * {"float32": 4 + 8, "float64": 8 + 8}[config.sim.precision]
+    check_output_memory(config, "rope_net.yaml", available=need)
+    with pytest.raises(ConfigError, match=r"^rope_net.yaml: sim: the run's saved outputs need about .* rows of "
+                                          r".* columns\); this machine has .* raise sim.output_dt or shorten sim.t_end$"):
+        check_output_memory(config, "rope_net.yaml", available=need - 1)

@@ -342,3 +342,29 @@ def test_network_memory_is_checked_against_what_the_machine_has():
     check_memory(small, "t.yaml", available=2**30)
     with pytest.raises(ConfigError, match=r"t.yaml: algo.hidden \[4096, 4096\] .* needs at least 0.6 GiB"):
         check_memory(wide, "t.yaml", available=2**28)
+
+
+def test_the_run_memory_estimate_counts_the_rollout_and_states_the_trainer_holds():
+    """The trainer's estimate (sizes only, nothing compiled) equals the bytes of the
+    rollout's Transition buffers plus the advantages and targets computed from them
+    (jax.eval_shape of the rollout, float32), and three environment states per
+    environment; a total over the memory given is refused naming every part and the
+    fields of the largest."""
+    from mysim_jax import batching
+    from mysim_jax.mappo.config import check_memory_needs
+
+    env = ReachEnv()
+    cfg = AlgoConfig(num_envs=24, num_steps=5, num_minibatches=2, total_env_steps=24 * 5)
+    trainer = Trainer(cfg, env, env.default_params())
+    needs = trainer.memory_needs()
+    ts = jax.eval_shape(trainer.init, jax.random.PRNGKey(0))
+    traj = jax.eval_shape(trainer._rollout, ts)[-1]
+    advantage_and_target = 2 * 4 * cfg.num_envs * cfg.num_steps * env.n_agents
+    assert needs["rollout buffers"] == (batching.tree_nbytes(traj) + advantage_and_target,
+                                        "algo.num_envs x algo.num_steps")
+    assert needs["environment states"] == (3 * batching.tree_nbytes(ts.env_state), "algo.num_envs")
+    total = sum(b for b, _ in needs.values())
+    check_memory_needs(needs, "t.yaml", available=total)
+    with pytest.raises(ConfigError, match=r"^t.yaml: the run needs about .* \(networks .* \(algo.hidden\), .*\); "
+                                          r"this machine has .* available: lower algo.hidden$"):
+        check_memory_needs(needs, "t.yaml", available=total - 1)

@@ -34,14 +34,13 @@ naming the field.
 from __future__ import annotations
 
 import copy
-import os
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
 from pydantic import Field, ValidationError, model_validator
 
-from mysim_jax.config_base import (ConfigError, Name, PosFloat, StrictModel, format_validation_error,
-                                   read_yaml_file)
+from mysim_jax.config_base import (ConfigError, Name, PosFloat, StrictModel, available_memory_bytes,
+                                   format_validation_error, read_yaml_file)
 
 PosInt = Annotated[int, Field(gt=0)]
 NonNegInt = Annotated[int, Field(ge=0)]
@@ -350,21 +349,6 @@ def _set_blocks(overrides) -> set[str]:
     return {ov.split("=", 1)[0].split(".", 1)[0].strip() for ov in overrides if "=" in ov}
 
 
-def available_memory_bytes() -> int | None:
-    """Memory the machine can still give (Linux ``MemAvailable``; elsewhere the free
-    physical pages), or None when it cannot be read."""
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemAvailable:"):
-                return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        pass
-    try:
-        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-    except (ValueError, OSError, AttributeError):
-        return None
-
-
 def network_memory_bytes(algo: AlgoConfig) -> int:
     """A lower bound on the memory the two networks take while training (float32): the
     weights between hidden layers (the input and output layers left out, as they depend
@@ -387,6 +371,21 @@ def check_memory(algo: AlgoConfig, source: str, available: int | None = None) ->
             f"{algo.minibatch_size:,} per minibatch) needs at least {need / 2**30:,.1f} GiB for the two networks "
             f"(weights, gradients, Adam's moments and activations, float32); this machine has "
             f"{available / 2**30:,.1f} GiB available: use narrower layers")
+
+
+def check_memory_needs(needs: dict, source: str, available: int | None = None) -> None:
+    """Refuse a run whose estimated memory exceeds what the machine has. ``needs`` maps a
+    part's name to ``(bytes, the fields that size it)`` (e.g. from
+    :meth:`mysim_jax.mappo.trainer.Trainer.memory_needs`); the error names every part,
+    largest first, and the fields of the largest."""
+    available = available_memory_bytes() if available is None else available
+    total = sum(b for b, _ in needs.values())
+    if available is None or total <= available:
+        return
+    parts = sorted(needs.items(), key=lambda kv: -kv[1][0])
+    listed = ", ".join(f"{name} {b / 2**30:,.1f} GiB ({fields})" for name, (b, fields) in parts)
+    raise ConfigError(f"{source}: the run needs about {total / 2**30:,.1f} GiB ({listed}); this machine has "
+                      f"{available / 2**30:,.1f} GiB available: lower {parts[0][1][1]}")
 
 
 def describe(config: TrainConfig) -> str:

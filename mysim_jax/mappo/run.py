@@ -343,16 +343,21 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
     from mysim_jax.mappo.checkpoint import Checkpoints, save_policy
     from mysim_jax.mappo.trainer import Trainer, deterministic_policy, deterministic_policy_fn
 
+    from mysim_jax.mappo.config import check_memory_needs
+
     c = p.config
-    if not p.resume:
-        _write_run_files(p)
+    # everything that can refuse the run is checked before the run folder is written and
+    # before anything compiles
     env, env_params = make_environment(p)
     if evaluate and p.scene is not None:
-        eval_env, eval_params = make_eval_environment(p, env, env_params)   # checked before any compile
+        eval_env, eval_params = make_eval_environment(p, env, env_params)
         if c.run.eval_batch > c.run.eval_episodes:
             log(f"note: run.eval_batch {c.run.eval_batch} is more than run.eval_episodes {c.run.eval_episodes}: "
                 f"the final evaluation runs {c.run.eval_episodes} side by side")
     trainer = Trainer(c.algo, env, env_params)
+    check_memory_needs(trainer.memory_needs(), p.source)
+    if not p.resume:
+        _write_run_files(p)
     ckpt = Checkpoints(p.out / "checkpoints", keep=c.run.keep_checkpoints)
     key = jax.random.PRNGKey(c.run.seed)
     k_init, k_bc = jax.random.split(key)

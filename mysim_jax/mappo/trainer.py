@@ -151,7 +151,31 @@ class Trainer:
         object.__setattr__(self, "_init", jax.jit(self._init_state))
         object.__setattr__(self, "_knobs", self._make_knobs())
         one = jax.eval_shape(lambda k: self.env.reset(k, self.env_params)[1], jax.random.PRNGKey(0))
+        object.__setattr__(self, "_one_state", one)
         object.__setattr__(self, "block", batching.chunk_for(one))
+
+    def memory_needs(self) -> dict:
+        """An estimate of the memory one iteration holds, ``{part: (bytes, the fields that
+        size it)}``, from the sizes alone (no compile): the networks
+        (:func:`~mysim_jax.mappo.config.network_memory_bytes`); the environment states
+        (three per environment: the carried state, the stepped one and the fresh reset it
+        may be replaced by; one state's bytes from ``jax.eval_shape`` of the reset); and the
+        rollout's buffers (a :class:`Transition` per environment and step, float32, plus
+        the advantages and value targets computed from it). XLA's temporaries inside the
+        step come on top: this is a lower bound, for refusing sizes that cannot fit."""
+        from mysim_jax.mappo.config import network_memory_bytes
+
+        c = self.config
+        n, act = self.env.action_shape
+        obs, state = self.env.obs_size, self.env.state_size
+        # Transition: obs, raw_obs (n, O); critic_in (n, S + n); action (n, act); log_prob,
+        # value, reward (n); raw_state (S); episode_return, episode_length, step_reward; then
+        # advantage and target (n); done and success are booleans (a byte each)
+        per_step = 4 * (n * (2 * obs + state + n + act + 3) + state + 3 + 2 * n) + 2
+        env_state = batching.tree_nbytes(self._one_state)
+        return {"networks": (network_memory_bytes(c), "algo.hidden"),
+                "environment states": (3 * c.num_envs * env_state, "algo.num_envs"),
+                "rollout buffers": (c.num_envs * c.num_steps * per_step, "algo.num_envs x algo.num_steps")}
 
     def iteration(self, ts: "TrainerState"):
         """One iteration (module docstring): ``(new state, metrics)``, one jitted call. The
