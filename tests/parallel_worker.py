@@ -13,6 +13,7 @@ the comparing::
     python tests/parallel_worker.py devices OUT       # rope net, jax.vmap and batching.vmap
     python tests/parallel_worker.py capture OUT       # capture environment, two policy steps
     python tests/parallel_worker.py host ID PORT OUT  # process ID of two, jax.distributed
+    python tests/parallel_worker.py trainer OUT       # MAPPO on one device and on two
 """
 
 from __future__ import annotations
@@ -185,6 +186,46 @@ def host(process_id: int, port: int, out: str) -> None:
         jax.distributed.shutdown()
 
 
+def trainer(out: str) -> None:
+    """MAPPO on the reach task: 3 iterations on one device and with the environments split
+    over both (the same total batch and seed); the compiled iteration's collectives; the
+    error for a batch that does not split."""
+    import re
+
+    import jax
+
+    from mysim_jax import parallel
+    from mysim_jax.mappo.config import AlgoConfig
+    from mysim_jax.mappo.toy import ReachEnv
+    from mysim_jax.mappo.trainer import Trainer
+
+    assert jax.device_count() == 2, jax.devices()
+    env = ReachEnv()
+    config = AlgoConfig(num_envs=32, num_steps=16, num_minibatches=4, total_env_steps=32 * 16 * 3)
+    arrays, facts = {}, {}
+    for name, mesh in (("one", None), ("two", parallel.env_mesh())):
+        t = Trainer(config, env, env.default_params(), mesh=mesh)
+        ts = t.init(jax.random.PRNGKey(0))
+        for _ in range(3):
+            ts, metrics = t.iteration(ts)
+        arrays |= flat(ts.params, f"{name}/params")
+        arrays |= flat(ts.obs_stats, f"{name}/obs_stats")
+        arrays |= flat(metrics, f"{name}/metrics")
+        facts[name] = {"obs": str(ts.obs.sharding.spec) if mesh is not None else None,
+                       "params_devices": sorted(d.id for d in jax.tree.leaves(ts.params)[0].devices())}
+        if mesh is not None:
+            text = t._iteration_jit.lower(t.place(ts), t.knobs()).compile().as_text()
+            facts["collectives"] = sorted(set(re.findall(r"(all-reduce|all-gather|all-to-all|reduce-scatter|"
+                                                         r"collective-permute)\(", text)))
+    try:
+        Trainer(AlgoConfig(num_envs=33, num_steps=16, num_minibatches=3, total_env_steps=33 * 16),
+                env, env.default_params(), mesh=parallel.env_mesh())
+        facts["error"] = None
+    except ValueError as e:
+        facts["error"] = str(e)
+    _write(out, arrays, facts)
+
+
 def _write(out: str, arrays: dict, facts: dict) -> None:
     import numpy as np
 
@@ -198,6 +239,8 @@ if __name__ == "__main__":
         devices(*args)
     elif command == "capture":
         capture(*args)
+    elif command == "trainer":
+        trainer(*args)
     elif command == "host":
         host(int(args[0]), int(args[1]), args[2])
     else:

@@ -203,6 +203,7 @@ def test_resume_skips_a_damaged_checkpoint_and_refuses_when_none_is_usable(tmp_p
     ("name: t\nenv: {scene: missing.yaml}\n", [], "env.scene: no such file"),
     ("name: t\nenv: {scene: ../configs/rope_net.yaml}\n", [], "not a capture environment"),
     ("name: t\nenv: {builtin: reach}\nrun: {checkpoint_every: 0}\n", [], "run.checkpoint_every"),
+    ("name: t\nenv: {builtin: reach}\nrun: {devices: 64}\n", [], "run.devices 64: JAX sees"),
     ("name: t\nenv: [1, 2]\n", [], "env"),
     ("name: t\nenv: {builtin: reach\n", [], "t.yaml"),
     ("name: t\nenv: {scene: ../configs/capture_env_falling.yaml, eval_level: trian}\n", [],

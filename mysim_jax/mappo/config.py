@@ -202,6 +202,9 @@ class RunConfig(StrictModel):
     # compare with the scripted team on the same evaluation episodes (capture scenes only)
     eval_baseline: bool = True
     selection: SelectionConfig | None = SelectionConfig()   # None: the last policy is the run's
+    # devices the environments are split over (algo.num_envs must be divisible by their
+    # number); None: every device JAX sees (one on a plain CPU machine)
+    devices: PosInt | None = None
 
 
 class TrainConfig(StrictModel):

@@ -142,6 +142,26 @@ def _write_run_files(p: Prepared) -> None:
     (p.out / TRAIN_FILE).write_text(text)
 
 
+def training_mesh(config, source: str):
+    """The devices a run splits its environments over (``run.devices``): None for one
+    device, else a :func:`mysim_jax.parallel.env_mesh`. Raises ConfigError when more devices
+    are asked for than JAX sees, or when ``algo.num_envs`` does not split into them."""
+    import jax
+
+    from mysim_jax import parallel
+
+    available = jax.devices()
+    n = len(available) if config.run.devices is None else config.run.devices
+    if n > len(available):
+        raise ConfigError(f"{source}: run.devices {n}: JAX sees {len(available)} device(s) here "
+                          f"({available[0].platform})")
+    if config.algo.num_envs % n:
+        raise ConfigError(f"{source}: algo.num_envs {config.algo.num_envs} is not divisible by the {n} devices the "
+                          f"environments are split over (run.devices{'' if config.run.devices else ': every device'}); "
+                          "choose a multiple, or set run.devices")
+    return None if n == 1 else parallel.env_mesh(available[:n])
+
+
 def make_environment(p: Prepared):
     """``(env, env_params)`` of the run."""
     if p.scene is None:
@@ -354,7 +374,7 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
         if c.run.eval_batch > c.run.eval_episodes:
             log(f"note: run.eval_batch {c.run.eval_batch} is more than run.eval_episodes {c.run.eval_episodes}: "
                 f"the final evaluation runs {c.run.eval_episodes} side by side")
-    trainer = Trainer(c.algo, env, env_params)
+    trainer = Trainer(c.algo, env, env_params, mesh=training_mesh(c, p.source))
     check_memory_needs(trainer.memory_needs(), p.source)
     if not p.resume:
         _write_run_files(p)
@@ -494,6 +514,7 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
         "env_steps_per_s_with_update": c.algo.batch_size / per_iteration if per_iteration else None,
         "final_train_success_rate": float(rows[-1]["success_rate"]) if rows and "success_rate" in rows[-1] else None,
         "init": c.algo.init,
+        "devices": 1 if trainer.mesh is None else trainer.mesh.size,
     }
     if bc_path.exists():
         summary["behaviour_cloning"] = json.loads(bc_path.read_text())

@@ -31,6 +31,15 @@ value of its last state (``info["final_global_state"]``).
 
 Everything the next iteration needs is in :class:`TrainerState` (environments included),
 so a checkpoint of it resumes a run exactly.
+
+**Several devices** (``mesh``, a :func:`mysim_jax.parallel.env_mesh`): the environments'
+leaves of the state (``env_state``, ``obs``, ``global_state``) are split over the mesh's
+``"env"`` axis and everything else is replicated; the iteration is the same jitted program,
+partitioned by XLA from those shardings. Each device steps its own block of environments
+(the rollout, where the time goes); the rollout's buffers are then gathered and every
+device runs the same update on the whole batch (global minibatches, as on one device), so
+every device holds the same parameters. The result equals one device's to float round-off
+(``tests/test_parallel.py``). ``num_envs`` must be divisible by the number of devices.
 """
 
 from __future__ import annotations
@@ -140,8 +149,12 @@ class Trainer:
     config: Any
     env: Any
     env_params: Any
+    mesh: Any = None          # a jax.sharding.Mesh with the axis "env" (None: one device)
 
     def __post_init__(self):
+        if self.mesh is not None and self.config.num_envs % self.mesh.size:
+            raise ValueError(f"algo.num_envs {self.config.num_envs} is not divisible by the {self.mesh.size} devices "
+                             "the environments are split over (run.devices)")
         n_agents, action_dim = self.env.action_shape
         object.__setattr__(self, "actor", Actor(action_dim, tuple(self.config.hidden), self.config.activation,
                                                 self.config.init_std))
@@ -182,7 +195,18 @@ class Trainer:
         KL limit and the anchor's schedule are arguments of the compiled program, not
         constants in it: trainers that differ only in ``target_kl``, ``bc.anchor_coef``,
         ``bc.anchor_iterations`` or ``bc.critic_warmup`` run the same program."""
-        return self._iteration_jit(ts, self._knobs)
+        return self._iteration_jit(self.place(ts), self._knobs)
+
+    def place(self, ts: "TrainerState") -> "TrainerState":
+        """``ts`` on the trainer's devices: the environments' leaves split over the mesh, the
+        rest replicated (unchanged without a mesh; arrays already in place are not copied)."""
+        if self.mesh is None:
+            return ts
+        from mysim_jax import parallel
+
+        envs = parallel.shard_envs((ts.env_state, ts.obs, ts.global_state), self.mesh)
+        rest = parallel.replicate(ts.replace(env_state=None, obs=None, global_state=None), self.mesh)
+        return rest.replace(env_state=envs[0], obs=envs[1], global_state=envs[2])
 
     def knobs(self) -> dict:
         """The settings the iteration takes as arguments (:meth:`_make_knobs`, made once)."""
@@ -267,8 +291,9 @@ class Trainer:
                             best_score=jnp.full((2,), -jnp.inf, jnp.float32), best_iteration=jnp.int32(-1))
 
     def init(self, key) -> TrainerState:
-        """A fresh run from ``key``: networks, optimiser, ``num_envs`` reset environments."""
-        return self._init(key)
+        """A fresh run from ``key``: networks, optimiser, ``num_envs`` reset environments
+        (placed on the mesh's devices when there is one)."""
+        return self.place(self._init(key))
 
     # --- one iteration -----------------------------------------------------------------
     def _rollout(self, ts: TrainerState):
