@@ -166,11 +166,13 @@ def sharded(fn: Callable, mesh: Mesh, in_axes: int | None | Sequence[int | None]
 
 
 def jit_envs(fn: Callable, batch: int, in_axes: int | None | Sequence[int | None] = 0) -> Callable:
-    """The library's batched paths (evaluation, sweeps, training) jit through this:
-    ``sharded(fn, env_mesh(), in_axes)`` when several devices are visible and ``batch``
-    splits evenly over them, else plain ``jax.jit(fn)`` (one device, or a batch that does
-    not split: it then runs on the default device, as before)."""
-    n = jax.device_count()
-    if n > 1 and batch % n == 0:
-        return sharded(fn, env_mesh(), in_axes)
+    """The library's batched paths whose results the host reads (evaluation, sweeps) jit
+    through this: ``sharded(fn, env_mesh(jax.local_devices()), in_axes)`` when this process
+    has several devices and ``batch`` splits evenly over them, else plain ``jax.jit(fn)``
+    (one device, or a batch that does not split: it then runs on the default device). Only
+    this process's devices: in a multi-process run each process computes its own call
+    (the trainer's iteration, which spans every process, shards through its own mesh)."""
+    devices = jax.local_devices()
+    if len(devices) > 1 and batch % len(devices) == 0:
+        return sharded(fn, env_mesh(devices), in_axes)
     return jax.jit(fn)

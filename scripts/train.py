@@ -22,6 +22,12 @@ and at the end the evaluation report of ``scripts/evaluate.py`` (``eval/``) on
 ``--resume OUT`` continues from OUT's last complete checkpoint (a run killed at any
 moment loses at most one checkpoint interval) and finishes as the uninterrupted run would.
 
+The environments are split over every device JAX sees (``run.devices``). Several
+processes (hosts) train one run together when each is started with the same arguments and
+``--coordinator HOST:PORT --num-processes N --process-id I`` (``jax.distributed``; OUT on a
+folder they all see): process 0 writes the run folder and the evaluation, every process
+computes.
+
 Every input is checked before anything compiles; a problem is a one-line error naming
 the field, exit code 2, and nothing is written.
 """
@@ -49,7 +55,18 @@ def main(argv=None) -> int:
     parser.add_argument("--resume", default=None, metavar="RUN_DIR", help="continue the run in RUN_DIR")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bars")
     parser.add_argument("--no-eval", action="store_true", help="skip the final evaluation")
+    group = parser.add_argument_group("several processes (jax.distributed): give all three, the same "
+                                      "--coordinator and --num-processes in every process")
+    group.add_argument("--coordinator", metavar="HOST:PORT", help="address of process 0's coordination service")
+    group.add_argument("--num-processes", type=int, metavar="N", help="number of processes")
+    group.add_argument("--process-id", type=int, metavar="I", help="this process's index, 0 to N-1")
     args = parser.parse_args(argv)
+    distributed = (args.coordinator, args.num_processes, args.process_id)
+    if any(v is not None for v in distributed) and any(v is None for v in distributed):
+        return _error("--coordinator, --num-processes and --process-id go together: give all three or none")
+    if args.num_processes is not None and not (args.num_processes >= 1 and 0 <= args.process_id < args.num_processes):
+        return _error(f"--process-id {args.process_id} with --num-processes {args.num_processes}: the id must be "
+                      "0 to N-1 and N at least 1")
 
     from mysim_jax.config_base import ConfigError
     from mysim_jax.io.output import OutputError
@@ -61,14 +78,22 @@ def main(argv=None) -> int:
         prepared = prepare(args.config, args.overrides, args.out, args.resume, args.profile)
     except (ConfigError, OutputError) as err:
         return _error(str(err))
-    print(describe_run(prepared))
+    if args.coordinator is not None:
+        import jax
+
+        # after every process has checked its input (nothing written yet), before any JAX work
+        jax.distributed.initialize(coordinator_address=args.coordinator, num_processes=args.num_processes,
+                                   process_id=args.process_id)
+    if args.process_id in (None, 0):
+        print(describe_run(prepared))
     from mysim_jax.mappo.checkpoint import CheckpointError
 
     try:
         summary = train_run(prepared, progress=not args.no_progress, evaluate=not args.no_eval)
     except (CheckpointError, ConfigError) as err:
         return _error(str(err))
-    print(json.dumps({k: v for k, v in summary.items() if k != "evaluation"}, indent=None))
+    if summary:                # the first (or only) process
+        print(json.dumps({k: v for k, v in summary.items() if k != "evaluation"}, indent=None))
     return 0
 
 

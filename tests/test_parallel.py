@@ -192,37 +192,68 @@ def test_mappo_with_environments_split_over_two_devices_equals_one_device(tmp_pa
     print(f"mappo: two devices vs one: max |difference| {max_abs_difference(two, one):.3g}")
 
 
-def test_train_script_on_two_devices_resumes_exactly(tmp_path):
-    """The README's command for several devices: train.py with two (forced) host devices
-    splits the reach task's 32 environments over both (summary: 2 devices), checkpoints
-    the sharded state, and a run resumed from its first checkpoint ends with the same
-    policy and metrics, bit for bit, as the run that was not interrupted."""
+def test_train_script_on_two_devices_and_on_two_processes(tmp_path):
+    """The README's commands for several devices and hosts, on the reach task (32
+    environments, 4 iterations, checkpoints every 2): train.py in one process with two
+    forced host devices splits the environments over both (summary: 2 devices); two
+    processes joined by jax.distributed on 127.0.0.1, one device each, train the same run
+    into one folder written by process 0 (the other prints nothing) and end with the same
+    policy and metrics bit for bit (the same partitioned program); the two-process run
+    resumed from its first checkpoint ends with them again, bit for bit (one device agrees
+    to round-off: the test above)."""
     import shutil
 
     cfg = tmp_path / "reach.yaml"
     cfg.write_text("name: reach_two\nenv: {builtin: reach}\n"
                    "algo: {num_envs: 32, num_steps: 16, total_env_steps: 2048, lr: 3.0e-3, init_std: 0.5}\n"
                    "run: {checkpoint_every: 2, keep_checkpoints: 2, seed: 1}\n")
-    env = child_env(XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    script = [sys.executable, str(ROOT / "scripts" / "train.py")]
+    quiet = ["--no-eval", "--no-progress"]
 
-    def train(*args):
-        res = subprocess.run([sys.executable, str(ROOT / "scripts" / "train.py"), *args, "--no-eval", "--no-progress"],
-                             env=env, cwd=ROOT, capture_output=True, text=True, timeout=TIMEOUT)
+    def train(*args, **env):
+        res = subprocess.run([*script, *args, *quiet], env=child_env(**env), cwd=ROOT, capture_output=True,
+                             text=True, timeout=TIMEOUT)
         assert res.returncode == 0, res.stderr[-4000:]
-        return res
 
-    whole, resumed = tmp_path / "whole", tmp_path / "resumed"
-    train(str(cfg), "--out", str(whole))
-    summary = json.loads((whole / "summary.json").read_text())
-    assert summary["devices"] == 2 and summary["iterations"] == 4
-    shutil.copytree(whole, resumed)
+    def train_two_processes(*args):
+        port = free_port()
+        procs = [subprocess.Popen([*script, *args, *quiet, "--coordinator", f"127.0.0.1:{port}", "--num-processes", "2",
+                                   "--process-id", str(i)], env=child_env(), cwd=ROOT, stdout=subprocess.PIPE,
+                                  stderr=subprocess.PIPE, text=True) for i in range(2)]
+        try:
+            logs = [p.communicate(timeout=TIMEOUT) for p in procs]
+        finally:
+            for p in procs:
+                if p.poll() is None:
+                    p.kill()
+                    p.wait()
+        for p, (_, err) in zip(procs, logs):
+            assert p.returncode == 0, err[-4000:]
+        # process 1 prints nothing of ours (gloo, JAX's CPU collectives, announces its peers)
+        assert [line for line in logs[1][0].splitlines() if not line.startswith("[Gloo]")] == []
+        assert logs[0][0].count("\n") >= 2
+        return logs[0][0]
+
+    def policy(run):
+        return (run / "policy" / "policy.msgpack").read_bytes()
+
+    def metrics(run):
+        return [{k: v for k, v in row.items() if k not in ("wall_s", "iteration_s")}
+                for row in csv.DictReader((run / "metrics.csv").open())]
+
+    devices, processes, resumed = (tmp_path / name for name in ("devices", "processes", "resumed"))
+    train(str(cfg), "--out", str(devices), XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    summary = json.loads((devices / "summary.json").read_text())
+    assert (summary["devices"], summary["processes"], summary["iterations"]) == (2, 1, 4)
+    train_two_processes(str(cfg), "--out", str(processes))
+    summary = json.loads((processes / "summary.json").read_text())
+    assert (summary["devices"], summary["processes"]) == (2, 2)
+    assert policy(processes) == policy(devices) and metrics(processes) == metrics(devices)
+    shutil.copytree(processes, resumed)
     shutil.rmtree(resumed / "checkpoints" / "4")
     (resumed / "checkpoints" / "4.sha256.json").unlink()
-    assert "resuming" in train("--resume", str(resumed)).stdout
-    assert (resumed / "policy" / "policy.msgpack").read_bytes() == (whole / "policy" / "policy.msgpack").read_bytes()
-    columns = lambda path: [{k: v for k, v in row.items() if k not in ("wall_s", "iteration_s")}   # noqa: E731
-                            for row in csv.DictReader(path.open())]
-    assert columns(resumed / "metrics.csv") == columns(whole / "metrics.csv")
+    assert "resuming" in train_two_processes("--resume", str(resumed))
+    assert policy(resumed) == policy(processes) and metrics(resumed) == metrics(processes)
 
 
 # --- two processes (multi-host) -------------------------------------------------------------

@@ -71,6 +71,8 @@ class Checkpoints:
         tree = serialization.to_state_dict(state)
         self.manager.save(int(iteration), args=self._ocp.args.StandardSave(tree), force=True)
         self.manager.wait_until_finished()
+        if jax.process_index() != 0:           # several processes: the first writes the checksums
+            return
         sums = self.folder / f"{int(iteration)}.sha256.json"
         tmp = sums.with_name(sums.name + ".tmp")
         tmp.write_text(json.dumps(_digests(self.folder / str(int(iteration))), indent=0))
@@ -117,7 +119,14 @@ class Checkpoints:
                     first = (str(exc).strip().splitlines() or [""])[0][:160]
                     reason = f"restoring it failed: {type(exc).__name__}: {first}"
                 else:
-                    self._set_aside(skipped, log)
+                    if jax.process_count() > 1:   # every process has chosen before any renaming
+                        from jax.experimental import multihost_utils
+
+                        multihost_utils.sync_global_devices("mysim_jax checkpoint chosen")
+                    if jax.process_index() == 0:
+                        self._set_aside(skipped, log)
+                    else:
+                        self.manager.reload()
                     return step, state
             reasons.append(f"checkpoint {step}: {reason}")
             skipped.append(step)

@@ -142,6 +142,10 @@ def _write_run_files(p: Prepared) -> None:
     (p.out / TRAIN_FILE).write_text(text)
 
 
+def _silent(*args, **kwargs) -> None:
+    """The log of a process that is not the first (several processes print nothing)."""
+
+
 def training_mesh(config, source: str):
     """The devices a run splits its environments over (``run.devices``): None for one
     device, else a :func:`mysim_jax.parallel.env_mesh`. Raises ConfigError when more devices
@@ -366,6 +370,13 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
     from mysim_jax.mappo.config import check_memory_needs
 
     c = p.config
+    # several processes (jax.distributed): every one computes, the first writes the run
+    # folder, the logs and the evaluation, and decides when to stop
+    lead = jax.process_index() == 0
+    many = jax.process_count() > 1
+    if not lead:
+        log = _silent
+        progress = False
     # everything that can refuse the run is checked before the run folder is written and
     # before anything compiles
     env, env_params = make_environment(p)
@@ -376,7 +387,7 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
                 f"the final evaluation runs {c.run.eval_episodes} side by side")
     trainer = Trainer(c.algo, env, env_params, mesh=training_mesh(c, p.source))
     check_memory_needs(trainer.memory_needs(), p.source)
-    if not p.resume:
+    if not p.resume and lead:
         _write_run_files(p)
     ckpt = Checkpoints(p.out / "checkpoints", keep=c.run.keep_checkpoints)
     key = jax.random.PRNGKey(c.run.seed)
@@ -411,7 +422,10 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
         select_key = jax.random.PRNGKey(selection.seed)
 
     def select(state):
-        stats = evaluator(select_key, selection.episodes, trainer.policy_arrays(state))
+        arrays = trainer.policy_arrays(state)
+        if many:                 # on this process's device: the networks as host arrays
+            arrays = jax.device_get(arrays)
+        stats = evaluator(select_key, selection.episodes, arrays)
         state = trainer.keep_if_best(state, int(stats.success.sum()), float(stats.returns.mean()))
         return state, stats
 
@@ -423,7 +437,8 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
 
             log(f"behaviour cloning the scripted team: {c.algo.bc.num_envs} environments x {c.algo.bc.steps} steps")
             state, report = bc.clone(trainer, state, k_bc)
-            bc_path.write_text(json.dumps(report, indent=2))
+            if lead:
+                bc_path.write_text(json.dumps(report, indent=2))
             log(f"cloned in {report['collect_s'] + report['fit_s']:.0f} s: {report['pairs']:,} pairs, held-out RMSE "
                 f"{report['rmse_holdout']:.3f}, R2 {', '.join(f'{v:.3f}' for v in report['r2_holdout'])}")
         if evaluator is not None:
@@ -433,12 +448,13 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
             rows = [row0]
             log(f"selection episodes before training: success {stats.success.mean():.1%}")
         if c.algo.init == "bc" or evaluator is not None:
-            _write_rows(p.out / "metrics.csv", rows)
-            ckpt.save(0, state)
+            if lead:
+                _write_rows(p.out / "metrics.csv", rows)
+            ckpt.save(0, trainer.place(state))
 
     from tensorboardX import SummaryWriter
 
-    writer = SummaryWriter(str(p.out / "tb"), purge_step=start_iteration + 1)
+    writer = SummaryWriter(str(p.out / "tb"), purge_step=start_iteration + 1) if lead else None
     bar = None
     if progress:
         from tqdm.auto import tqdm
@@ -458,6 +474,10 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
             iteration_times.append(dt)
         last_iteration = iteration == c.algo.num_iterations
         over_time = limit_s is not None and previous_wall + time.perf_counter() - t_start > limit_s
+        if many and limit_s is not None:      # the first process's clock decides for all
+            from jax.experimental import multihost_utils
+
+            over_time = bool(multihost_utils.broadcast_one_to_all(np.bool_(over_time)))
         row = {"iteration": iteration, "env_steps": iteration * c.algo.batch_size,
                "iteration_s": round(dt, 4), "lr": trainer.learning_rate(iteration - 1),
                **{k: m[k] for k in CSV_FIELDS if k in m}}
@@ -467,7 +487,7 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
         row["wall_s"] = round(previous_wall + time.perf_counter() - t_start, 3)
         rows.append(row)
         for k, v in row.items():
-            if k != "iteration":
+            if k != "iteration" and writer is not None:
                 writer.add_scalar(f"train/{k}", float(v), iteration)
         if bar is not None:
             bar.update(1)
@@ -475,24 +495,31 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
             bar.set_postfix_str(f"return {m['mean_return']:.2f}, success {m['success_rate']:.0%}{sel}, "
                                 f"{c.algo.batch_size / dt:,.0f} env-steps/s")
         if iteration % c.run.checkpoint_every == 0 or last_iteration or over_time:
-            _write_rows(p.out / "metrics.csv", rows)
-            ckpt.save(iteration, state)
-            writer.flush()
+            if lead:
+                _write_rows(p.out / "metrics.csv", rows)
+                writer.flush()
+            ckpt.save(iteration, trainer.place(state))
         if over_time and not last_iteration:
             stopped_early = True
             log(f"time limit of {c.run.time_limit_min:g} min reached after iteration {iteration}")
             break
     if bar is not None:
         bar.close()
-    writer.close()
     ckpt.close()
     train_wall = time.perf_counter() - t_compile
-    _write_rows(p.out / "metrics.csv", rows)
+    n_agents, act = env.action_shape
+    arrays = jax.device_get(trainer.run_policy(state)) if many else trainer.run_policy(state)
     best_iteration = int(state.best_iteration)
+    if not lead:
+        # the others end here; the first process writes and evaluates, then all leave together
+        from jax.experimental import multihost_utils
+
+        multihost_utils.sync_global_devices("mysim_jax run written")
+        return {}
+    writer.close()
+    _write_rows(p.out / "metrics.csv", rows)
     plot_curves(rows, p.out / "curves.png", c.name, best_iteration if best_iteration >= 0 else None)
 
-    n_agents, act = env.action_shape
-    arrays = trainer.run_policy(state)
     meta = {"kind": "mappo", "obs_size": int(env.obs_size), "action_shape": [n_agents, act],
             "hidden": list(c.algo.hidden), "activation": c.algo.activation, "normalize_obs": c.algo.normalize_obs,
             "residual": c.algo.residual,
@@ -515,6 +542,7 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
         "final_train_success_rate": float(rows[-1]["success_rate"]) if rows and "success_rate" in rows[-1] else None,
         "init": c.algo.init,
         "devices": 1 if trainer.mesh is None else trainer.mesh.size,
+        "processes": jax.process_count(),
     }
     if bc_path.exists():
         summary["behaviour_cloning"] = json.loads(bc_path.read_text())
@@ -570,4 +598,8 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
                 summary["baseline"] = comparison
         summary["evaluation_wall_s"] = round(time.perf_counter() - t_eval, 1)
     (p.out / "summary.json").write_text(json.dumps(summary, indent=2))
+    if many:
+        from jax.experimental import multihost_utils
+
+        multihost_utils.sync_global_devices("mysim_jax run written")
     return summary

@@ -53,6 +53,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 from flax import struct
+from jax.sharding import NamedSharding, PartitionSpec as P
 
 from mysim_jax import batching
 from mysim_jax.mappo.losses import (RunningStats, gae, gaussian_entropy, gaussian_log_prob, normalize_advantages,
@@ -204,8 +205,23 @@ class Trainer:
             return ts
         from mysim_jax import parallel
 
-        envs = parallel.shard_envs((ts.env_state, ts.obs, ts.global_state), self.mesh)
-        rest = parallel.replicate(ts.replace(env_state=None, obs=None, global_state=None), self.mesh)
+        if jax.process_count() == 1:
+            envs = parallel.shard_envs((ts.env_state, ts.obs, ts.global_state), self.mesh)
+            rest = parallel.replicate(ts.replace(env_state=None, obs=None, global_state=None), self.mesh)
+        else:
+            # several processes: a leaf not yet in place (computed by this process alone, e.g.
+            # behaviour cloning's networks or model selection's best policy, the same values
+            # in every process) goes through the host; leaves in place stay where they are
+            split, whole = (NamedSharding(self.mesh, spec) for spec in (P(parallel.ENV_AXIS), P()))
+
+            def put(sharding):
+                def one(x):
+                    if isinstance(x, jax.Array) and x.sharding == sharding:
+                        return x
+                    return jax.device_put(np.asarray(x), sharding)
+                return one
+            envs = jax.tree.map(put(split), (ts.env_state, ts.obs, ts.global_state))
+            rest = jax.tree.map(put(whole), ts.replace(env_state=None, obs=None, global_state=None))
         return rest.replace(env_state=envs[0], obs=envs[1], global_state=envs[2])
 
     def knobs(self) -> dict:
