@@ -232,6 +232,19 @@ def test_bad_configs_exit_2_before_compiling_and_write_nothing(tmp_path, text, s
     assert not out.exists()
 
 
+def test_the_process_flags_go_together(tmp_path):
+    """--coordinator, --num-processes and --process-id: all three or none, and an id in
+    range; refused before anything starts."""
+    cfg = tmp_path / "reach.yaml"
+    cfg.write_text(REACH % (32 * 16 * 2, 1))
+    for flags, message in ((["--coordinator", "127.0.0.1:1234"], "go together"),
+                           (["--coordinator", "127.0.0.1:1234", "--num-processes", "2", "--process-id", "2"],
+                            "--process-id 2 with --num-processes 2")):
+        res = _run([str(cfg), "--out", str(tmp_path / "out"), *flags])
+        assert res.returncode == 2 and message in res.stderr and "Traceback" not in res.stderr
+        assert not (tmp_path / "out").exists()
+
+
 def test_an_existing_run_is_not_overwritten(tmp_path):
     cfg = tmp_path / "reach.yaml"
     cfg.write_text(REACH % (32 * 16 * 2, 1))
