@@ -69,13 +69,13 @@ def test_outputs_and_learning(tmp_path):
         policy_maker(str(out / "policy"))(ReachEnv(n_agents=3), None)
 
 
-ITERATIONS, EVERY = 60, 5
+ITERATIONS, EVERY = 30, 5
 
 
 @pytest.fixture(scope="module")
 def whole_run(tmp_path_factory):
-    """An uninterrupted reach run of 60 iterations, checkpointed every 5 (the last two
-    kept: 55 and 60), without evaluation. Run first: the runs below then find the
+    """An uninterrupted reach run of 30 iterations, checkpointed every 5 (the last two
+    kept: 25 and 30), without evaluation. Run first: the runs below then find the
     iteration's program in the compilation cache (a resumed run calls the program of a
     fresh start)."""
     tmp = tmp_path_factory.mktemp("whole")
@@ -133,8 +133,8 @@ def _damage(step_dir: Path, how: str) -> None:
 
 
 def test_resume_skips_a_damaged_checkpoint_and_refuses_when_none_is_usable(tmp_path, whole_run):
-    """The last checkpoint (60) damaged three ways; the one before (55) intact. Resuming
-    takes 55 and says why 60 was skipped: its files differ from their checksums (random
+    """The last checkpoint (30) damaged three ways; the one before (25) intact. Resuming
+    takes 25 and says why 30 was skipped: its files differ from their checksums (random
     bytes), or, with the checksum file gone too, restoring it fails (emptied files). Through
     train.py the resumed run then ends with the uninterrupted run's policy, bit for bit.
     With both damaged, resuming is refused with one error naming the folder."""
@@ -147,8 +147,8 @@ def test_resume_skips_a_damaged_checkpoint_and_refuses_when_none_is_usable(tmp_p
     from mysim_jax.mappo.trainer import Trainer
 
     _, whole = whole_run
-    assert sorted(p.name for p in (whole / "checkpoints").glob("*.sha256.json")) == ["55.sha256.json",
-                                                                                      "60.sha256.json"]
+    assert sorted(p.name for p in (whole / "checkpoints").glob("*.sha256.json")) == ["25.sha256.json",
+                                                                                      "30.sha256.json"]
     p = prepare(None, [], None, str(whole), None)
     env, env_params = make_environment(p)
     like = jax.eval_shape(Trainer(p.config.algo, env, env_params).init, jax.random.PRNGKey(0))
@@ -156,37 +156,37 @@ def test_resume_skips_a_damaged_checkpoint_and_refuses_when_none_is_usable(tmp_p
         run = tmp_path / case.split(",")[0]
         shutil.copytree(whole, run)
         ckpt = run / "checkpoints"
-        _damage(ckpt / "60", "random" if case == "random" else "empty")
+        _damage(ckpt / "30", "random" if case == "random" else "empty")
         if case != "random":
-            (ckpt / "60.sha256.json").unlink()
+            (ckpt / "30.sha256.json").unlink()
         if case == "both":
-            _damage(ckpt / "55", "random")
+            _damage(ckpt / "25", "random")
         said = []
         checkpoints = Checkpoints(ckpt)
         if case == "both":
             with pytest.raises(CheckpointError, match=f"{ckpt}: none of the 2 checkpoints can be resumed from") as err:
                 checkpoints.restore_newest(like, log=said.append)
-            assert "checkpoint 60: restoring it failed" in str(err.value)
-            assert "checkpoint 55: " in str(err.value) and "differ from their checksums" in str(err.value)
+            assert "checkpoint 30: restoring it failed" in str(err.value)
+            assert "checkpoint 25: " in str(err.value) and "differ from their checksums" in str(err.value)
             continue
         step, state = checkpoints.restore_newest(like, log=said.append)
-        assert step == 55 and int(state.iteration) == 55
-        assert len(said) == 2 and said[0].startswith(f"skipping checkpoint 60 in {ckpt}: ")
+        assert step == 25 and int(state.iteration) == 25
+        assert len(said) == 2 and said[0].startswith(f"skipping checkpoint 30 in {ckpt}: ")
         assert ("differ from their checksums" if case == "random" else "restoring it failed") in said[0]
-        assert said[1] == f"moved the damaged checkpoint 60 to {ckpt / 'damaged-60'}"
-        assert sorted(p.name for p in ckpt.iterdir() if p.is_dir()) == ["55", "damaged-60"]
-    # through the script: the damaged run resumes from 55 and ends where the whole run ended
+        assert said[1] == f"moved the damaged checkpoint 30 to {ckpt / 'damaged-30'}"
+        assert sorted(p.name for p in ckpt.iterdir() if p.is_dir()) == ["25", "damaged-30"]
+    # through the script: the damaged run resumes from 25 and ends where the whole run ended
     shutil.rmtree(tmp_path / "random")
     shutil.copytree(whole, tmp_path / "random")
-    _damage(tmp_path / "random" / "checkpoints" / "60", "random")
+    _damage(tmp_path / "random" / "checkpoints" / "30", "random")
     res = _run(["--resume", str(tmp_path / "random"), "--no-eval"])
     assert res.returncode == 0, res.stderr
-    assert "skipping checkpoint 60" in res.stdout and "resuming" in res.stdout
+    assert "skipping checkpoint 30" in res.stdout and "resuming" in res.stdout
     assert (tmp_path / "random" / "policy" / "policy.msgpack").read_bytes() == \
         (whole / "policy" / "policy.msgpack").read_bytes()
     before = sorted(str(p.relative_to(tmp_path)) for p in (tmp_path / "both").rglob("*"))
     res = _run(["--resume", str(tmp_path / "both"), "--no-eval"])
-    # exit 2 and one line: checkpoint 60 (no checksum file) is tried in a child process, so
+    # exit 2 and one line: checkpoint 30 (no checksum file) is tried in a child process, so
     # orbax's abandoned reads print nothing here
     assert res.returncode == 2
     assert res.stderr.startswith(f"error: {tmp_path / 'both' / 'checkpoints'}: none of the 2 checkpoints")
