@@ -157,7 +157,7 @@ class Evaluator:
 
     def _advance(self, batch: int):
         # batch axis last inside, in cache-sized blocks (mysim_jax.batching); split over
-        # the devices when there are several
+        # this process's devices when it has several
         if batch not in self._compiled:
             self._compiled[batch] = parallel.jit_envs(self._batched, batch, in_axes=(0, None, None))
         return self._compiled[batch]
