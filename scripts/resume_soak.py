@@ -26,14 +26,10 @@ import sys
 import time
 from pathlib import Path
 
+from mysim_jax.mappo.config import reach_training_text
+
 ROOT = Path(__file__).resolve().parents[1]
 TRAIN = ROOT / "scripts" / "train.py"
-REACH = """\
-name: resume_soak
-env: {builtin: reach}
-algo: {num_envs: 32, num_steps: 16, total_env_steps: %d, lr: 3.0e-3, init_std: 0.5}
-run: {checkpoint_every: 1, keep_checkpoints: 2, seed: 1}
-"""
 TIMING = {"wall_s", "iteration_s"}
 
 
@@ -61,7 +57,8 @@ def main(argv=None) -> int:
         return 2
     out.mkdir(parents=True, exist_ok=True)
     cfg = out / "reach.yaml"
-    cfg.write_text(REACH % (32 * 16 * args.iterations))
+    cfg.write_text(reach_training_text("resume_soak", 32 * 16 * args.iterations, checkpoint_every=1,
+                                       keep_checkpoints=2))
     rng = random.Random(args.seed)
     quiet = dict(cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 

@@ -34,6 +34,7 @@ import pytest
 
 from conftest import ROOT
 from mysim_jax import parallel
+from mysim_jax.mappo.config import reach_training_text
 
 WORKER = ROOT / "tests" / "parallel_worker.py"
 XLA_FLAGS_AT_IMPORT = os.environ.get("XLA_FLAGS")
@@ -204,9 +205,7 @@ def test_train_script_on_two_devices_and_on_two_processes(tmp_path):
     import shutil
 
     cfg = tmp_path / "reach.yaml"
-    cfg.write_text("name: reach_two\nenv: {builtin: reach}\n"
-                   "algo: {num_envs: 32, num_steps: 16, total_env_steps: 2048, lr: 3.0e-3, init_std: 0.5}\n"
-                   "run: {checkpoint_every: 2, keep_checkpoints: 2, seed: 1}\n")
+    cfg.write_text(reach_training_text("reach_two", 32 * 16 * 4, checkpoint_every=2, keep_checkpoints=2))
     script = [sys.executable, str(ROOT / "scripts" / "train.py")]
     quiet = ["--no-eval", "--no-progress"]
 
@@ -217,22 +216,12 @@ def test_train_script_on_two_devices_and_on_two_processes(tmp_path):
 
     def train_two_processes(*args):
         port = free_port()
-        procs = [subprocess.Popen([*script, *args, *quiet, "--coordinator", f"127.0.0.1:{port}", "--num-processes", "2",
-                                   "--process-id", str(i)], env=child_env(), cwd=ROOT, stdout=subprocess.PIPE,
-                                  stderr=subprocess.PIPE, text=True) for i in range(2)]
-        try:
-            logs = [p.communicate(timeout=TIMEOUT) for p in procs]
-        finally:
-            for p in procs:
-                if p.poll() is None:
-                    p.kill()
-                    p.wait()
-        for p, (_, err) in zip(procs, logs):
-            assert p.returncode == 0, err[-4000:]
+        first, second = run_processes([[*script, *args, *quiet, "--coordinator", f"127.0.0.1:{port}",
+                                         "--num-processes", "2", "--process-id", str(i)] for i in range(2)])
         # process 1 prints nothing of ours (gloo, JAX's CPU collectives, announces its peers)
-        assert [line for line in logs[1][0].splitlines() if not line.startswith("[Gloo]")] == []
-        assert logs[0][0].count("\n") >= 2
-        return logs[0][0]
+        assert [line for line in second.splitlines() if not line.startswith("[Gloo]")] == []
+        assert first.count("\n") >= 2
+        return first
 
     def policy(run):
         return (run / "policy" / "policy.msgpack").read_bytes()
@@ -265,14 +254,11 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def test_rope_net_rollout_on_two_processes(tmp_path):
-    """Two processes joined by ``jax.distributed`` on 127.0.0.1, one CPU device each, run the
-    8-environment rollout as one global array; each writes its half."""
-    port = free_port()
-    outs = [str(tmp_path / f"host{i}") for i in range(2)]
-    procs = [subprocess.Popen([sys.executable, str(WORKER), "host", str(i), str(port), outs[i]],
-                              env=child_env(), cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-             for i in range(2)]
+def run_processes(commands, env=None) -> list[str]:
+    """Start every command at once (processes that wait for each other, e.g. joined by
+    ``jax.distributed``), wait for all, assert each exited 0; their standard outputs."""
+    procs = [subprocess.Popen(cmd, env=env or child_env(), cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                              text=True) for cmd in commands]
     try:
         logs = [p.communicate(timeout=TIMEOUT) for p in procs]
     finally:
@@ -282,6 +268,15 @@ def test_rope_net_rollout_on_two_processes(tmp_path):
                 p.wait()
     for p, (_, err) in zip(procs, logs):
         assert p.returncode == 0, err[-4000:]
+    return [out for out, _ in logs]
+
+
+def test_rope_net_rollout_on_two_processes(tmp_path):
+    """Two processes joined by ``jax.distributed`` on 127.0.0.1, one CPU device each, run the
+    8-environment rollout as one global array; each writes its half."""
+    port = free_port()
+    outs = [str(tmp_path / f"host{i}") for i in range(2)]
+    run_processes([[sys.executable, str(WORKER), "host", str(i), str(port), outs[i]] for i in range(2)])
     halves = [load(out) for out in outs]
     for i, (arrays, facts) in enumerate(halves):
         assert facts["process_index"] == i and facts["process_count"] == 2

@@ -19,15 +19,15 @@ import numpy as np
 import pytest
 import yaml
 
+from mysim_jax.mappo.config import reach_training_text
+
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "scripts" / "train.py"
 
-REACH = """\
-name: reach_test
-env: {builtin: reach}
-algo: {num_envs: 32, num_steps: 16, total_env_steps: %d, lr: 3.0e-3, init_std: 0.5}
-run: {checkpoint_every: %d, eval_episodes: 200, seed: 1}
-"""
+def reach_text(iterations: int, every: int) -> str:
+    """The reach task's training file: ``iterations`` of 32 x 16 team steps, checkpoints
+    every ``every``, 200 evaluation episodes."""
+    return reach_training_text("reach_test", 32 * 16 * iterations, checkpoint_every=every, eval_episodes=200)
 
 
 def _run(args, **kw):
@@ -45,7 +45,7 @@ TIMING = {"wall_s", "iteration_s"}
 
 def test_outputs_and_learning(tmp_path):
     cfg = tmp_path / "reach.yaml"
-    cfg.write_text(REACH % (32 * 16 * 40, 10))
+    cfg.write_text(reach_text(40, 10))
     out = tmp_path / "run"
     res = _run([str(cfg), "--out", str(out)])
     assert res.returncode == 0, res.stderr
@@ -80,7 +80,7 @@ def whole_run(tmp_path_factory):
     fresh start)."""
     tmp = tmp_path_factory.mktemp("whole")
     cfg = tmp / "reach.yaml"
-    cfg.write_text(REACH % (32 * 16 * ITERATIONS, EVERY))
+    cfg.write_text(reach_text(ITERATIONS, EVERY))
     res = _run([str(cfg), "--out", str(tmp / "whole"), "--no-eval"])
     assert res.returncode == 0, res.stderr
     return cfg, tmp / "whole"
@@ -236,7 +236,7 @@ def test_the_process_flags_go_together(tmp_path):
     """--coordinator, --num-processes and --process-id: all three or none, and an id in
     range; refused before anything starts."""
     cfg = tmp_path / "reach.yaml"
-    cfg.write_text(REACH % (32 * 16 * 2, 1))
+    cfg.write_text(reach_text(2, 1))
     for flags, message in ((["--coordinator", "127.0.0.1:1234"], "go together"),
                            (["--coordinator", "127.0.0.1:1234", "--num-processes", "2", "--process-id", "2"],
                             "--process-id 2 with --num-processes 2")):
@@ -247,7 +247,7 @@ def test_the_process_flags_go_together(tmp_path):
 
 def test_an_existing_run_is_not_overwritten(tmp_path):
     cfg = tmp_path / "reach.yaml"
-    cfg.write_text(REACH % (32 * 16 * 2, 1))
+    cfg.write_text(reach_text(2, 1))
     out = tmp_path / "run"
     out.mkdir()
     (out / "train.yaml").write_text("name: x\n")

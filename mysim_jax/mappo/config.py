@@ -391,6 +391,17 @@ def check_memory_needs(needs: dict, source: str, available: int | None = None) -
                       f"{available / 2**30:,.1f} GiB available: lower {parts[0][1][1]}")
 
 
+def reach_training_text(name: str, total_env_steps: int, **run) -> str:
+    """A small training file (YAML text) for the builtin reach task, as the tests and
+    ``scripts/resume_soak.py`` train it: 32 environments x 16 steps, lr 3e-3, initial
+    policy std 0.5; ``run`` gives the ``run:`` section's values (seed 1 unless given)."""
+    import yaml
+
+    algo = {"num_envs": 32, "num_steps": 16, "total_env_steps": int(total_env_steps), "lr": 3.0e-3, "init_std": 0.5}
+    return yaml.safe_dump({"name": name, "env": {"builtin": "reach"}, "algo": algo, "run": {"seed": 1, **run}},
+                          sort_keys=False, default_flow_style=None)
+
+
 def describe(config: TrainConfig) -> str:
     """Derived sizes, one line."""
     a = config.algo

@@ -216,7 +216,7 @@ class Trainer:
 
             def put(sharding):
                 def one(x):
-                    if isinstance(x, jax.Array) and x.sharding == sharding:
+                    if isinstance(x, jax.Array) and x.sharding.is_equivalent_to(sharding, x.ndim):
                         return x
                     return jax.device_put(np.asarray(x), sharding)
                 return one
