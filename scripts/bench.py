@@ -1970,11 +1970,17 @@ def splice_sections(old: list[str], new: list[str], rerun: list[str]) -> list[st
     kept = [s for s in SECTIONS if s in old_sections and s not in rerun]
     if not kept:
         return new
-    old_code = next((ln for ln in old_header if ln.startswith("| code |")), "| code | unknown |")
-    old_date = next((ln for ln in old_header if ln.startswith("| date |")), "| date | unknown |")
+    def field(name):
+        line = next((ln for ln in old_header if ln.startswith(f"| {name} |")), f"| {name} | unknown |")
+        return line.split("|")[2].strip()
+
     note = (f"Sections {', '.join(rerun)} are from this run; sections {', '.join(kept)} (and their summary "
-            f"lines) are kept from the earlier run ({old_date.split('|')[2].strip()}, "
-            f"{old_code.split('|')[2].strip()}), spliced by `scripts/bench.py --only {','.join(rerun)} --update`.")
+            f"lines) are kept from the earlier file ({field('date')}, {field('code')}, on {field('machine')}), "
+            f"spliced by `scripts/bench.py --only {','.join(rerun)} --update`.")
+    # that file may itself have been spliced: its note says where its kept sections came from
+    earlier = next((ln for ln in old_header if ln.startswith("Sections ") and " are from this run" in ln), None)
+    if earlier is not None:
+        note += " That file's own note: " + earlier
     # every summary line names its section(s), "(a)" ...; keep those of sections not rerun
     kept_summary = [ln for ln in old_summary
                     if ln.startswith("- ") and any(f"({s})" in ln for s in kept)
