@@ -391,6 +391,7 @@ class SceneConfig(StrictModel):
         problems += self._team_problems()
         problems += self._env_problems()
         problems += self._target_contact_problems()
+        problems += self._arena_problems()
         if problems:
             raise ValueError("; ".join(problems))
         return self
@@ -403,6 +404,20 @@ class SceneConfig(StrictModel):
                 f"{self.target.radius:g} m (target.radius); give its contact group the same radius"
                 for i, g in enumerate(self.contact.groups)
                 if self.target.name in (g.members or []) and g.radius != self.target.radius]
+
+    def _arena_problems(self) -> list[str]:
+        """A maneuvering target's arena must hold the net: a net wider than the arena
+        could cover the whole arena at once."""
+        prop = self.target.propulsion if self.target is not None else None
+        if prop is None or prop.arena is None or self.net is None:
+            return []
+        low, high = prop.arena.low, prop.arena.high
+        small = [axis for axis, lo, hi in zip("xy", low, high) if hi - lo <= self.net.size]
+        if not small:
+            return []
+        return [f"target.propulsion.arena: {' and '.join(f'{hi - lo:g} m' for lo, hi in zip(low[:2], high[:2]))} "
+                f"wide, no wider than the net (net.size = {self.net.size:g} m) on axis {', '.join(small)}: widen the "
+                "arena, or the net covers it whole"]
 
     def _team_problems(self) -> list[str]:
         team = self.team

@@ -68,6 +68,12 @@ class PropulsionConfig(StrictModel):
     team's centroid with ``flee_acceleration``, adds a random horizontal jink of
     ``jink_acceleration`` redrawn every ``jink_interval`` seconds, and holds its altitude
     inside ``altitude`` (a band it prefers).
+
+    ``arena`` (optional) is the protected volume the intruder evades within: a box its
+    centre stays inside. Near a wall the behaviour brakes toward the inside, at full
+    acceleration once its stopping distance (at half ``max_acceleration``) reaches the
+    wall, blending in over the last ``wall_margin`` metres before that. Without an arena
+    the target may flee without bound.
     """
 
     max_acceleration: PosFloat = 4.0       # m/s^2
@@ -77,12 +83,36 @@ class PropulsionConfig(StrictModel):
     jink_interval: IntervalRange = IntervalRange(low=0.4, high=1.2)
     altitude: tuple[PosFloat, PosFloat] = (2.0, 6.0)    # m
     altitude_gain: PosFloat = 2.0          # 1/s^2 toward the band, with critical damping
+    arena: BoxRange | None = None          # m, world frame: the box the target's centre stays in
+    wall_margin: PosFloat = 0.5            # m, over which the braking at a wall blends in
 
     @model_validator(mode="after")
     def _band(self):
+        problems = []
         if self.altitude[0] > self.altitude[1]:
-            raise ValueError(f"altitude: empty band {list(self.altitude)} (low > high)")
+            problems.append(f"altitude: empty band {list(self.altitude)} (low > high)")
+        if self.arena is not None:
+            flat = [axis for axis, lo, hi in zip("xyz", self.arena.low, self.arena.high) if hi - lo <= 2 * self.wall_margin]
+            if flat:
+                problems.append(f"arena: no wider than twice wall_margin ({2 * self.wall_margin:g} m) on axis "
+                                f"{', '.join(flat)} (low {list(self.arena.low)}, high {list(self.arena.high)}): the "
+                                "target would brake everywhere: widen the arena or lower wall_margin")
+            lo, hi = self.arena.low[2], self.arena.high[2]
+            if not problems and not (lo <= self.altitude[0] and self.altitude[1] <= hi):
+                problems.append(f"altitude: the band {list(self.altitude)} m is not inside the arena's heights "
+                                f"({lo:g} to {hi:g} m, propulsion.arena)")
+        if problems:
+            raise ValueError("; ".join(problems))
         return self
+
+
+class EntanglementConfig(StrictModel):
+    """An evading drone's rotors tangle in the net's lines (:mod:`mysim_jax.tasks.entanglement`):
+    while its centre is within its radius plus ``margin`` of a line, it loses its
+    propulsion at ``1 / time`` per second, for good."""
+
+    time: PosFloat = 0.2                   # s of line contact for a full loss of propulsion
+    margin: NonNegFloat = 0.02             # m the rotors reach beyond the target's radius
 
 
 class TargetConfig(StrictModel):
@@ -102,6 +132,7 @@ class TargetConfig(StrictModel):
     behaviour: Literal["falling", "maneuvering"] = "falling"
     spawn: SpawnConfig
     propulsion: PropulsionConfig | None = None
+    entanglement: EntanglementConfig | None = None   # None: line contact leaves its propulsion whole
     seed: Annotated[int, Field(ge=0, le=2**32 - 1)] = 0
 
     @model_validator(mode="after")
@@ -113,6 +144,16 @@ class TargetConfig(StrictModel):
                 f"(its centre must be at least its radius, {self.radius:g} m, above z = 0)")
         if self.behaviour == "falling" and self.propulsion is not None:
             problems.append("propulsion: a falling target has no propulsion (use behaviour: maneuvering)")
+        if self.behaviour == "falling" and self.entanglement is not None:
+            problems.append("entanglement: a falling target has no rotors to entangle (use behaviour: maneuvering)")
+        arena = self.propulsion.arena if self.propulsion is not None else None
+        if arena is not None:
+            outside = [axis for axis, slo, shi, alo, ahi in zip("xyz", self.spawn.position.low, self.spawn.position.high,
+                                                                arena.low, arena.high) if slo < alo or shi > ahi]
+            if outside:
+                problems.append(f"spawn.position: the box (low {list(self.spawn.position.low)}, high "
+                                f"{list(self.spawn.position.high)}) reaches outside propulsion.arena (low "
+                                f"{list(arena.low)}, high {list(arena.high)}) on axis {', '.join(outside)}")
         if problems:
             raise ValueError("; ".join(problems))
         return self

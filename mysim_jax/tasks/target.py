@@ -6,7 +6,8 @@ Forces on the target body (world frame, at its centre of mass):
 * **air drag** ``F = −½ ρ C_d π r² |v| v`` (quadratic drag of a sphere, still air);
 * **propulsion** (``behaviour: maneuvering``): ``F = m (a_cmd − g)``: the propulsion
   cancels gravity and adds the commanded acceleration ``a_cmd``, held over each
-  environment step.
+  environment step; with entanglement (:mod:`mysim_jax.tasks.entanglement`) only the
+  share ``1 − e`` of it is left.
 
 Evasive behaviour (computed once per environment step; the team does not know it):
 
@@ -17,7 +18,8 @@ it, ``jink`` a horizontal acceleration of fixed size in a random direction redra
 random intervals (``jink_interval``), the altitude term a critically damped pull
 (``altitude_gain``) back into the preferred altitude band, and the speed limit term
 removing any push along the velocity once the speed reaches ``max_speed`` and braking
-(time constant 0.25 s) above it.
+(time constant 0.25 s) above it. With an arena (``propulsion.arena``), braking at its
+walls overrides the rest where the target would otherwise leave it (:func:`arena_braking`).
 
 Randomness. The target's memory carries a PRNG key (``jax.random.PRNGKey`` raw form,
 ``(2,) uint32``); the spawn (:func:`spawn_target`) and every jink draw split it, so a run
@@ -36,6 +38,7 @@ from flax import struct
 
 from mysim_jax import rng, vecmath
 from mysim_jax.dynamics.forces import Loads
+from mysim_jax.tasks.entanglement import propulsion_share
 
 SPEED_LIMIT_TIME_CONSTANT = 0.25   # s, braking back to max_speed
 
@@ -48,6 +51,7 @@ class TargetScene:
     behaviour: str                    # "falling" | "maneuvering"
     has_drag: bool
     team_bodies: tuple[int, ...]      # quadrotor bodies (the centroid it flees)
+    has_arena: bool = False           # a maneuvering target kept inside propulsion.arena
 
 
 @struct.dataclass
@@ -68,6 +72,9 @@ class TargetParams:
     altitude_low: jnp.ndarray         # () m
     altitude_high: jnp.ndarray        # () m
     altitude_gain: jnp.ndarray        # () 1/s^2
+    arena_low: jnp.ndarray            # (3,) m, the box the target's centre stays in (if has_arena)
+    arena_high: jnp.ndarray           # (3,) m
+    wall_margin: jnp.ndarray          # () m, over which the braking at a wall blends in
 
 
 @struct.dataclass
@@ -109,7 +116,27 @@ def evasive_command(static: TargetScene, tp: TargetParams, memory: TargetMemory,
     cmd = cmd - jnp.maximum(speed - tp.max_speed, 0.0) / SPEED_LIMIT_TIME_CONSTANT * v_hat
     size = vecmath.safe_norm(cmd)
     cmd = cmd * jnp.minimum(1.0, tp.max_acceleration / jnp.maximum(size, 1e-12))
+    if static.has_arena:
+        cmd = arena_braking(tp, p, v, cmd)
     return cmd, memory.replace(key=key, jink=jink, next_jink=next_jink)
+
+
+def arena_braking(tp: TargetParams, p, v, cmd):
+    """``cmd`` (3,) with the arena's walls enforced: on each axis, with ``d`` the distance
+    to the wall the target moves toward and ``s = u² / (2 · ½ max_acceleration)`` its
+    stopping distance at speed ``u`` toward it, the weight ``w = clip(1 − (d − s) /
+    wall_margin, 0, 1)`` blends that component into full braking (``max_acceleration``
+    away from the wall); the result is scaled back to ``max_acceleration``. Braking is
+    planned at half the acceleration, so a target braking on two or three axes at once,
+    each scaled to at least ``max_acceleration / √3``, still stops inside."""
+    toward_high = v > 0.0
+    distance = jnp.where(toward_high, tp.arena_high - p, p - tp.arena_low)
+    stopping = v * v / tp.max_acceleration          # u² / (2 · ½ a_max)
+    w = jnp.clip(1.0 - (distance - stopping) / tp.wall_margin, 0.0, 1.0)
+    brake = jnp.where(toward_high, -tp.max_acceleration, tp.max_acceleration)
+    cmd = (1.0 - w) * cmd + w * brake
+    size = vecmath.safe_norm(cmd)
+    return cmd * jnp.minimum(1.0, tp.max_acceleration / jnp.maximum(size, 1e-12))
 
 
 def _drag_stage(scene, params, phys, nodes, held) -> Loads:
@@ -141,11 +168,13 @@ class _Target:
         t = config.target
         if t is None:
             return None
+        prop = t.propulsion_or_default()
+        arena = prop.arena if prop is not None else None
         static = TargetScene(body=ctx.body_names.index(t.name), behaviour=t.behaviour,
-                             has_drag=t.drag_constant > 0.0, team_bodies=tuple(ctx.quadrotor_bodies))
+                             has_drag=t.drag_constant > 0.0, team_bodies=tuple(ctx.quadrotor_bodies),
+                             has_arena=arena is not None)
         if static.behaviour == "maneuvering" and not static.team_bodies:
             raise ValueError("target.behaviour: a maneuvering target flees quadrotors, and the scene has none")
-        prop = t.propulsion_or_default()
 
         def s(x):
             return jnp.asarray(x, dtype=ctx.dtype)
@@ -163,6 +192,9 @@ class _Target:
             altitude_low=s(prop.altitude[0] if prop else 0.0),
             altitude_high=s(prop.altitude[1] if prop else 0.0),
             altitude_gain=s(prop.altitude_gain if prop else 1.0),
+            arena_low=s(arena.low if arena else (0.0, 0.0, 0.0)),
+            arena_high=s(arena.high if arena else (0.0, 0.0, 0.0)),
+            wall_margin=s(prop.wall_margin if prop else 1.0),
         )
         memory = TargetMemory(key=jax.random.PRNGKey(t.seed), jink=jnp.zeros(3, dtype=ctx.dtype),
                               next_jink=jnp.zeros((), dtype=ctx.dtype))
@@ -173,7 +205,11 @@ class _Target:
         memory = state.effects["target"]
         if static.behaviour != "maneuvering":
             return None, memory
-        return evasive_command(static, params.effects["target"], memory, state.phys, state.time)
+        cmd, memory = evasive_command(static, params.effects["target"], memory, state.phys, state.time)
+        share = propulsion_share(scene, state)
+        if share is not None:      # entangled rotors: the propulsion force m (a_cmd − g) scaled by the share
+            cmd = params.gravity + share * (cmd - params.gravity)
+        return cmd, memory
 
     def init(self, scene, params, state):
         """The seeded spawn: a draw from the key the memory holds (``target.seed``)."""

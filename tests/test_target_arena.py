@@ -1,0 +1,88 @@
+"""The evading target's arena (``target.propulsion.arena``): the target's centre stays in
+the box whatever its flight, and bad arenas are refused before anything compiles.
+
+The flight is the target's own model integrated here, not through the scene: its
+propulsion cancels gravity and adds the commanded acceleration
+(:func:`mysim_jax.tasks.target.evasive_command`, held over each ``sim.dt``), quadratic
+drag slows it, the quadrotors stay where they start (the target flees their centroid,
+so it runs for the walls)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from mysim_jax.build import build
+from mysim_jax.config import ConfigError, load_config
+from mysim_jax.tasks.target import evasive_command, spawn_target
+
+CONFIG = Path(__file__).resolve().parents[1] / "configs" / "capture_env_maneuvering.yaml"
+LOW, HIGH = np.array([-4.0, -4.0, 1.5]), np.array([4.0, 4.0, 5.0])
+ARENA = f"target.propulsion.arena={{low: {LOW.tolist()}, high: {HIGH.tolist()}}}"
+
+
+def _flights(overrides, n_targets=256, seconds=12.0):
+    """Centre positions ``(n_targets, steps, 3)`` of targets spawned from distinct keys."""
+    config = load_config(CONFIG, overrides)
+    scene, params, state = build(config)
+    static = dict(scene.effects)["target"]
+    tp = params.effects["target"]
+    b = static.body
+    mass = params.body_mass[b]
+    dt = scene.dt
+
+    def flight(key):
+        s = spawn_target(scene, params, state, key)
+
+        def step(carry, _):
+            phys, memory, t = carry
+            cmd, memory = evasive_command(static, tp, memory, phys, t)
+            v = phys.body_vel[b]
+            acc = cmd - tp.drag_constant / mass * jnp.linalg.norm(v) * v
+            v = v + dt * acc
+            phys = phys.replace(body_vel=phys.body_vel.at[b].set(v),
+                                body_pos=phys.body_pos.at[b].add(dt * v))
+            return (phys, memory, t + dt), phys.body_pos[b]
+
+        steps = int(round(seconds / dt))
+        return jax.lax.scan(step, (s.phys, s.effects["target"], s.time), None, length=steps)[1]
+
+    keys = jax.random.split(jax.random.PRNGKey(3), n_targets)
+    return np.asarray(jax.jit(jax.vmap(flight))(keys))
+
+
+def test_the_target_stays_in_its_arena_and_leaves_without_one():
+    # the fastest, most evasive target the randomisation ranges allow
+    fast = ["target.propulsion.max_speed=3.5", "target.propulsion.flee_acceleration=3.0",
+            "target.propulsion.jink_acceleration=4.0"]
+    inside = _flights(fast + [ARENA])
+    overshoot = np.maximum(np.maximum(LOW - inside, inside - HIGH), 0.0).max()
+    assert overshoot == 0.0, f"a target left the arena by {overshoot:.3g} m"
+    # it does use the arena: most targets come within 1 m of a wall
+    near_wall = np.minimum(inside - LOW, HIGH - inside)[..., :2].min(axis=(1, 2))
+    assert np.mean(near_wall < 1.0) > 0.5
+    free = _flights(fast)
+    assert np.mean(np.any((free[..., :2] < LOW[:2]) | (free[..., :2] > HIGH[:2]), axis=(1, 2))) > 0.5
+
+
+@pytest.mark.parametrize("sets, message", [
+    (["target.spawn.position={low: [-0.5, -0.5, 2.0], high: [0.5, 0.5, 3.5]}",
+      ARENA.replace("low: [-4.0, -4.0, 1.5]", "low: [-1.0, -4.0, 1.5]").replace("high: [4.0, 4.0", "high: [1.0, 4.0")],
+     "target.propulsion.arena: 2 m and 8 m wide, no wider than the net (net.size = 2 m) on axis x: widen"),
+    ([ARENA.replace("low: [-4.0, -4.0, 1.5]", "low: [-2.0, -4.0, 1.5]")],
+     "spawn.position: the box (low [-2.5, -2.5, 2.0], high [2.5, 2.5, 3.5]) reaches outside propulsion.arena"),
+    ([ARENA.replace("high: [4.0, 4.0, 5.0]", "high: [4.0, 4.0, 1.0]")], "propulsion.arena: empty range"),
+    ([ARENA, "target.propulsion.altitude=[2.0, 6.0]"], "altitude: the band [2.0, 6.0] m is not inside the arena"),
+    ([ARENA, "target.propulsion.wall_margin=-1"], "wall_margin"),
+    ([ARENA, "target.propulsion.max_speed=-2"], "max_speed"),
+])
+def test_bad_arenas_are_one_line_errors(sets, message):
+    with pytest.raises(ConfigError) as err:
+        load_config(CONFIG, sets)
+    text = str(err.value)
+    problems = text.splitlines()[1:]          # the file's name, then one line per problem
+    assert len(problems) == 1 and message in problems[0], text
