@@ -239,7 +239,8 @@ def build(config: SceneConfig):
     )
     ctx = BuildContext(body_names=scene.body_names, point_names=scene.point_names,
                        marker_names=scene.marker_names,
-                       quadrotor_bodies=() if quad_scene is None else quad_scene.body, dtype=scene.dtype)
+                       quadrotor_bodies=() if quad_scene is None else quad_scene.body, dtype=scene.dtype,
+                       contact=contact_scene)
     effect_static, effect_params, effect_memory = [], {}, {}
     for name, effect in EFFECTS.items():
         try:

@@ -58,6 +58,8 @@ CASES = [
     ("target propulsion", "target_propulsion", "configs/capture_env_maneuvering.yaml", [],
      ["target.behaviour=falling", "target.propulsion=null"]),
     ("target drag", "target_drag", CAPTURE, [], ["target.drag_coefficient=0"]),
+    ("entanglement", "entanglement_update", "configs/capture_env_maneuvering.yaml",
+     ["target.entanglement={time: 0.2}"], []),
     ("motor lag", "motor_lag", HOVER, ["quadrotors.0.rotors={time_constant: 0.02}"], []),
     ("body drag", "body_drag", HOVER, ["quadrotors.0.drag=[0.1, 0.1, 0.2]"], []),
     ("wind", "wind", HOVER, ["quadrotors.0.wind={force: [0.1, 0, 0]}"], []),
