@@ -293,6 +293,7 @@ class Trajectory:
     acc: Accelerations        # leaves (n_out, ...) as NumPy arrays
     controller: object = None  # ControlState leaves (n_out, ...) (quadrotor scenes), else None
     failure: str | None = None
+    effects: dict | None = None  # effect name -> its memory, leaves (n_out, ...) (stepped runs), else None
 
     @property
     def ok(self) -> bool:
@@ -433,7 +434,8 @@ def simulate(scene: Scene, params: Params, state: State, run, progress: bool = T
     keep = lambda a: a[:n_kept]   # noqa: E731
     return Trajectory(time=times[:n_kept], phys=jax.tree.map(keep, states.phys), acc=jax.tree.map(keep, acc),
                       controller=None if states.controller is None else jax.tree.map(keep, states.controller),
-                      failure=None if failure is None else failure[1])
+                      failure=None if failure is None else failure[1],
+                      effects=jax.tree.map(keep, states.effects) if states.effects else None)
 
 
 def _first_non_finite_row(tree) -> int | None:

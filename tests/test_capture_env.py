@@ -151,6 +151,16 @@ def test_held_needs_inside_above_the_net_below_slow_and_above_ground():
     assert not bool(under.above_net) and not bool(under.held)
 
 
+def test_an_evading_target_is_held_only_once_entangled():
+    """With entanglement in the scene (Snapshot.entanglement given), held also needs the
+    level to reach success.min_entanglement (1 by default); without it (None) nothing
+    changes."""
+    for level, held in ((None, True), (0.0, False), (0.99, False), (1.0, True)):
+        flags, _ = evaluate(snapshot(target=(0.3, 0.2, 2.7), **({} if level is None else {"entanglement": level})))
+        assert bool(flags.held) == held, level
+        assert bool(flags.inside & flags.above_net & flags.below & flags.slow & flags.above_ground)
+
+
 def test_above_net_follows_the_knots_nearest_to_the_target():
     # a net sagging into a bowl: the centre knot 0.4 m below the others
     snap = snapshot()

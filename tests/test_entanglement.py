@@ -132,3 +132,37 @@ def test_entanglement_needs_target_line_contact_and_rotors():
         load_config("configs/capture_env_falling.yaml", [ENTANGLE])
     with pytest.raises(ConfigError, match="time"):
         load_config(CONFIG, ["target.entanglement={time: 0}"])
+
+
+def test_simulate_verdict_needs_the_entanglement_column_to_reach_the_threshold():
+    """capture_outcome (scripts/simulate.py's verdict) on a hand-built run: the target
+    lies still on the flat net's centre for 1 s; it is caught only if its entanglement
+    (the trajectory's ``target_entanglement`` column) is 1 over the last 0.5 s."""
+    from mysim_jax.io.trajectory import trajectory_columns
+    from mysim_jax.sim import Trajectory
+    from mysim_jax.tasks.entanglement import EntanglementMemory
+    from mysim_jax.tasks.outcome import capture_outcome
+    from mysim_jax.types import Accelerations
+
+    cfg, scene, params, state = _scene()
+    s = _place(scene, state, np.asarray(cfg.net.center) + [0.05, 0.03, cfg.target.radius])
+    times = np.linspace(0.0, 1.0, 26)
+    phys = jax.tree.map(lambda a: np.repeat(np.asarray(a)[None], len(times), 0), s.phys)
+    acc = Accelerations(point_acc=np.zeros_like(phys.point_pos), body_acc=np.zeros_like(phys.body_pos),
+                        body_angacc=np.zeros_like(phys.body_pos))
+
+    def caught(levels):
+        memory = EntanglementMemory(level=np.asarray(levels, np.float32), touching=np.ones(len(times), bool))
+        traj = Trajectory(time=times, phys=phys, acc=acc, effects={"entanglement": memory})
+        columns = trajectory_columns(scene, traj)
+        np.testing.assert_array_equal(columns["target_entanglement"], np.asarray(levels, np.float32))
+        return capture_outcome(columns, cfg)
+
+    assert caught(np.where(times >= 0.4, 1.0, 0.5)).caught
+    late = caught(np.where(times >= 0.6, 1.0, 0.5))
+    assert not late.caught and late.first_held == pytest.approx(0.6)
+    assert not caught(np.full(len(times), 0.95)).caught
+    # the same run without the column is refused, not judged without entanglement
+    traj = Trajectory(time=times, phys=phys, acc=acc)
+    with pytest.raises(ValueError, match="target_entanglement"):
+        capture_outcome(trajectory_columns(scene, traj), cfg)

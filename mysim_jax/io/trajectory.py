@@ -7,6 +7,9 @@ One header row, then one row per output time. Columns::
     for every body:   NAME_x NAME_y NAME_z NAME_qw NAME_qx NAME_qy NAME_qz
                       NAME_vx NAME_vy NAME_vz NAME_ax NAME_ay NAME_az NAME_wx NAME_wy NAME_wz
 
+and, for an evading target with entanglement (:mod:`mysim_jax.tasks.entanglement`), the
+column ``TARGET_entanglement`` (the share of its propulsion lost, 0 to 1).
+
 Positions and velocities are world-frame (m, m/s), accelerations world-frame (m/s²),
 quaternions scalar-first body → world, angular velocity ``w*`` body-frame (rad/s). Blender
 or any other renderer needs only ``time``, ``NAME_x/y/z`` and ``NAME_qw..qz`` (paper
@@ -40,6 +43,9 @@ def trajectory_columns(scene: Scene, traj: Trajectory) -> dict[str, np.ndarray]:
         for key, arr in (("v", traj.phys.body_vel), ("a", traj.acc.body_acc), ("w", traj.phys.body_angvel)):
             for c, axis in enumerate(_XYZ):
                 cols[f"{name}_{key}{axis}"] = np.asarray(arr[:, i, c])
+    effects, memory = dict(scene.effects), getattr(traj, "effects", None) or {}
+    if "entanglement" in memory and "target" in effects:
+        cols[f"{scene.body_names[effects['target'].body]}_entanglement"] = np.asarray(memory["entanglement"].level)
     return cols
 
 

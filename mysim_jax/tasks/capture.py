@@ -435,7 +435,8 @@ class CaptureEnv:
             target_pos=phys.body_pos[self.target_body], target_vel=phys.body_vel[self.target_body],
             knot_pos=phys.point_pos[knots], knot_vel=phys.point_vel[knots],
             border=phys.point_pos[np.asarray(self.border_points, dtype=np.int32)], attach=attach,
-            line_a=phys.point_pos[a], line_b=phys.point_pos[b])
+            line_a=phys.point_pos[a], line_b=phys.point_pos[b],
+            entanglement=sim.effects["entanglement"].level if "entanglement" in sim.effects else None)
 
     def flags(self, snap: Snapshot):
         return checks(snap, target_radius=self.target_radius, line_radius=self.line_radius,

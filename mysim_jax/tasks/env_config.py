@@ -133,11 +133,14 @@ class SuccessConfig(StrictModel):
     polygon of the border knots), below every tether attachment, slower than
     ``max_relative_speed`` relative to the net's mean knot velocity, and its lowest point
     is ``ground_clearance`` above the ground; the episode succeeds once it has been held
-    for ``hold_time`` without a break."""
+    for ``hold_time`` without a break. An evading target whose scene has entanglement
+    (``target.entanglement``) is held only while its entanglement is at least
+    ``min_entanglement`` (1: its propulsion is lost); without entanglement it is unused."""
 
     hold_time: NonNegFloat = 0.5           # s
     max_relative_speed: PosFloat = 0.5     # m/s
     ground_clearance: NonNegFloat = 0.05   # m
+    min_entanglement: Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)] = 1.0
 
 
 class FailureConfig(StrictModel):

@@ -136,7 +136,8 @@ def record_episode(env, params, policy, key, index: int = 0) -> EpisodeRecord:
     acc = jax.tree.map(np.asarray, acc)
     failures = rows["failures"][n - 1]
     return EpisodeRecord(
-        trajectory=Trajectory(time=states.time, phys=states.phys, acc=acc, controller=states.controller),
+        trajectory=Trajectory(time=states.time, phys=states.phys, acc=acc, controller=states.controller,
+                              effects=states.effects or None),
         sim_params=sim_params, actions=cut(rows["actions"]), rewards=cut(rows["reward"]),
         terms={t: cut(rows["terms"][t]) for t in REWARD_TERMS}, held=cut(rows["held"]),
         touching=cut(rows["touching"]), success=bool(rows["success"][n - 1]),

@@ -10,7 +10,9 @@ The target is **held** at an output time when all of these hold:
   attachment marker;
 * *slow relative to the net*: its speed relative to the mean velocity of the knots is
   below ``max_relative_speed``;
-* *above the ground*: its lowest point is at least ``ground_clearance`` above z = 0.
+* *above the ground*: its lowest point is at least ``ground_clearance`` above z = 0;
+* *entangled* (an evading target with ``target.entanglement`` only): its entanglement
+  (the trajectory's ``TARGET_entanglement`` column) is at least ``min_entanglement``.
 
 A run **catches** the target when it is held over the last ``hold_time`` seconds of the
 run. The same quantities feed the plots (UAV–target distances, tether tensions).
@@ -30,6 +32,7 @@ MAX_RELATIVE_SPEED = 0.5   # m/s
 NET_SURFACE_KNOTS = 3      # knots whose mean height is the net under the target (rewards.above_net)
 GROUND_CLEARANCE = 0.05    # m
 HOLD_TIME = 0.5            # s
+MIN_ENTANGLEMENT = 1.0     # share of the propulsion lost (evading targets with entanglement)
 
 
 @dataclass
@@ -44,10 +47,12 @@ class CaptureOutcome:
     above_ground: np.ndarray
     caught: bool
     first_held: float | None     # s, first time from which the target stays held to the end
+    entangled: np.ndarray | None = None   # (n_out,) bool; None without entanglement
 
     @property
     def held(self) -> np.ndarray:
-        return self.inside & self.above_net & self.below & self.slow & self.above_ground
+        held = self.inside & self.above_net & self.below & self.slow & self.above_ground
+        return held if self.entangled is None else held & self.entangled
 
     def summary(self) -> dict:
         last = -1
@@ -56,7 +61,8 @@ class CaptureOutcome:
             "held_from_s": self.first_held,
             "at_end": {"inside_net_outline": bool(self.inside[last]), "above_net": bool(self.above_net[last]),
                        "below_tether_attachments": bool(self.below[last]),
-                       "slow_relative_to_net": bool(self.slow[last]), "above_ground": bool(self.above_ground[last])},
+                       "slow_relative_to_net": bool(self.slow[last]), "above_ground": bool(self.above_ground[last]),
+                       **({} if self.entangled is None else {"entangled": bool(self.entangled[last])})},
         }
 
 
@@ -83,7 +89,8 @@ def _attachments(columns, config):
 
 
 def capture_outcome(columns, config, max_relative_speed=MAX_RELATIVE_SPEED,
-                    ground_clearance=GROUND_CLEARANCE, hold_time=HOLD_TIME) -> CaptureOutcome:
+                    ground_clearance=GROUND_CLEARANCE, hold_time=HOLD_TIME,
+                    min_entanglement=MIN_ENTANGLEMENT) -> CaptureOutcome:
     """Evaluate a capture run from its trajectory columns (:mod:`mysim_jax.io.trajectory`)."""
     net, target = config.net, config.target
     time = np.asarray(columns["time"])
@@ -104,7 +111,16 @@ def capture_outcome(columns, config, max_relative_speed=MAX_RELATIVE_SPEED,
     v_net = np.mean(np.stack([_xyz(columns, k, "v") for k in knots], axis=1), axis=1)
     slow = np.linalg.norm(v - v_net, axis=-1) < max_relative_speed
     above = p[:, 2] - target.radius > ground_clearance
+    entangled = None
+    if target.entanglement is not None:
+        column = f"{target.name}_entanglement"
+        if column not in columns:
+            raise ValueError(f"the target has entanglement (target.entanglement) but the trajectory has no "
+                             f"'{column}' column: it comes from a stepped run (scripts/simulate.py writes it)")
+        entangled = np.asarray(columns[column]) >= min_entanglement - 1e-6
     held = inside & over_net & below & slow & above
+    if entangled is not None:
+        held = held & entangled
     first = None
     if held[-1]:
         not_held = np.flatnonzero(~held)
@@ -112,7 +128,7 @@ def capture_outcome(columns, config, max_relative_speed=MAX_RELATIVE_SPEED,
         first = float(time[start])
     caught = first is not None and time[-1] - first >= hold_time - 1e-9
     return CaptureOutcome(time=time, inside=inside, above_net=over_net, below=below, slow=slow, above_ground=above,
-                          caught=bool(caught), first_held=first)
+                          caught=bool(caught), first_held=first, entangled=entangled)
 
 
 def tether_tensions(columns, scene, params, config) -> dict[str, np.ndarray]:

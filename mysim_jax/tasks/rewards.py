@@ -43,7 +43,10 @@ position; ``(·)_xy`` the horizontal part; scales ``L_d, V_a, Ω, L_s, D, V_s`` 
   the UAV draws.
 
 Outcomes (beyond the paper, which has none): **success** ``+1`` on the step the target
-has been held for ``hold_time``; **miss** ``−1`` on the step the target reaches the
+has been held for ``hold_time`` (an evading target with entanglement,
+:mod:`mysim_jax.tasks.entanglement`, is held only once its entanglement reaches
+``success.min_entanglement``: a drone still flying can sit in the net's outline without
+being caught); **miss** ``−1`` on the step the target reaches the
 ground; **crash** ``−1`` on the step a UAV fails (ground, tilt, altitude, a collision, a
 non-finite state), whatever the target does then. A timeout is a truncation, not an
 outcome: it pays nothing (a learner bootstraps the value there).
@@ -76,6 +79,9 @@ class Snapshot:
     attach: jnp.ndarray         # (n_tethers, 3) m, tether attachment markers
     line_a: jnp.ndarray         # (n_lines, 3) m, ends of the net's line segments
     line_b: jnp.ndarray         # (n_lines, 3) m
+    # () in [0, 1], the evading target's entanglement (mysim_jax.tasks.entanglement);
+    # None in scenes without it
+    entanglement: jnp.ndarray | None = None
 
 
 @struct.dataclass
@@ -89,10 +95,12 @@ class Checks:
     slow: jnp.ndarray           # () bool, slow relative to the net
     above_ground: jnp.ndarray   # () bool
     failures: dict              # failure name -> () bool (FAILURES)
+    # () bool, entangled at least success.min_entanglement (True in scenes without entanglement)
+    entangled: jnp.ndarray
 
     @property
     def held(self):
-        return self.inside & self.above_net & self.below & self.slow & self.above_ground
+        return self.inside & self.above_net & self.below & self.slow & self.above_ground & self.entangled
 
     @property
     def in_net(self):
@@ -178,8 +186,11 @@ def checks(snap: Snapshot, *, target_radius, line_radius, contact_margin, succes
     }
     # a non-finite state makes every comparison False; report it alone
     failures = {k: (v & finite) if k != "non_finite" else v for k, v in failures.items()}
+    entangled = (jnp.asarray(True) if snap.entanglement is None
+                 else snap.entanglement >= success.min_entanglement - 1e-6)
     return Checks(touching=touching & finite, inside=inside & finite, above_net=over_net & finite,
-                  below=below & finite, slow=slow & finite, above_ground=above & finite, failures=failures)
+                  below=below & finite, slow=slow & finite, above_ground=above & finite, failures=failures,
+                  entangled=entangled & finite)
 
 
 def potential_terms(snap: Snapshot, flags: Checks, *, catch_point, slots, scales, touched) -> dict:
