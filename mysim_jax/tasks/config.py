@@ -187,7 +187,7 @@ class TeamConfig(StrictModel):
     its start formation.
     """
 
-    policy: Literal["scripted", "hold"] = "scripted"
+    policy: Literal["scripted", "chase", "hold"] = "scripted"
     lead: NonNegFloat = 0.0                 # s
     soften: NonNegFloat = 0.3               # m the formation descends after the catch
     catch_radius: PosFloat = 0.6            # m: the target counts as "in the net" within this of its centre
@@ -196,3 +196,7 @@ class TeamConfig(StrictModel):
     gain: PosFloat = 2.0                    # 1/s, commanded velocity per metre of position error
     lag_gain: NonNegFloat = 0.5             # -, extra speed per m/s by which the net trails the team
     follow_gain: NonNegFloat = 1.0          # 1/s, after the catch: velocity per metre the net is off centre
+    # chase only (an evading target, velocity setpoints; mysim_jax/tasks/scripted.py, ChaseTeam)
+    approach: Finite = 0.1                  # m, the net's mean height below the target's centre, close
+    standoff: Finite = 0.6                  # m, the same while the net is far from under it
+    close: PosFloat = 0.4                   # m, horizontal distance of net centre to target that counts as close

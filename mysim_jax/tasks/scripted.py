@@ -149,6 +149,70 @@ class VelocityTeam:
         return Setpoint.from_velocity(self.velocities(params, state))
 
 
+@dataclass(frozen=True)
+class ChaseTeam:
+    """The chase team for an evading target, with velocity setpoints (lengths in m, times
+    in s): velocity feed-forward pursuit that keeps the net under where the target will
+    be.
+
+    Horizontally the formation's centre ``c`` flies ``v_t + gain (p_t + lead v_t − c) +
+    lag_gain (v̄ − v_net)``: the target's velocity fed forward, the gap to its position
+    ``lead`` seconds ahead closed at ``gain``, and the net's lag behind the formation fed
+    forward as :class:`VelocityTeam` does. Vertically the formation flies so that the
+    net's mean knot height is ``standoff`` below the target's centre while the net's
+    centre is more than ``2 close`` from it horizontally, and ``approach`` below once it is
+    within ``close``, blending linearly between: the net comes in under the drone, clear
+    of it, then climbs into it from below, and its rotors meet the lines. Once the target is in the net
+    (within ``catch_radius`` of its centre horizontally and below ``catch_height`` above
+    it) the team follows the net's centre and descends ``soften``."""
+
+    target_body: int
+    quad_bodies: tuple[int, ...]
+    knot_points: tuple[int, ...]
+    offsets: tuple[tuple[float, float, float], ...]
+    gain: float = 2.0
+    lag_gain: float = 0.5
+    follow_gain: float = 1.0
+    lead: float = 0.3
+    approach: float = 0.1
+    standoff: float = 0.6
+    close: float = 0.4
+    soften: float = 0.3
+    catch_radius: float = 0.6
+    catch_height: float = 0.3
+    min_altitude: float = 1.5      # m, the lowest formation height it commands
+
+    def velocities(self, params, state):
+        phys = state.phys
+        dtype = phys.body_pos.dtype
+        quads = np.asarray(self.quad_bodies, dtype=np.int32)
+        knots = np.asarray(self.knot_points, dtype=np.int32)
+        p = phys.body_pos[self.target_body]
+        v = phys.body_vel[self.target_body]
+        uav = phys.body_pos[quads]
+        centre = jnp.mean(uav, axis=0)
+        v_team = jnp.mean(phys.body_vel[quads], axis=0)
+        c_net = jnp.mean(phys.point_pos[knots], axis=0)
+        v_net = jnp.mean(phys.point_vel[knots], axis=0)
+        caught = (jnp.linalg.norm(p[:2] - c_net[:2]) < self.catch_radius) & (p[2] < c_net[2] + self.catch_height)
+        chase = (v[:2] + self.gain * (p[:2] + self.lead * v[:2] - centre[:2])
+                 + self.lag_gain * (v_team[:2] - v_net[:2]))
+        follow = self.follow_gain * (c_net[:2] - centre[:2])
+        formation = jnp.where(caught, follow, chase)
+        offsets = jnp.asarray(self.offsets, dtype=dtype)
+        keep = self.gain * (centre[None, :2] + offsets[:, :2] - uav[:, :2])
+        # the formation height that puts the net's mean height ``approach`` under the target
+        far = jnp.clip((jnp.linalg.norm(p[:2] - c_net[:2]) - self.close) / self.close, 0.0, 1.0)
+        below = self.approach + far * (self.standoff - self.approach)
+        z_chase = p[2] - below + (centre[2] - c_net[2])
+        z = jnp.where(caught, centre[2] - self.soften, jnp.maximum(z_chase, self.min_altitude))
+        vz = self.gain * (z - uav[:, 2])
+        return jnp.concatenate([formation[None, :] + keep, vz[:, None]], axis=1).astype(dtype)
+
+    def __call__(self, scene, params, state) -> Setpoint:
+        return Setpoint.from_velocity(self.velocities(params, state))
+
+
 def team_policy(config, scene):
     """The policy the scene's ``team:`` block asks for (None without one)."""
     team = config.team
@@ -159,11 +223,25 @@ def team_policy(config, scene):
     if team.policy == "hold":
         return HoldTeam(positions=tuple(map(tuple, start.tolist())))
     if config.target is None:
-        raise ValueError("team.policy: scripted needs a target to intercept")
+        raise ValueError(f"team.policy: {team.policy} needs a target to intercept")
+    modes = {q.controller.setpoint_mode for q in config.quadrotors if q.controller is not None}
+    if team.policy == "chase":
+        if modes != {"velocity"} or config.net is None:
+            raise ValueError("team.policy: chase commands velocities: every quadrotor needs "
+                             "controller.setpoint_mode: velocity, and the scene a net")
+        net = config.net
+        return ChaseTeam(
+            target_body=scene.body_names.index(config.target.name),
+            quad_bodies=tuple(scene.body_names.index(q.body) for q in config.quadrotors),
+            knot_points=tuple(scene.point_names.index(net.knot_name(i, j))
+                              for i in range(net.knots) for j in range(net.knots)),
+            offsets=tuple(map(tuple, (start - start.mean(axis=0)).tolist())),
+            gain=team.gain, lag_gain=team.lag_gain, follow_gain=team.follow_gain, lead=team.lead,
+            approach=team.approach, standoff=team.standoff, close=team.close, soften=team.soften,
+            catch_radius=team.catch_radius)
     centre = start.mean(axis=0)
     altitude = centre[2] if team.altitude is None else team.altitude
     net_drop = centre[2] - (config.net.center[2] if config.net is not None else centre[2] - 1.0)
-    modes = {q.controller.setpoint_mode for q in config.quadrotors if q.controller is not None}
     if modes == {"velocity"} and config.net is not None:
         net = config.net
         target = config.target
