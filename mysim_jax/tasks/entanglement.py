@@ -73,8 +73,8 @@ def rotors_touch_lines(scene, params, phys):
 
 
 def propulsion_share(scene, state):
-    """``()`` the share of its propulsion the target keeps (1 in a scene without
-    entanglement)."""
+    """``()`` the share of its propulsion the target keeps, ``1 − e``; None in a scene
+    without entanglement (the propulsion is whole and nothing is traced)."""
     if NAME not in dict(scene.effects):
         return None
     return 1.0 - state.effects[NAME].level
