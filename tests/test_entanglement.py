@@ -166,3 +166,23 @@ def test_simulate_verdict_needs_the_entanglement_column_to_reach_the_threshold()
     traj = Trajectory(time=times, phys=phys, acc=acc)
     with pytest.raises(ValueError, match="target_entanglement"):
         capture_outcome(trajectory_columns(scene, traj), cfg)
+
+
+def test_simulate_verdict_takes_the_scenes_success_thresholds():
+    """capture_outcome reads env.success (min_entanglement here) when the scene has it."""
+    from mysim_jax.io.trajectory import trajectory_columns
+    from mysim_jax.sim import Trajectory
+    from mysim_jax.tasks.entanglement import EntanglementMemory
+    from mysim_jax.tasks.outcome import capture_outcome
+    from mysim_jax.types import Accelerations
+
+    cfg, scene, params, state = _scene(["env.success.min_entanglement=0.5"])
+    s = _place(scene, state, np.asarray(cfg.net.center) + [0.05, 0.03, cfg.target.radius])
+    times = np.linspace(0.0, 1.0, 26)
+    phys = jax.tree.map(lambda a: np.repeat(np.asarray(a)[None], len(times), 0), s.phys)
+    acc = Accelerations(point_acc=np.zeros_like(phys.point_pos), body_acc=np.zeros_like(phys.body_pos),
+                        body_angacc=np.zeros_like(phys.body_pos))
+    memory = EntanglementMemory(level=np.full(len(times), 0.6, np.float32), touching=np.ones(len(times), bool))
+    columns = trajectory_columns(scene, Trajectory(time=times, phys=phys, acc=acc, effects={"entanglement": memory}))
+    assert capture_outcome(columns, cfg).caught
+    assert not capture_outcome(columns, cfg, min_entanglement=1.0).caught

@@ -88,10 +88,20 @@ def _attachments(columns, config):
     return np.stack(out, axis=1)
 
 
-def capture_outcome(columns, config, max_relative_speed=MAX_RELATIVE_SPEED,
-                    ground_clearance=GROUND_CLEARANCE, hold_time=HOLD_TIME,
-                    min_entanglement=MIN_ENTANGLEMENT) -> CaptureOutcome:
-    """Evaluate a capture run from its trajectory columns (:mod:`mysim_jax.io.trajectory`)."""
+def capture_outcome(columns, config, max_relative_speed=None, ground_clearance=None, hold_time=None,
+                    min_entanglement=None) -> CaptureOutcome:
+    """Evaluate a capture run from its trajectory columns (:mod:`mysim_jax.io.trajectory`).
+    A threshold left None is the scene's ``env.success`` value when it has an ``env:``
+    block (the environment's own verdict), else this module's default."""
+    success = config.env.success if getattr(config, "env", None) is not None else None
+
+    def pick(value, name, default):
+        return value if value is not None else getattr(success, name) if success is not None else default
+
+    max_relative_speed = pick(max_relative_speed, "max_relative_speed", MAX_RELATIVE_SPEED)
+    ground_clearance = pick(ground_clearance, "ground_clearance", GROUND_CLEARANCE)
+    hold_time = pick(hold_time, "hold_time", HOLD_TIME)
+    min_entanglement = pick(min_entanglement, "min_entanglement", MIN_ENTANGLEMENT)
     net, target = config.net, config.target
     time = np.asarray(columns["time"])
     p = _xyz(columns, target.name)
