@@ -183,8 +183,11 @@ class TeamConfig(StrictModel):
     there, ``lead`` seconds of the target's horizontal motion ahead, and lets the net
     give way (``soften``) once the target is in it. With velocity setpoints it is the
     velocity team of that module (drag-aware catch point, lag feed-forward, following the
-    net after the catch: ``gain``, ``lag_gain``, ``follow_gain``). ``hold``: the team holds
-    its start formation.
+    net after the catch: ``gain``, ``lag_gain``, ``follow_gain``). ``chase`` (velocity
+    setpoints, an evading target): velocity feed-forward pursuit that flies the net
+    ``standoff`` below the target while far and ``approach`` below once within ``close``
+    (``ChaseTeam``; ``lead``, ``gain``, ``lag_gain``, ``follow_gain``, ``soften`` as above).
+    ``hold``: the team holds its start formation.
     """
 
     policy: Literal["scripted", "chase", "hold"] = "scripted"

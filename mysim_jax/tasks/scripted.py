@@ -100,6 +100,30 @@ class ScriptedTeam:
         return Setpoint.hold(formation[None, :] + jnp.asarray(self.offsets, dtype=dtype))
 
 
+def _team_view(team, state):
+    """What a velocity team reads from the state (world frame): the target's position and
+    velocity, the UAVs' positions ``(n, 3)``, their mean position and velocity, and the
+    net's knots' mean position and velocity."""
+    phys = state.phys
+    quads = np.asarray(team.quad_bodies, dtype=np.int32)
+    knots = np.asarray(team.knot_points, dtype=np.int32)
+    uav = phys.body_pos[quads]
+    return (phys.body_pos[team.target_body], phys.body_vel[team.target_body], uav, jnp.mean(uav, axis=0),
+            jnp.mean(phys.body_vel[quads], axis=0), jnp.mean(phys.point_pos[knots], axis=0),
+            jnp.mean(phys.point_vel[knots], axis=0))
+
+
+def _formation_velocities(team, formation, z, centre, uav):
+    """Every UAV's command ``(n, 3)``: the formation's horizontal velocity ``formation``
+    (2,) plus ``gain`` times its offset from its slot around ``centre``, and ``gain`` times
+    its height error to ``z`` vertically."""
+    dtype = uav.dtype
+    offsets = jnp.asarray(team.offsets, dtype=dtype)
+    keep = team.gain * (centre[None, :2] + offsets[:, :2] - uav[:, :2])
+    vz = team.gain * (z - uav[:, 2])
+    return jnp.concatenate([formation[None, :] + keep, vz[:, None]], axis=1).astype(dtype)
+
+
 @dataclass(frozen=True)
 class VelocityTeam:
     """The intercept team for velocity setpoints (module docstring; lengths in m, times in s)."""
@@ -120,17 +144,8 @@ class VelocityTeam:
 
     def velocities(self, params, state):
         """The commanded velocity of every quadrotor ``(n_quads, 3)`` m/s."""
-        phys = state.phys
-        dtype = phys.body_pos.dtype
-        quads = np.asarray(self.quad_bodies, dtype=np.int32)
-        knots = np.asarray(self.knot_points, dtype=np.int32)
-        p = phys.body_pos[self.target_body]
-        v = phys.body_vel[self.target_body]
-        uav = phys.body_pos[quads]
-        centre = jnp.mean(uav, axis=0)
-        v_team = jnp.mean(phys.body_vel[quads], axis=0)
-        c_net = jnp.mean(phys.point_pos[knots], axis=0)
-        v_net = jnp.mean(phys.point_vel[knots], axis=0)
+        dtype = state.phys.body_pos.dtype
+        p, v, uav, centre, v_team, c_net, v_net = _team_view(self, state)
         catch = predict_catch(p, v, c_net[2], params.gravity.astype(dtype), self.drag_per_mass)
         # in the net: near its centre horizontally and down at its height (a target still
         # falling towards the net, even below the UAVs, is not caught yet)
@@ -138,12 +153,8 @@ class VelocityTeam:
         caught = near & (p[2] < c_net[2] + self.catch_height) & (p[2] > c_net[2] - 3.0 * self.net_drop)
         chase = self.gain * (catch.point[:2] - centre[:2]) + self.lag_gain * (v_team[:2] - v_net[:2])
         follow = self.follow_gain * (c_net[:2] - centre[:2])
-        formation = jnp.where(caught, follow, chase)
-        offsets = jnp.asarray(self.offsets, dtype=dtype)
-        keep = self.gain * (centre[None, :2] + offsets[:, :2] - uav[:, :2])
         z = jnp.asarray(self.altitude, dtype=dtype) - jnp.where(caught, self.soften, 0.0)
-        vz = self.gain * (z - uav[:, 2])
-        return jnp.concatenate([formation[None, :] + keep, vz[:, None]], axis=1).astype(dtype)
+        return _formation_velocities(self, jnp.where(caught, follow, chase), z, centre, uav)
 
     def __call__(self, scene, params, state) -> Setpoint:
         return Setpoint.from_velocity(self.velocities(params, state))
@@ -183,31 +194,19 @@ class ChaseTeam:
     min_altitude: float = 1.5      # m, the lowest formation height it commands
 
     def velocities(self, params, state):
-        phys = state.phys
-        dtype = phys.body_pos.dtype
-        quads = np.asarray(self.quad_bodies, dtype=np.int32)
-        knots = np.asarray(self.knot_points, dtype=np.int32)
-        p = phys.body_pos[self.target_body]
-        v = phys.body_vel[self.target_body]
-        uav = phys.body_pos[quads]
-        centre = jnp.mean(uav, axis=0)
-        v_team = jnp.mean(phys.body_vel[quads], axis=0)
-        c_net = jnp.mean(phys.point_pos[knots], axis=0)
-        v_net = jnp.mean(phys.point_vel[knots], axis=0)
+        """The commanded velocity of every quadrotor ``(n_quads, 3)`` m/s."""
+        p, v, uav, centre, v_team, c_net, v_net = _team_view(self, state)
         caught = (jnp.linalg.norm(p[:2] - c_net[:2]) < self.catch_radius) & (p[2] < c_net[2] + self.catch_height)
         chase = (v[:2] + self.gain * (p[:2] + self.lead * v[:2] - centre[:2])
                  + self.lag_gain * (v_team[:2] - v_net[:2]))
         follow = self.follow_gain * (c_net[:2] - centre[:2])
-        formation = jnp.where(caught, follow, chase)
-        offsets = jnp.asarray(self.offsets, dtype=dtype)
-        keep = self.gain * (centre[None, :2] + offsets[:, :2] - uav[:, :2])
-        # the formation height that puts the net's mean height ``approach`` under the target
+        # the formation height that puts the net's mean height ``below`` under the target:
+        # standoff while the net is far from under it, approach once it is close
         far = jnp.clip((jnp.linalg.norm(p[:2] - c_net[:2]) - self.close) / self.close, 0.0, 1.0)
         below = self.approach + far * (self.standoff - self.approach)
         z_chase = p[2] - below + (centre[2] - c_net[2])
         z = jnp.where(caught, centre[2] - self.soften, jnp.maximum(z_chase, self.min_altitude))
-        vz = self.gain * (z - uav[:, 2])
-        return jnp.concatenate([formation[None, :] + keep, vz[:, None]], axis=1).astype(dtype)
+        return _formation_velocities(self, jnp.where(caught, follow, chase), z, centre, uav)
 
     def __call__(self, scene, params, state) -> Setpoint:
         return Setpoint.from_velocity(self.velocities(params, state))
