@@ -163,7 +163,7 @@ class CaptureEnv:
     quad_bodies: tuple[int, ...]
     target_body: int
     target_radius: float
-    line_radius: float
+    line_radius: float                   # [m] the lines as the target touches them (line_contact_radius)
     knot_points: tuple[int, ...]         # every knot's point index
     border_points: tuple[int, ...]       # border knots in order around the net
     tether_markers: tuple[int, ...]      # marker index of every tether attachment
@@ -561,6 +561,32 @@ def _ranges(config, dtype) -> Ranges:
                   high=Episode(**{k: v[1] for k, v in pairs.items()}))
 
 
+def line_contact_radius(config) -> float:
+    """Radius [m] of the net's lines as the target touches them: the radius of a
+    ``contact:`` segment group paired with a group holding the target whose patterns match
+    the net's lines (the largest, if several), or half the line's diameter when the scene
+    has no such pair. The environment's ``touching`` check measures the gap from there, so
+    a level that thickens the lines for contact counts a touch where its contact acts."""
+    import fnmatch
+
+    net, contact = config.net, config.contact
+    half = 0.5 * float(net.line.diameter)
+    if contact is None:
+        return half
+    groups = {g.name: g for g in contact.groups}
+    lines = (f"{net.name}_h0_0", f"{net.name}_v0_0")
+
+    def has_target(g):
+        return g.members is not None and any(fnmatch.fnmatchcase(config.target.name, m) for m in g.members)
+
+    def has_lines(g):
+        return g.segments is not None and any(fnmatch.fnmatchcase(n, s) for n in lines for s in g.segments)
+
+    radii = [groups[b].radius for pair in contact.pairs for a, b in (pair, pair[::-1])
+             if a in groups and b in groups and has_target(groups[a]) and has_lines(groups[b])]
+    return float(max(radii)) if radii else half
+
+
 def make_env(config) -> tuple[CaptureEnv, EnvParams]:
     """The environment of a capture SceneConfig with an ``env:`` block (ValueError
     naming what is missing otherwise)."""
@@ -593,7 +619,7 @@ def make_env(config) -> tuple[CaptureEnv, EnvParams]:
         scene=scene, n_agents=len(quads), agents=tuple(quads),
         quad_bodies=tuple(scene.body_names.index(q) for q in quads),
         target_body=scene.body_names.index(config.target.name), target_radius=float(config.target.radius),
-        line_radius=0.5 * float(net.line.diameter),
+        line_radius=line_contact_radius(config),
         knot_points=tuple(scene.point_names.index(k) for k in knots),
         border_points=tuple(scene.point_names.index(k) for k in border_knots(net)),
         tether_markers=tuple(tethers), line_nodes_a=tuple(a), line_nodes_b=tuple(b),
