@@ -1664,71 +1664,87 @@ def _env_variant(overrides: list[str]):
     return make_env(load_config(CAPTURE_ENV, overrides))
 
 
-LEVEL_BATCHES = (256, 1024)
-LEVEL_EPISODES = 256          # scripted episodes per level, the same draws for every level
+LEVEL_BATCHES = (256, 1024, 4096)
+LEVEL_EPISODES = 1000         # scripted episodes per level, the same draws for every level
 LEVEL_TARGET = 3000.0         # team steps/s at B = 1024 (10 Hz) the training level should reach
+LEVEL_RATIO = 30.0            # ... and this many times `full` in the same run
+LEVEL_CALL_S = 1.0            # a timed call repeats a level's team step until it lasts about this long
+CATCH_EPISODES = 32           # scripted catches recorded per level for the side-by-side physics
+CATCH_RATE = 50.0             # Hz: the recorded catches' policy rate (a multiple of every control period)
 
 
 def _level_outcomes(env, params, n_episodes: int, seed: int = 2024):
-    """Success (bool ``(n,)``) and any non-finite state of the first episode of each of
-    ``n_episodes`` environments reset from ``seed`` (scripted team; the same keys for
-    every level, so outcomes pair episode by episode)."""
-    keys = jax.random.split(jax.random.PRNGKey(seed), n_episodes)
+    """Success and failure flags of the scripted team's episodes ``0 .. n − 1`` drawn from
+    ``seed`` (:func:`mysim_jax.tasks.evaluate.run_episodes`: the same spawns, masses and
+    wind at every level, so outcomes pair episode by episode)."""
+    from mysim_jax.tasks.evaluate import run_episodes, scripted_policy
 
-    def run_env(key):
-        _, s = env.reset(key, params)
+    return run_episodes(env, params, scripted_policy(env), n_episodes, min(n_episodes, 1024),
+                        jax.random.PRNGKey(seed), progress=False)
 
-        def body(c, k):
-            s, alive, success = c
-            _, s, _, _, _, info = env.step(k, s, env.scripted_actions(s, params), params)
-            success = success | (alive & info["success"])
-            alive = alive & ~info["done"]
-            return (s, alive, success), jnp.any(~jnp.isfinite(s.sim.phys.point_pos))
-        (_, _, success), bad = jax.lax.scan(body, (s, True, False), jax.random.split(key, env.max_steps))
-        return success, jnp.any(bad)
 
-    success, bad = jax.jit(batching.vmap(run_env, chunk=128))(keys)
-    return np.asarray(success), np.asarray(bad)
+def _repeated(call, seconds: float):
+    """``call`` repeated so that one timed call lasts about ``seconds`` (one warm-up call
+    measures it); returns ``(fn, repeats)``."""
+    jax.block_until_ready(call())
+    t0 = time.perf_counter()
+    jax.block_until_ready(call())
+    n = max(1, round(seconds / max(time.perf_counter() - t0, 1e-9)))
+    return (lambda: [call() for _ in range(n)]), n
 
 
 def section_i(cfg, results) -> list[str]:
     """Fidelity levels of the capture scene side by side (10 Hz policy)."""
+    from mysim_jax.bench import levels as catch
+    from mysim_jax.tasks.capture import make_env
     from mysim_jax.tasks.sweep import paired_difference_interval
 
     base = load_config(CAPTURE_ENV)
-    levels = ["full"] + list(base.levels)
+    names = ["full"] + list(base.levels)
     batches = (16, 64) if cfg.quick else LEVEL_BATCHES
     n_eps = 16 if cfg.quick else LEVEL_EPISODES
-    rows, outcomes = {}, {}
-    for level in tqdm(levels, desc="(i) levels", leave=False):
-        env, params = _env_variant([f"level={level}", "env.policy_rate=10.0"])
-        calls = {b: _env_call(env, params, b, 1) for b in batches}
-        wait_for_quiet(cfg.max_wait_s, "i")
-        times = time_round_robin({b: c.call for b, c in calls.items()}, cfg.env_repeats, section="i")
-        success, bad = _level_outcomes(env, params, n_eps)
-        outcomes[level] = success
+    n_catch = 4 if cfg.quick else CATCH_EPISODES
+    top = 1024 if 1024 in batches else batches[-1]
+    calls, envs, rows, outcomes, measures = {}, {}, {}, {}, {}
+    for level in tqdm(names, desc="(i) levels: compile", leave=False):
+        envs[level] = _env_variant([f"level={level}", "env.policy_rate=10.0"])
+        for b in batches:
+            calls[level, b] = _env_call(*envs[level], b, 1)
+    timed, repeats = {}, {}
+    for key, c in calls.items():
+        timed[key], repeats[key] = _repeated(c.call, 0.05 if cfg.quick else LEVEL_CALL_S)
+    wait_for_quiet(cfg.max_wait_s, "i")
+    # every level and batch in one round-robin: the ratio to full is measured side by side
+    times = time_round_robin(timed, cfg.env_repeats, section="i")
+    for level in tqdm(names, desc="(i) levels: episodes", leave=False):
+        env, params = envs[level]
+        stats = _level_outcomes(env, params, n_eps)
+        outcomes[level] = stats.success
+        rec_config = load_config(CAPTURE_ENV, [f"level={level}", f"env.policy_rate={CATCH_RATE}"])
+        rec_env, rec_params = make_env(rec_config)
+        measures[level] = catch.catch_measures(rec_env, rec_params, rec_config.net, jax.random.PRNGKey(2025), n_catch)
         rows[level] = dict(substeps=env.control_steps * env.scene.substeps, points=env.scene.n_points,
                            dt=env.scene.dt, sub=env.scene.substeps,
-                           rate={b: b / median(times[b]) for b in batches},
-                           memory={b: calls[b].bytes_per_env() for b in batches},
-                           success=success.mean(), bad=int(bad.sum()))
+                           rate={b: b * repeats[level, b] / median(times[level, b]) for b in batches},
+                           memory={b: calls[level, b].bytes_per_env() for b in batches},
+                           success=stats.success.mean(), bad=int(stats.failures["non_finite"].sum()))
     results["levels"] = rows
-    top = batches[-1]
     lines = [
         "## (i) Fidelity levels of the capture scene",
         "",
         "`configs/capture_env_falling.yaml` at each of its levels (`--set level=NAME`; `full` is the file's own "
         "values, the others are listed and explained under `levels:` in the file), with the policy at 10 Hz "
-        f"(`env.policy_rate=10`). Team steps/s as in (e): one call = one `CaptureEnv.step` of B environments "
-        f"(scripted team), median of {cfg.env_repeats} timed calls; all batches of one level timed round-robin, "
-        f"levels one after another in this run. Scripted success: the first episode of {n_eps} environments "
-        "reset from the same keys at every level (the same spawns, masses and wind), so the difference to "
-        "`full` is paired episode by episode (95 % interval, `tasks.sweep.paired_difference_interval`). "
-        "Non-finite: episodes whose point-mass state turned NaN/inf.",
+        "(`env.policy_rate=10`). Team steps/s as in (e): one call = one `CaptureEnv.step` of B environments "
+        f"(scripted team), repeated within a timed call until the call lasts ~{LEVEL_CALL_S:g} s; every level and "
+        f"batch timed in one round-robin (median of {cfg.env_repeats} rounds), so the ratio to `full` is measured "
+        f"side by side. Scripted success: episodes 0–{n_eps - 1} of one draw (seed 2024), run to their end at "
+        "every level (the same spawns, masses and wind), so the difference to `full` is paired episode by episode "
+        "(95 % interval, `tasks.sweep.paired_difference_interval`). Non-finite: episodes that ended with a "
+        "non-finite state.",
         "",
         "| level | point masses | control period / sub-steps | sub-steps per team step | "
         + " | ".join(f"team steps/s B = {b}" for b in batches) + f" | × full (B = {top}) | memory/env [KiB] (B = {top}) "
-        "| scripted success | paired difference to full [points] | non-finite |",
+        f"| scripted success ({n_eps} episodes) | paired difference to full [points] | non-finite |",
         "|---|---:|---:|---:|" + "---:|" * len(batches) + "---:|---:|---:|---:|---:|",
     ]
     for level, r in rows.items():
@@ -1741,10 +1757,47 @@ def section_i(cfg, results) -> list[str]:
                      f"{r['success']:.1%} | {diff} | {r['bad']} |")
     train = rows.get("train")
     if train is not None:
-        lines += ["", f"**Target: the training level at ≥ {LEVEL_TARGET:,.0f} team steps/s at B = 1024 and ≥ 30× "
-                  f"`full` in the same run: "
-                  f"{'MET' if train['rate'].get(1024, 0) >= LEVEL_TARGET and train['rate'].get(1024, 0) >= 30 * rows['full']['rate'].get(1024, 1e9) else 'NOT MET'}**."]
+        met = train["rate"].get(1024, 0) >= LEVEL_TARGET and train["rate"].get(1024, 0) >= LEVEL_RATIO * rows["full"]["rate"].get(1024, 1e9)
+        lines += ["", f"**Target: the training level at ≥ {LEVEL_TARGET:,.0f} team steps/s at B = 1024 and ≥ "
+                  f"{LEVEL_RATIO:g}× `full` in the same run: {'MET' if met else 'NOT MET'}**."]
+    lines += ["", *_catch_table(catch, measures, n_catch)]
     return lines + ["", contention_note("i", cfg.env_repeats), ""]
+
+
+def _catch_table(catch, measures, n_catch: int) -> list[str]:
+    """The side-by-side physics of the scripted catches (mysim_jax.bench.levels)."""
+    def med(values):
+        values = np.asarray([v for v in values if np.isfinite(v)], float)
+        return float(np.median(values)) if values.size else float("nan")
+
+    lines = [
+        f"What the capture depends on, level by level: the scripted team's episodes 0–{n_catch - 1} of one draw "
+        f"(seed 2025) at a policy rate of {CATCH_RATE:g} Hz (rows every {1e3 / CATCH_RATE:g} ms, a multiple of every "
+        "level's control period), the same episodes at every level (`mysim_jax/bench/levels.py`). Medians over the "
+        "episodes in which the target touched the net: the net's sag (tethered corner knots' mean height above the "
+        "net centre) and size (mean distance between neighbouring tethered corners) when the target first touches "
+        "it, the target's stopping distance (its height at first touch minus the lowest it reaches afterwards), "
+        "and the peak tether tension of the episode; then the RMS and the largest distance between each level's "
+        "target and net-centre trajectories and `full`'s over the steps both episodes last (median over episodes).",
+        "",
+        "| level | touched | sag at first touch [m] | size at first touch [m] | stopping distance [m] | "
+        "peak tether tension [N] | target vs full, RMS / max [m] | net centre vs full, RMS / max [m] |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for level, rows in measures.items():
+        s = [catch.summarize(rows, e) for e in range(n_catch)]
+        touched = [x for x in s if x.touched]
+        if level == "full":
+            diffs = "– | –"
+        else:
+            t = [catch.trajectory_difference(rows, measures["full"], e, "target") for e in range(n_catch)]
+            c = [catch.trajectory_difference(rows, measures["full"], e, "centre") for e in range(n_catch)]
+            diffs = (f"{med([x[0] for x in t]):.3f} / {med([x[1] for x in t]):.3f} | "
+                     f"{med([x[0] for x in c]):.3f} / {med([x[1] for x in c]):.3f}")
+        lines.append(f"| {level} | {len(touched)} of {n_catch} | {med([x.sag for x in touched]):.3f} | "
+                     f"{med([x.size for x in touched]):.3f} | {med([x.stopping_distance for x in touched]):.3f} | "
+                     f"{med([x.peak_tension for x in touched]):.2f} | {diffs} |")
+    return lines
 
 
 EMITTERS = {"older (LLVM) emitters": {"xla_cpu_use_fusion_emitters": False},
