@@ -48,6 +48,39 @@ Fraction = Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)]
 BUILTIN_ENVS = ("reach",)
 
 
+class CurriculumConfig(StrictModel):
+    """A curriculum over the evading target's difficulty (``env.curriculum``).
+
+    Stage ``i`` multiplies the scene's ranges of the target's top speed, jink and flee
+    accelerations (``env.randomize.max_speed``, ``jink_acceleration``,
+    ``flee_acceleration``, or the nominal ``target.propulsion`` values when a range is not
+    given) by ``stages[i]``: a fraction in (0, 1], increasing, the last one 1 (the full
+    range). New training episodes are drawn from the current stage's ranges; model
+    selection and the final evaluation always use the full ranges. The curriculum moves to
+    the next stage once the training success rate, averaged over the last ``window``
+    iterations in the stage, reaches ``advance_success``, or after ``max_iterations``
+    iterations in the stage, whichever comes first (either may be left out, not both).
+    The stage and its fraction are columns of ``metrics.csv`` and drawn in ``curves.png``.
+    """
+
+    stages: Annotated[list[Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)]], Field(min_length=1)]
+    advance_success: Fraction | None = 0.8
+    window: PosInt = 5
+    max_iterations: PosInt | None = None
+
+    @model_validator(mode="after")
+    def _reaches_the_full_range(self):
+        st = self.stages
+        if any(b <= a for a, b in zip(st, st[1:])):
+            raise ValueError(f"stages {st} must increase from stage to stage")
+        if st[-1] != 1.0:
+            raise ValueError(f"stages {st} never reach the full range: the last stage must be 1.0")
+        if self.advance_success is None and self.max_iterations is None:
+            raise ValueError("give advance_success, max_iterations or both: with neither the curriculum "
+                             "never leaves its first stage")
+        return self
+
+
 class EnvSection(StrictModel):
     """Which environment to train on: a capture scene file (with overrides), or a built-in
     toy task."""
@@ -65,6 +98,8 @@ class EnvSection(StrictModel):
     # a resolved scene file (relative to the training file) to evaluate on instead; run
     # folders use it (their scene.yaml is the training scene, resolved)
     eval_scene: str | None = None
+    # the evading target's difficulty from gentle to the full range (CurriculumConfig)
+    curriculum: CurriculumConfig | None = None
 
     @model_validator(mode="after")
     def _one_source(self):
@@ -75,6 +110,8 @@ class EnvSection(StrictModel):
             raise ValueError("set (scene overrides) applies to a scene file, not to a builtin environment")
         if self.builtin is not None and self.level is not None:
             raise ValueError("level (a fidelity level) applies to a scene file, not to a builtin environment")
+        if self.builtin is not None and self.curriculum is not None:
+            raise ValueError("curriculum scales a capture scene's evading target, not a builtin environment")
         if self.builtin is not None and self.eval_scene is not None:
             raise ValueError("eval_scene applies to a scene file, not to a builtin environment")
         if self.eval_scene is not None and self.eval_level is not None:
@@ -219,6 +256,19 @@ class TrainConfig(StrictModel):
     profiles: dict[Name, list[str]] = {}
 
     @model_validator(mode="after")
+    def _curriculum_fits_the_run(self):
+        cur = self.env.curriculum
+        if cur is not None and cur.advance_success is None:
+            needed = cur.max_iterations * (len(cur.stages) - 1)
+            if needed >= self.algo.num_iterations:
+                raise ValueError(
+                    f"env.curriculum.max_iterations: {len(cur.stages) - 1} stage changes of {cur.max_iterations} "
+                    f"iterations need {needed + 1} iterations to reach the full range, and the run has "
+                    f"{self.algo.num_iterations} (algo.total_env_steps / batch): lower max_iterations or give "
+                    "advance_success")
+        return self
+
+    @model_validator(mode="after")
     def _residual_needs_a_team(self):
         if self.algo.init == "bc" and self.algo.residual:
             raise ValueError("algo.init: bc and algo.residual: true both start from the scripted team; choose one")
@@ -344,6 +394,10 @@ def load_scene(config: TrainConfig, train_path: str | Path, level: str | None = 
     if missing:
         raise ConfigError(f"{train_path}: env.scene: {path} is not a capture environment: it has no "
                           f"{' and no '.join(missing)} block")
+    if config.env.curriculum is not None and scene.target.behaviour != "maneuvering":
+        raise ConfigError(f"{train_path}: env.curriculum scales an evading target's speed, jink and flee ranges; "
+                          f"the target of {path} is '{scene.target.behaviour}' (remove env.curriculum or use a "
+                          "scene with target.behaviour: maneuvering)")
     return scene
 
 

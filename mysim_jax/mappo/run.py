@@ -44,7 +44,8 @@ EVAL_SCENE_FILE = "scene_eval.yaml"
 CSV_FIELDS = ("iteration", "env_steps", "wall_s", "iteration_s", "episodes", "mean_return", "success_rate",
               "mean_length", "step_reward", "policy_loss", "value_loss", "entropy", "approx_kl", "clip_fraction",
               "explained_variance", "grad_norm", "action_std", "lr", "updates_applied", "policy_coef",
-              "anchor_coef", "anchor_loss", "select_success", "select_return")
+              "anchor_coef", "anchor_loss", "select_success", "select_return", "curriculum_stage",
+              "curriculum_fraction")
 
 
 @dataclass
@@ -269,6 +270,11 @@ def plot_curves(rows: list[dict], path: Path, title: str, best_iteration: int | 
                     if at.size:
                         ax.axvline(x[at[0]], color="tab:red", ls="--", lw=1.0,
                                    label=f"selected policy (iteration {best_iteration})")
+            frac = _column(rows, "curriculum_fraction")
+            if np.isfinite(frac).any():
+                has = np.isfinite(frac)
+                ax.step(x[has], frac[has], where="post", color="tab:purple", lw=1.0,
+                        label="curriculum: fraction of the target's full speed / jink / flee ranges")
             ax.set_ylim(-0.02, 1.02)
             ax.legend(fontsize=7, loc="lower right")
         ax.set_title(label, fontsize=10)
@@ -411,6 +417,15 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
         previous_wall = float(rows[-1]["wall_s"])
     if p.resume:
         log(f"resuming {p.out} at iteration {start_iteration} of {c.algo.num_iterations}")
+    curriculum = None
+    if p.scene is not None and c.env.curriculum is not None:
+        from mysim_jax.mappo.curriculum import Curriculum
+        from mysim_jax.tasks.capture import scaled_target_ranges
+
+        curriculum = Curriculum.resumed(c.env.curriculum, rows)
+        trainer.set_episode_ranges(scaled_target_ranges(env_params.ranges, curriculum.fraction))
+        log(f"curriculum: stage {curriculum.stage + 1} of {len(c.env.curriculum.stages)} (the target's speed, jink "
+            f"and flee ranges x {curriculum.fraction:g})")
 
     # model selection on fixed episodes (capture environments; the builtin task has its own evaluation)
     selection = c.run.selection if p.scene is not None else None
@@ -481,6 +496,13 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
         row = {"iteration": iteration, "env_steps": iteration * c.algo.batch_size,
                "iteration_s": round(dt, 4), "lr": trainer.learning_rate(iteration - 1),
                **{k: m[k] for k in CSV_FIELDS if k in m}}
+        if curriculum is not None:
+            row.update(curriculum_stage=curriculum.stage, curriculum_fraction=curriculum.fraction)
+            if curriculum.update(m["success_rate"]):
+                trainer.set_episode_ranges(scaled_target_ranges(env_params.ranges, curriculum.fraction))
+                msg = (f"curriculum: stage {curriculum.stage + 1} of {len(c.env.curriculum.stages)} from "
+                       f"iteration {iteration + 1} (ranges x {curriculum.fraction:g})")
+                bar.write(msg) if bar is not None else log(msg)
         if evaluator is not None and (iteration % selection.every == 0 or last_iteration or over_time):
             state, stats = select(state)
             row.update(_selection_row(stats))
@@ -492,6 +514,8 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
         if bar is not None:
             bar.update(1)
             sel = f", selection {row['select_success']:.0%}" if "select_success" in row else ""
+            if curriculum is not None:
+                sel += f", stage {curriculum.stage + 1}"
             bar.set_postfix_str(f"return {m['mean_return']:.2f}, success {m['success_rate']:.0%}{sel}, "
                                 f"{c.algo.batch_size / dt:,.0f} env-steps/s")
         if iteration % c.run.checkpoint_every == 0 or last_iteration or over_time:
@@ -546,6 +570,14 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
     }
     if bc_path.exists():
         summary["behaviour_cloning"] = json.loads(bc_path.read_text())
+    if curriculum is not None:
+        # the first iteration drawn from the full ranges (None: never reached), from the rows
+        # so that a resumed run reports it too
+        full = [int(float(r["iteration"])) for r in rows
+                if r.get("curriculum_stage") not in ("", None)
+                and int(float(r["curriculum_stage"])) == len(c.env.curriculum.stages) - 1]
+        summary["curriculum"] = {"stages": list(c.env.curriculum.stages), "final_stage": curriculum.stage,
+                                 "full_range_from_iteration": full[0] if full else None}
     if selection is not None:
         score = [float(x) for x in jax.device_get(state.best_score)]
         summary["selection"] = {"episodes": selection.episodes, "seed": selection.seed, "every": selection.every,

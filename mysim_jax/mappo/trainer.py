@@ -234,10 +234,27 @@ class Trainer:
         the anchor schedule's weight, length and critic warm-up (0 without ``init: bc``)."""
         c = self.config
         anchor = self.uses_anchor
-        return {"kl_stop": jnp.float32(np.inf if c.target_kl is None else 1.5 * c.target_kl),
-                "anchor_coef": jnp.float32(c.bc.anchor_coef if anchor else 0.0),
-                "anchor_iterations": jnp.float32(c.bc.anchor_iterations),
-                "critic_warmup": jnp.float32(self.critic_warmup)}
+        knobs = {"kl_stop": jnp.float32(np.inf if c.target_kl is None else 1.5 * c.target_kl),
+                 "anchor_coef": jnp.float32(c.bc.anchor_coef if anchor else 0.0),
+                 "anchor_iterations": jnp.float32(c.bc.anchor_iterations),
+                 "critic_warmup": jnp.float32(self.critic_warmup)}
+        if hasattr(self.env_params, "ranges"):
+            # the episode draws of new training episodes (a curriculum changes them)
+            knobs["ranges"] = self.env_params.ranges
+        return knobs
+
+    def set_episode_ranges(self, ranges) -> None:
+        """Draw new training episodes from ``ranges`` (a capture environment's
+        :class:`~mysim_jax.tasks.capture.Ranges`, as :func:`~mysim_jax.tasks.capture.scaled_target_ranges`
+        gives) from the next iteration on; an argument of the compiled iteration, so
+        nothing recompiles. Model selection and evaluation keep ``env_params``' own."""
+        if "ranges" not in self._knobs:
+            raise ValueError("set_episode_ranges: this environment has no episode ranges")
+        old = self._knobs["ranges"]
+        if jax.tree.structure(ranges) != jax.tree.structure(old):
+            raise ValueError("set_episode_ranges: ranges of another environment")
+        ranges = jax.tree.map(lambda new, o: jnp.asarray(new, o.dtype).reshape(o.shape), ranges, old)
+        object.__setattr__(self, "_knobs", {**self._knobs, "ranges": ranges})
 
     # --- pieces ----------------------------------------------------------------------
     def _schedule(self):
@@ -276,8 +293,10 @@ class Trainer:
         v = self.critic.apply(params["critic"], self.critic_input(self._norm_obs(state_stats, states)))
         return ret_stats.denormalize(v) if self.config.value_norm else v
 
-    def _env_step(self):
+    def _env_step(self, ranges=None):
         env, env_params = self.env, self.env_params
+        if ranges is not None:
+            env_params = env_params.replace(ranges=ranges)
 
         residual = self.config.residual
 
@@ -312,9 +331,9 @@ class Trainer:
         return self.place(self._init(key))
 
     # --- one iteration -----------------------------------------------------------------
-    def _rollout(self, ts: TrainerState):
+    def _rollout(self, ts: TrainerState, knobs: dict | None = None):
         c = self.config
-        step_batch = self._env_step()
+        step_batch = self._env_step(None if knobs is None else knobs.get("ranges"))
         params = ts.params
 
         def one(carry, _):
@@ -394,7 +413,7 @@ class Trainer:
     def _iteration(self, ts: TrainerState, knobs: dict | None = None):
         c = self.config
         knobs = self.knobs() if knobs is None else knobs
-        env_state, obs, gstate, key, traj = self._rollout(ts)
+        env_state, obs, gstate, key, traj = self._rollout(ts, knobs)
         last_value = self._values(ts.params, ts.ret_stats, ts.state_stats, gstate)
         dones = jnp.broadcast_to(traj.done[..., None], traj.reward.shape)
         adv, targets = gae(traj.reward, traj.value, dones, last_value, c.gamma, c.gae_lambda)

@@ -536,6 +536,21 @@ CATCH_LENGTH_SCALE = 2.0    # m
 CATCH_TIME_SCALE = 1.0      # s
 
 
+TARGET_DIFFICULTY = ("max_speed", "jink_acceleration", "flee_acceleration")
+"""The episode draws a curriculum scales (:func:`scaled_target_ranges`)."""
+
+
+def scaled_target_ranges(ranges: Ranges, fraction) -> Ranges:
+    """``ranges`` with the low and high ends of the evading target's top speed, jink and
+    flee accelerations (:data:`TARGET_DIFFICULTY`) multiplied by ``fraction`` (a training
+    curriculum's stage, ``env.curriculum`` of a training file); the other draws unchanged."""
+    def scale(episode):
+        return episode.replace(**{k: getattr(episode, k) * jnp.asarray(fraction, getattr(episode, k).dtype)
+                                  for k in TARGET_DIFFICULTY})
+
+    return Ranges(low=scale(ranges.low), high=scale(ranges.high))
+
+
 def _ranges(config, dtype) -> Ranges:
     env, target = config.env, config.target
     r = env.randomize
