@@ -7,6 +7,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -123,10 +124,14 @@ def test_train_script_runs_a_curriculum_and_logs_it(tmp_path):
             "algo.init=none", "run.selection=null", "run.eval_episodes=2", "run.eval_batch=2",
             "run.eval_baseline=false",
             "env.curriculum={stages: [0.25, 0.5, 1.0], advance_success: null, max_iterations: 1}"]
+    env = {**os.environ, "JAX_LOG_COMPILES": "1"}
     res = subprocess.run([sys.executable, str(ROOT / "scripts" / "train.py"), str(TRAIN_FILE), "--out", str(out),
                           "--no-progress", *[a for s in sets for a in ("--set", s)]],
-                         capture_output=True, text=True, cwd=ROOT)
+                         capture_output=True, text=True, cwd=ROOT, env=env)
     assert res.returncode == 0, res.stderr
+    # the stage changes hand the compiled iteration new ranges: it is compiled once
+    compiles = [ln for ln in res.stderr.splitlines() if "Compiling" in ln and "_iteration" in ln]
+    assert len(compiles) == 1, compiles
     assert "curriculum: stage 1 of 3 (the target's speed, jink and flee ranges x 0.25)" in res.stdout
     assert "curriculum: stage 2 of 3 from iteration 2 (ranges x 0.5)" in res.stdout
     with (out / "metrics.csv").open() as f:
