@@ -392,6 +392,7 @@ class SceneConfig(StrictModel):
         problems += self._env_problems()
         problems += self._target_contact_problems()
         problems += self._arena_problems()
+        problems += self._clearance_problems()
         if problems:
             raise ValueError("; ".join(problems))
         return self
@@ -418,6 +419,26 @@ class SceneConfig(StrictModel):
         return [f"target.propulsion.arena: {' and '.join(f'{hi - lo:g} m' for lo, hi in zip(low[:2], high[:2]))} "
                 f"wide, no wider than the net (net.size = {self.net.size:g} m) on axis {', '.join(small)}: widen the "
                 "arena, or the net covers it whole"]
+
+    def _clearance_problems(self) -> list[str]:
+        """A spawn clearance must leave part of the spawn box outside it (around the
+        quadrotors' centroid at the start)."""
+        if self.target is None or self.target.spawn.clearance <= 0.0:
+            return []
+        if not self.quadrotors:
+            return ["target.spawn.clearance: keeps the spawn away from the quadrotors' centroid, and the scene has "
+                    "no quadrotors"]
+        bodies = {b.name: b for b in self.bodies}
+        centre = [sum(bodies[q.body].pos[a] for q in self.quadrotors) / len(self.quadrotors) for a in (0, 1)]
+        low, high = self.target.spawn.position.low, self.target.spawn.position.high
+        # the farthest point of the spawn rectangle from the centroid
+        far = sum(max(abs(lo - c), abs(hi - c)) ** 2 for lo, hi, c in zip(low[:2], high[:2], centre)) ** 0.5
+        clearance = self.target.spawn.clearance
+        if far <= clearance:
+            return [f"target.spawn.clearance: {clearance:g} m, but no spawn position (x, y in the box low "
+                    f"{list(low[:2])}, high {list(high[:2])}) is farther than {far:.3g} m from the quadrotors' centroid "
+                    f"({centre[0]:g}, {centre[1]:g}): lower the clearance or widen target.spawn.position"]
+        return []
 
     def _team_problems(self) -> list[str]:
         team = self.team

@@ -86,3 +86,41 @@ def test_bad_arenas_are_one_line_errors(sets, message):
     text = str(err.value)
     problems = text.splitlines()[1:]          # the file's name, then one line per problem
     assert len(problems) == 1 and message in problems[0], text
+
+
+def test_the_spawn_keeps_its_clearance_and_stays_uniform_over_what_is_left():
+    """spawn.clearance: every one of 4096 spawns at least 1.5 m (horizontally) from the
+    quadrotors' centroid and inside the box; the spawns' distances from the centroid
+    distributed as uniform draws over the box with the disk cut out (a NumPy rejection
+    sampler: mean and quartiles to within 4 standard errors); a first draw that is already
+    clear is the spawn, the same as without a clearance."""
+    def spawns(overrides, n=4096):
+        config = load_config(CONFIG, overrides)
+        scene, params, state = build(config)
+        b = dict(scene.effects)["target"].body
+        keys = jax.random.split(jax.random.PRNGKey(11), n)
+        return np.asarray(jax.jit(jax.vmap(lambda k: spawn_target(scene, params, state, k).phys.body_pos[b]))(keys))
+
+    config = load_config(CONFIG)
+    centre = np.mean([b.pos for b in config.bodies if b.name.startswith("uav")], axis=0)
+    low, high = np.asarray(config.target.spawn.position.low), np.asarray(config.target.spawn.position.high)
+    pos = spawns(["target.spawn.clearance=1.5"])
+    r = np.linalg.norm(pos[:, :2] - centre[:2], axis=-1)
+    assert r.min() >= 1.5 - 1e-5
+    assert np.all(pos >= low - 1e-6) and np.all(pos <= high + 1e-6)
+    ref = np.random.default_rng(0).uniform(low, high, (400_000, 3))
+    ref_r = np.linalg.norm(ref[:, :2] - centre[:2], axis=-1)
+    ref_r = ref_r[ref_r >= 1.5]
+    se = ref_r.std() / np.sqrt(r.size)
+    assert abs(r.mean() - ref_r.mean()) < 4 * se
+    for q in (0.25, 0.5, 0.75):
+        assert abs(np.mean(r <= np.quantile(ref_r, q)) - q) < 4 * np.sqrt(q * (1 - q) / r.size)
+    # the first draw is the draw without a clearance, kept whenever it is already clear
+    plain = spawns([])
+    kept = np.linalg.norm(plain[:, :2] - centre[:2], axis=-1) >= 1.5
+    assert 0.5 < kept.mean() < 0.9
+    np.testing.assert_array_equal(pos[kept], plain[kept])
+    assert not np.any(np.all(pos[~kept] == plain[~kept], axis=-1))
+    # the clearance is checked against the spawn box before anything compiles
+    with pytest.raises(ConfigError, match=r"target.spawn.clearance: 4 m, but no spawn position"):
+        load_config(CONFIG, ["target.spawn.clearance=4.0"])

@@ -54,10 +54,18 @@ class IntervalRange(StrictModel):
 
 
 class SpawnConfig(StrictModel):
-    """Where and how fast the target starts (world frame): uniform draws from the boxes."""
+    """Where and how fast the target starts (world frame): uniform draws from the boxes.
+
+    ``clearance`` (m, 0: none) keeps the spawn that far horizontally from the quadrotors'
+    centroid, under which the net hangs: an evader that starts under or in the net is
+    caught before the task begins. A position drawn closer is drawn again (up to
+    :data:`~mysim_jax.tasks.target.SPAWN_TRIES` draws in all, which keeps the draw uniform
+    over the allowed part of the box unless that part is tiny; the last draw, if it is
+    still too close, is pushed straight out to the clearance)."""
 
     position: BoxRange
     velocity: BoxRange = BoxRange(low=(0.0, 0.0, 0.0), high=(0.0, 0.0, 0.0))
+    clearance: NonNegFloat = 0.0
 
 
 class PropulsionConfig(StrictModel):

@@ -41,6 +41,7 @@ from mysim_jax.dynamics.forces import Loads
 from mysim_jax.tasks.entanglement import propulsion_share
 
 SPEED_LIMIT_TIME_CONSTANT = 0.25   # s, braking back to max_speed
+SPAWN_TRIES = 8                    # spawn positions drawn when the spawn keeps a clearance
 
 
 @dataclass(frozen=True)
@@ -52,6 +53,7 @@ class TargetScene:
     has_drag: bool
     team_bodies: tuple[int, ...]      # quadrotor bodies (the centroid it flees)
     has_arena: bool = False           # a maneuvering target kept inside propulsion.arena
+    has_clearance: bool = False       # the spawn keeps spawn.clearance from the team's centroid
 
 
 @struct.dataclass
@@ -75,6 +77,7 @@ class TargetParams:
     arena_low: jnp.ndarray            # (3,) m, the box the target's centre stays in (if has_arena)
     arena_high: jnp.ndarray           # (3,) m
     wall_margin: jnp.ndarray          # () m, over which the braking at a wall blends in
+    spawn_clearance: jnp.ndarray      # () m, horizontal distance of the spawn from the team's centroid
 
 
 @struct.dataclass
@@ -172,7 +175,7 @@ class _Target:
         arena = prop.arena if prop is not None else None
         static = TargetScene(body=ctx.body_names.index(t.name), behaviour=t.behaviour,
                              has_drag=t.drag_constant > 0.0, team_bodies=tuple(ctx.quadrotor_bodies),
-                             has_arena=arena is not None)
+                             has_arena=arena is not None, has_clearance=t.spawn.clearance > 0.0)
         if static.behaviour == "maneuvering" and not static.team_bodies:
             raise ValueError("target.behaviour: a maneuvering target flees quadrotors, and the scene has none")
 
@@ -195,6 +198,7 @@ class _Target:
             arena_low=s(arena.low if arena else (0.0, 0.0, 0.0)),
             arena_high=s(arena.high if arena else (0.0, 0.0, 0.0)),
             wall_margin=s(prop.wall_margin if prop else 1.0),
+            spawn_clearance=s(t.spawn.clearance),
         )
         memory = TargetMemory(key=jax.random.PRNGKey(t.seed), jink=jnp.zeros(3, dtype=ctx.dtype),
                               next_jink=jnp.zeros((), dtype=ctx.dtype))
@@ -227,6 +231,24 @@ class _Target:
 TARGET = _Target()
 
 
+def _clear_spawn(static: TargetScene, tp: TargetParams, phys, key, first):
+    """A spawn position at least ``spawn_clearance`` horizontally from the team's
+    centroid: the first of ``first`` and SPAWN_TRIES − 1 more uniform draws that is, else
+    the last draw pushed straight out to the clearance (SpawnConfig)."""
+    dtype = first.dtype
+    more = tp.spawn_pos_low + (tp.spawn_pos_high - tp.spawn_pos_low) * jax.random.uniform(
+        jax.random.fold_in(key, 1), (SPAWN_TRIES - 1, 3), dtype)
+    draws = jnp.concatenate([first[None], more], axis=0)
+    centre = jnp.mean(phys.body_pos[np.asarray(static.team_bodies, dtype=np.int32)], axis=0)
+    offset = (draws - centre).at[:, 2].set(0.0)
+    clear = vecmath.safe_norm(offset) >= tp.spawn_clearance
+    pick = jnp.where(jnp.any(clear), jnp.argmax(clear), SPAWN_TRIES - 1)
+    chosen = draws[pick]
+    distance, away = vecmath.safe_unit(offset[pick])
+    pushed = chosen + jnp.maximum(tp.spawn_clearance - distance, 0.0) * away
+    return jnp.where(jnp.any(clear), chosen, pushed)
+
+
 def spawn_target(scene, params, state, key):
     """The state with the target placed by a fresh draw from its spawn ranges (uniform
     position and velocity, at rest in rotation) and its memory re-keyed. Pure: vmap it
@@ -238,6 +260,8 @@ def spawn_target(scene, params, state, key):
     dtype = state.phys.body_pos.dtype
     pos, vel = rng.uniform_each(keys[:2], [(3,), (3,)], dtype,
                                 (tp.spawn_pos_low, tp.spawn_vel_low), (tp.spawn_pos_high, tp.spawn_vel_high))
+    if static.has_clearance:
+        pos = _clear_spawn(static, tp, state.phys, keys[0], pos)
     b = static.body
     phys = state.phys.replace(
         body_pos=state.phys.body_pos.at[b].set(pos),
