@@ -502,7 +502,10 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
                 trainer.set_episode_ranges(scaled_target_ranges(env_params.ranges, curriculum.fraction))
                 msg = (f"curriculum: stage {curriculum.stage + 1} of {len(c.env.curriculum.stages)} from "
                        f"iteration {iteration + 1} (ranges x {curriculum.fraction:g})")
-                bar.write(msg) if bar is not None else log(msg)
+                if bar is not None:
+                    bar.write(msg)
+                else:
+                    log(msg)
         if evaluator is not None and (iteration % selection.every == 0 or last_iteration or over_time):
             state, stats = select(state)
             row.update(_selection_row(stats))
