@@ -1669,8 +1669,6 @@ LEVEL_EPISODES = 1000         # scripted episodes per level, the same draws for 
 LEVEL_TARGET = 3000.0         # team steps/s at B = 1024 (10 Hz) the training level should reach
 LEVEL_RATIO = 30.0            # ... and this many times `full` in the same run
 LEVEL_CALL_S = 1.0            # a timed call repeats a level's team step until it lasts about this long
-CATCH_EPISODES = 32           # scripted catches recorded per level for the side-by-side physics
-CATCH_RATE = 50.0             # Hz: the recorded catches' policy rate (a multiple of every control period)
 
 
 def _level_outcomes(env, params, n_episodes: int, seed: int = 2024):
@@ -1703,7 +1701,7 @@ def section_i(cfg, results) -> list[str]:
     names = ["full"] + list(base.levels)
     batches = (16, 64) if cfg.quick else LEVEL_BATCHES
     n_eps = 16 if cfg.quick else LEVEL_EPISODES
-    n_catch = 4 if cfg.quick else CATCH_EPISODES
+    n_catch = 4 if cfg.quick else catch.CATCH_EPISODES
     top = 1024 if 1024 in batches else batches[-1]
     calls, envs, rows, outcomes, measures = {}, {}, {}, {}, {}
     for level in tqdm(names, desc="(i) levels: compile", leave=False):
@@ -1720,9 +1718,9 @@ def section_i(cfg, results) -> list[str]:
         env, params = envs[level]
         stats = _level_outcomes(env, params, n_eps)
         outcomes[level] = stats.success
-        rec_config = load_config(CAPTURE_ENV, [f"level={level}", f"env.policy_rate={CATCH_RATE}"])
+        rec_config = load_config(CAPTURE_ENV, [f"level={level}", f"env.policy_rate={catch.CATCH_RATE}"])
         rec_env, rec_params = make_env(rec_config)
-        measures[level] = catch.catch_measures(rec_env, rec_params, rec_config.net, jax.random.PRNGKey(2025), n_catch)
+        measures[level] = catch.catch_measures(rec_env, rec_params, rec_config.net, jax.random.PRNGKey(catch.CATCH_SEED), n_catch)
         rows[level] = dict(substeps=env.control_steps * env.scene.substeps, points=env.scene.n_points,
                            dt=env.scene.dt, sub=env.scene.substeps,
                            rate={b: b * repeats[level, b] / median(times[level, b]) for b in batches},
@@ -1760,44 +1758,8 @@ def section_i(cfg, results) -> list[str]:
         met = train["rate"].get(1024, 0) >= LEVEL_TARGET and train["rate"].get(1024, 0) >= LEVEL_RATIO * rows["full"]["rate"].get(1024, 1e9)
         lines += ["", f"**Target: the training level at ≥ {LEVEL_TARGET:,.0f} team steps/s at B = 1024 and ≥ "
                   f"{LEVEL_RATIO:g}× `full` in the same run: {'MET' if met else 'NOT MET'}**."]
-    lines += ["", *_catch_table(catch, measures, n_catch)]
+    lines += ["", *catch.catch_table(measures)]
     return lines + ["", contention_note("i", cfg.env_repeats), ""]
-
-
-def _catch_table(catch, measures, n_catch: int) -> list[str]:
-    """The side-by-side physics of the scripted catches (mysim_jax.bench.levels)."""
-    def med(values):
-        values = np.asarray([v for v in values if np.isfinite(v)], float)
-        return float(np.median(values)) if values.size else float("nan")
-
-    lines = [
-        f"What the capture depends on, level by level: the scripted team's episodes 0–{n_catch - 1} of one draw "
-        f"(seed 2025) at a policy rate of {CATCH_RATE:g} Hz (rows every {1e3 / CATCH_RATE:g} ms, a multiple of every "
-        "level's control period), the same episodes at every level (`mysim_jax/bench/levels.py`). Medians over the "
-        "episodes in which the target touched the net: the net's sag (tethered corner knots' mean height above the "
-        "net centre) and size (mean distance between neighbouring tethered corners) when the target first touches "
-        "it, the target's stopping distance (its height at first touch minus the lowest it reaches afterwards), "
-        "and the peak tether tension of the episode; then the RMS and the largest distance between each level's "
-        "target and net-centre trajectories and `full`'s over the steps both episodes last (median over episodes).",
-        "",
-        "| level | touched | sag at first touch [m] | size at first touch [m] | stopping distance [m] | "
-        "peak tether tension [N] | target vs full, RMS / max [m] | net centre vs full, RMS / max [m] |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|",
-    ]
-    for level, rows in measures.items():
-        s = [catch.summarize(rows, e) for e in range(n_catch)]
-        touched = [x for x in s if x.touched]
-        if level == "full":
-            diffs = "– | –"
-        else:
-            t = [catch.trajectory_difference(rows, measures["full"], e, "target") for e in range(n_catch)]
-            c = [catch.trajectory_difference(rows, measures["full"], e, "centre") for e in range(n_catch)]
-            diffs = (f"{med([x[0] for x in t]):.3f} / {med([x[1] for x in t]):.3f} | "
-                     f"{med([x[0] for x in c]):.3f} / {med([x[1] for x in c]):.3f}")
-        lines.append(f"| {level} | {len(touched)} of {n_catch} | {med([x.sag for x in touched]):.3f} | "
-                     f"{med([x.size for x in touched]):.3f} | {med([x.stopping_distance for x in touched]):.3f} | "
-                     f"{med([x.peak_tension for x in touched]):.2f} | {diffs} |")
-    return lines
 
 
 EMITTERS = {"older (LLVM) emitters": {"xla_cpu_use_fusion_emitters": False},

@@ -75,3 +75,24 @@ def test_summary_and_trajectory_difference_on_hand_built_rows():
     rows["touching"][:] = False
     never = levels.summarize(rows, 0)
     assert not never.touched and np.isnan(never.stopping_distance) and never.peak_tension == pytest.approx(2.5)
+
+
+def test_the_side_by_side_table_reads_the_rows():
+    def rows(offset, touch_at):
+        steps = 4
+        target = np.zeros((2, steps, 3))
+        target[:, :, 2] = [[5.0, 4.0, 3.0, 2.9], [5.0, 4.0, 3.5, 3.2]]
+        target[:, :, 0] = offset
+        touching = np.zeros((2, steps), bool)
+        touching[:, touch_at:] = True
+        return {"target": target, "centre": np.zeros((2, steps, 3)), "sag": np.full((2, steps), 1.0),
+                "size": np.full((2, steps), 1.5), "tension": np.full((2, steps), 4.0), "touching": touching,
+                "done": np.zeros((2, steps), bool)}
+
+    table = levels.catch_table({"full": rows(0.0, 2), "cheap": rows(0.3, 1)}, rate=50.0, seed=7)
+    assert "episodes 0–1 of one draw (seed 7) at a policy rate of 50 Hz (rows every 20 ms" in table[0]
+    full, cheap = table[-2].split(" | "), table[-1].split(" | ")
+    assert full[:6] == ["| full", "2 of 2", "1.000", "1.500", "0.200", "4.00"] and full[6:] == ["–", "– |"]
+    # stopping distance from the first touch: 4.0 - 2.9 and 4.0 - 3.2, median 0.95; target 0.3 m off
+    assert cheap[:6] == ["| cheap", "2 of 2", "1.000", "1.500", "0.950", "4.00"]
+    assert cheap[6] == "0.300 / 0.300" and cheap[7] == "0.000 / 0.000 |"

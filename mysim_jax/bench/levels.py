@@ -36,6 +36,10 @@ import numpy as np
 from mysim_jax.dynamics.forces import spring_tension
 from mysim_jax.dynamics.markers import node_states
 
+CATCH_EPISODES = 32     # scripted catches recorded per level (BENCHMARKS.md (i))
+CATCH_RATE = 50.0       # Hz: their policy rate, a multiple of every level's control period
+CATCH_SEED = 2025       # the draw they come from
+
 
 def _net_layout(env, net):
     """Static indices: centre knots (points), tethered corner knots (points), tether end
@@ -142,3 +146,44 @@ def trajectory_difference(rows: dict[str, np.ndarray], reference: dict[str, np.n
     n = min(length(rows), length(reference))
     dist = np.linalg.norm(rows[what][episode, :n] - reference[what][episode, :n], axis=-1)
     return float(np.sqrt(np.mean(dist ** 2))), float(dist.max())
+
+
+def catch_table(measures: dict[str, dict[str, np.ndarray]], rate: float = CATCH_RATE,
+                seed: int = CATCH_SEED) -> list[str]:
+    """Markdown lines comparing the levels' catches side by side (``measures``: level ->
+    :func:`catch_measures` rows of the same episodes, ``full`` among them): medians over
+    the episodes in which the target touched the net, and each level's trajectory
+    difference to ``full``."""
+    def med(values):
+        values = np.asarray([v for v in values if np.isfinite(v)], float)
+        return float(np.median(values)) if values.size else float("nan")
+
+    n = next(iter(measures.values()))["done"].shape[0]
+    lines = [
+        f"What the capture depends on, level by level: the scripted team's episodes 0–{n - 1} of one draw "
+        f"(seed {seed}) at a policy rate of {rate:g} Hz (rows every {1e3 / rate:g} ms, a multiple of every "
+        "level's control period), the same episodes at every level (`mysim_jax/bench/levels.py`). Medians over the "
+        "episodes in which the target touched the net: the net's sag (tethered corner knots' mean height above the "
+        "net centre) and size (mean distance between neighbouring tethered corners) when the target first touches "
+        "it, the target's stopping distance (its height at first touch minus the lowest it reaches afterwards), "
+        "and the peak tether tension of the episode; then the RMS and the largest distance between each level's "
+        "target and net-centre trajectories and `full`'s over the steps both episodes last (median over episodes).",
+        "",
+        "| level | touched | sag at first touch [m] | size at first touch [m] | stopping distance [m] | "
+        "peak tether tension [N] | target vs full, RMS / max [m] | net centre vs full, RMS / max [m] |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for level, rows in measures.items():
+        s = [summarize(rows, e) for e in range(n)]
+        touched = [x for x in s if x.touched]
+        if level == "full":
+            diffs = "– | –"
+        else:
+            t = [trajectory_difference(rows, measures["full"], e, "target") for e in range(n)]
+            c = [trajectory_difference(rows, measures["full"], e, "centre") for e in range(n)]
+            diffs = (f"{med([x[0] for x in t]):.3f} / {med([x[1] for x in t]):.3f} | "
+                     f"{med([x[0] for x in c]):.3f} / {med([x[1] for x in c]):.3f}")
+        lines.append(f"| {level} | {len(touched)} of {n} | {med([x.sag for x in touched]):.3f} | "
+                     f"{med([x.size for x in touched]):.3f} | {med([x.stopping_distance for x in touched]):.3f} | "
+                     f"{med([x.peak_tension for x in touched]):.2f} | {diffs} |")
+    return lines
