@@ -65,13 +65,18 @@ def test_lines_without_interior_masses_keep_the_net_s_mass_and_size():
 
 
 def test_the_touch_check_sees_the_lines_as_the_level_s_contact_does():
-    from mysim_jax.tasks.capture import line_contact_radius
+    from mysim_jax.tasks.capture import make_env
 
-    full, train = load_config(SCENE), load_config(SCENE, ["level=train"])
-    assert line_contact_radius(full) == pytest.approx(0.5 * full.net.line.diameter)
-    assert line_contact_radius(train) == pytest.approx(train.contact.groups[3].radius) and train.contact.groups[3].radius > 0.01
-    # the pair written the other way round counts; a scene without it falls back to the half diameter
-    flipped = load_config(SCENE, ["level=train", "contact.pairs.0=[lines, target]"])
-    assert line_contact_radius(flipped) == pytest.approx(0.02)
-    apart = load_config(SCENE, ["level=train", "contact.pairs=[[target, uavs], [net, ground]]"])
-    assert line_contact_radius(apart) == pytest.approx(0.5 * apart.net.line.diameter)
+    def line_radius(overrides):
+        config = load_config(SCENE, overrides)
+        return make_env(config)[0].line_radius, config
+
+    r, full = line_radius([])
+    assert r == pytest.approx(0.5 * full.net.line.diameter)
+    r, train = line_radius(["level=train"])
+    assert r == pytest.approx(train.contact.groups[3].radius) and r > 0.01
+    # the pair written the other way round counts; a scene that pairs the target with no
+    # line falls back to the half diameter
+    assert line_radius(["level=train", "contact.pairs.0=[lines, target]"])[0] == pytest.approx(0.02)
+    r, apart = line_radius(["level=train", "contact.pairs=[[target, uavs], [net, ground]]"])
+    assert r == pytest.approx(0.5 * apart.net.line.diameter)

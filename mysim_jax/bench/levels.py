@@ -58,12 +58,15 @@ def _net_layout(env, net):
 
 def catch_measures(env, params, net, key, n_episodes: int, chunk: int = 8) -> dict[str, np.ndarray]:
     """Per-step rows ``(n_episodes, max_steps, ...)`` of the module docstring (``net``: the
-    scene's NetConfig, whose knots and tethers are measured) for the
-    scripted team's episodes ``0 .. n_episodes − 1`` drawn from ``key`` (as
-    :func:`~mysim_jax.tasks.evaluate.run_episodes` draws them): ``target`` and ``centre``
-    ``(..., 3)`` [m], ``sag``, ``size``, ``tension`` [N], ``touching`` and ``done``."""
+    scene's NetConfig, whose knots and tethers are measured) for the scripted team's
+    episodes ``0 .. n_episodes − 1`` drawn from ``key`` (as
+    :func:`~mysim_jax.tasks.evaluate.run_episodes` draws them; each is one
+    :func:`~mysim_jax.tasks.episode.episode_rollout`, its saved states reduced step by
+    step): ``target`` and ``centre`` ``(..., 3)`` [m], ``sag``, ``size``, ``tension``
+    [N], ``touching`` and ``done``."""
     from mysim_jax import batching
-    from mysim_jax.tasks.evaluate import episode_keys
+    from mysim_jax.tasks.episode import episode_rollout
+    from mysim_jax.tasks.evaluate import scripted_policy
 
     if net is None or net.tethers is None:
         raise ValueError("catch_measures: the scene has no tethered net")
@@ -90,19 +93,10 @@ def catch_measures(env, params, net, key, n_episodes: int, chunk: int = 8) -> di
                 "sag": jnp.mean(knots[:, 2]) - mid[2], "size": size, "tension": jnp.max(tension)}
 
     def episode(index):
-        k_reset, _, _ = episode_keys(key, index, 0)
-        _, state = env.reset(k_reset, params)
-        sim_params = env.episode_params(params, state.episode)
-
-        def one(state, t):
-            _, _, k_step = episode_keys(key, index, t)
-            actions = env.scripted_actions(state, params)
-            _, state, _, _, _, info = env.step(k_step, state, actions, params, auto_reset=False)
-            row = measure(sim_params, state.sim.phys)
-            row.update(touching=info["touching"], done=info["done"])
-            return state, row
-
-        return jax.lax.scan(one, state, jnp.arange(env.max_steps))[1]
+        _, sim_params, rows = episode_rollout(env, params, scripted_policy(env), key, index)
+        out = jax.vmap(lambda phys: measure(sim_params, phys))(rows["sim"].phys)
+        out.update(touching=rows["touching"], done=rows["done"])
+        return out
 
     run = jax.jit(batching.vmap(episode, chunk=chunk))
     return jax.tree.map(np.asarray, run(jnp.arange(n_episodes)))

@@ -576,30 +576,22 @@ def _ranges(config, dtype) -> Ranges:
                   high=Episode(**{k: v[1] for k, v in pairs.items()}))
 
 
-def line_contact_radius(config) -> float:
-    """Radius [m] of the net's lines as the target touches them: the radius of a
-    ``contact:`` segment group paired with a group holding the target whose patterns match
-    the net's lines (the largest, if several), or half the line's diameter when the scene
-    has no such pair. The environment's ``touching`` check measures the gap from there, so
-    a level that thickens the lines for contact counts a touch where its contact acts."""
-    import fnmatch
-
-    net, contact = config.net, config.contact
-    half = 0.5 * float(net.line.diameter)
-    if contact is None:
-        return half
-    groups = {g.name: g for g in contact.groups}
-    lines = (f"{net.name}_h0_0", f"{net.name}_v0_0")
-
-    def has_target(g):
-        return g.members is not None and any(fnmatch.fnmatchcase(config.target.name, m) for m in g.members)
-
-    def has_lines(g):
-        return g.segments is not None and any(fnmatch.fnmatchcase(n, s) for n in lines for s in g.segments)
-
-    radii = [groups[b].radius for pair in contact.pairs for a, b in (pair, pair[::-1])
-             if a in groups and b in groups and has_target(groups[a]) and has_lines(groups[b])]
-    return float(max(radii)) if radii else half
+def line_contact_radius(scene, params, target_body: int, line_springs, default: float) -> float:
+    """Radius [m] of the net's lines as the target touches them, read from the built
+    contact scene: the largest capsule radius among the sphere–capsule pairs of the
+    target's sphere and the capsules on ``line_springs`` (spring names), or ``default``
+    (half the line's diameter) when the scene pairs none. The environment's ``touching``
+    check measures the gap from there, so a level that thickens the lines for contact
+    counts a touch where its contact acts."""
+    cs = scene.contact
+    if cs is None or not cs.n_capsule_pairs or target_body not in cs.sphere_body:
+        return default
+    sphere = len(cs.sphere_point) + cs.sphere_body.index(target_body)
+    lines = set(line_springs)
+    radius = np.asarray(params.contact.capsule_radius, float)
+    radii = [radius[c] for a, c in zip(cs.capsule_pair_sphere, cs.capsule_pair_capsule)
+             if a == sphere and cs.capsule_names[c] in lines]
+    return float(max(radii)) if radii else default
 
 
 def make_env(config) -> tuple[CaptureEnv, EnvParams]:
@@ -634,7 +626,8 @@ def make_env(config) -> tuple[CaptureEnv, EnvParams]:
         scene=scene, n_agents=len(quads), agents=tuple(quads),
         quad_bodies=tuple(scene.body_names.index(q) for q in quads),
         target_body=scene.body_names.index(config.target.name), target_radius=float(config.target.radius),
-        line_radius=line_contact_radius(config),
+        line_radius=line_contact_radius(scene, params, scene.body_names.index(config.target.name), line_names,
+                                        0.5 * float(net.line.diameter)),
         knot_points=tuple(scene.point_names.index(k) for k in knots),
         border_points=tuple(scene.point_names.index(k) for k in border_knots(net)),
         tether_markers=tuple(tethers), line_nodes_a=tuple(a), line_nodes_b=tuple(b),
