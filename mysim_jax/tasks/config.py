@@ -61,7 +61,9 @@ class SpawnConfig(StrictModel):
     caught before the task begins. A position drawn closer is drawn again (up to
     :data:`~mysim_jax.tasks.target.SPAWN_TRIES` draws in all, which keeps the draw uniform
     over the allowed part of the box unless that part is tiny; the last draw, if it is
-    still too close, is pushed straight out to the clearance)."""
+    still too close, is pushed straight out to the clearance). The value is a traced
+    parameter (``TargetParams.spawn_clearance``, sweepable), but a scene built with 0 has
+    no check at all: sweep it from a scene built with a positive clearance."""
 
     position: BoxRange
     velocity: BoxRange = BoxRange(low=(0.0, 0.0, 0.0), high=(0.0, 0.0, 0.0))
