@@ -195,9 +195,13 @@ class TeamConfig(StrictModel):
     velocity team of that module (drag-aware catch point, lag feed-forward, following the
     net after the catch: ``gain``, ``lag_gain``, ``follow_gain``). ``chase`` (velocity
     setpoints, an evading target): velocity feed-forward pursuit that flies the net
-    ``standoff`` below the target while far and ``approach`` below once within ``close``
-    (``ChaseTeam``; ``lead``, ``gain``, ``lag_gain``, ``follow_gain``, ``soften`` as above).
-    ``hold``: the team holds its start formation.
+    ``standoff`` below the target while its centre is ``climb_radius`` or more from it
+    horizontally and ``approach`` below once within ``close``, which only closes in on a
+    far target once its UAVs are ``dive_gap`` below it, never commands the formation under
+    ``min_altitude``, and holds ``altitude`` once the target is in the net (``ChaseTeam``;
+    ``lead``, ``lag_gain`` as above, the gap closed at ``pursuit_gain``, the UAVs kept in
+    formation at ``gain``). ``hold``: the team holds
+    its start formation.
     """
 
     policy: Literal["scripted", "chase", "hold"] = "scripted"
@@ -210,6 +214,17 @@ class TeamConfig(StrictModel):
     lag_gain: NonNegFloat = 0.5             # -, extra speed per m/s by which the net trails the team
     follow_gain: NonNegFloat = 1.0          # 1/s, after the catch: velocity per metre the net is off centre
     # chase only (an evading target, velocity setpoints; mysim_jax/tasks/scripted.py, ChaseTeam)
-    approach: Finite = 0.1                  # m, the net's mean height below the target's centre, close
-    standoff: Finite = 0.6                  # m, the same while the net is far from under it
-    close: PosFloat = 0.4                   # m, horizontal distance of net centre to target that counts as close
+    pursuit_gain: PosFloat = 0.7            # 1/s, velocity per metre of horizontal gap to the led target
+    approach: Finite = -0.5                 # m, the net's mean height below the target's centre, close
+    standoff: Finite = 2.0                  # m, the same while the net is far from under it
+    close: PosFloat = 0.3                   # m, horizontal distance of net centre to target that counts as close
+    climb_radius: PosFloat = 1.2            # m, beyond this horizontal distance the net flies standoff below
+    dive_gap: NonNegFloat = 0.3             # m, UAVs this far below a far target before the team closes in
+    min_altitude: NonNegFloat = 2.0         # m, the lowest formation height the chase commands
+
+    @model_validator(mode="after")
+    def _chase_radii(self):
+        if self.policy == "chase" and self.climb_radius <= self.close:
+            raise ValueError(f"team.climb_radius: {self.climb_radius:g} m must be larger than team.close "
+                             f"({self.close:g} m): the net climbs from standoff to approach between the two")
+        return self

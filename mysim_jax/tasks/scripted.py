@@ -163,50 +163,67 @@ class VelocityTeam:
 @dataclass(frozen=True)
 class ChaseTeam:
     """The chase team for an evading target, with velocity setpoints (lengths in m, times
-    in s): velocity feed-forward pursuit that keeps the net under where the target will
-    be.
+    in s): velocity feed-forward pursuit that brings the net up under the drone from
+    below.
 
-    Horizontally the formation's centre ``c`` flies ``v_t + gain (p_t + lead v_t − c) +
-    lag_gain (v̄ − v_net)``: the target's velocity fed forward, the gap to its position
-    ``lead`` seconds ahead closed at ``gain``, and the net's lag behind the formation fed
-    forward as :class:`VelocityTeam` does. Vertically the formation flies so that the
-    net's mean knot height is ``standoff`` below the target's centre while the net's
-    centre is more than ``2 close`` from it horizontally, and ``approach`` below once it is
-    within ``close``, blending linearly between: the net comes in under the drone, clear
-    of it, then climbs into it from below, and its rotors meet the lines. Once the target is in the net
-    (within ``catch_radius`` of its centre horizontally and below ``catch_height`` above
-    it) the team follows the net's centre and descends ``soften``."""
+    With ``d`` the horizontal distance from the net's centre (its knots' mean) to the
+    target:
+
+    * **Horizontally** the formation's centre ``c`` flies ``v_t + pursuit_gain (p_t +
+      lead v_t − c) + lag_gain (v̄ − v_net)``: the target's velocity fed forward, the gap
+      to its position ``lead`` seconds ahead closed at ``pursuit_gain``, and the net's lag
+      behind the formation fed forward as :class:`VelocityTeam` does. While ``d >
+      climb_radius`` and the UAVs are not yet ``dive_gap`` below the target, the formation
+      only matches the target's velocity: the UAVs and the tethers, which slope out from
+      the net's rim to the UAVs, would otherwise sweep through the drone; the team first
+      drops under it.
+    * **Vertically** the formation flies so that the net's mean knot height is
+      ``standoff`` below the target's centre while ``d >= climb_radius`` and ``approach``
+      below once ``d <= close`` (negative: above it, so the lines reach the rotors),
+      blending linearly between, and never under ``min_altitude``. While the target falls
+      faster than ``fall_speed`` (entangled, its propulsion lost) and is not yet in the
+      net, the formation holds its height instead of following it down.
+    * **Once the target is in the net** (within ``catch_radius`` of its centre
+      horizontally, below ``catch_height`` above it) the formation keeps the same
+      horizontal law, which keeps the net's centre under it, and flies to ``altitude``.
+
+    Every UAV keeps its slot around ``c`` at ``gain`` (:func:`_formation_velocities`), which
+    also sets the vertical response."""
 
     target_body: int
     quad_bodies: tuple[int, ...]
     knot_points: tuple[int, ...]
     offsets: tuple[tuple[float, float, float], ...]
+    altitude: float                # m, formation height once the target is in the net
     gain: float = 2.0
+    pursuit_gain: float = 0.7      # 1/s, velocity per metre of horizontal gap to the led target
     lag_gain: float = 0.5
-    follow_gain: float = 1.0
-    lead: float = 0.3
-    approach: float = 0.1
-    standoff: float = 0.6
-    close: float = 0.4
-    soften: float = 0.3
+    lead: float = 0.2
+    approach: float = -0.5
+    standoff: float = 2.0
+    close: float = 0.3
+    climb_radius: float = 1.2
+    dive_gap: float = 0.3
+    min_altitude: float = 2.0      # m, the lowest formation height it commands
     catch_radius: float = 0.6
     catch_height: float = 0.3
-    min_altitude: float = 1.5      # m, the lowest formation height it commands
+    fall_speed: float = 0.5        # m/s, a target sinking faster has lost its propulsion
 
     def velocities(self, params, state):
         """The commanded velocity of every quadrotor ``(n_quads, 3)`` m/s."""
         p, v, uav, centre, v_team, c_net, v_net = _team_view(self, state)
-        caught = (jnp.linalg.norm(p[:2] - c_net[:2]) < self.catch_radius) & (p[2] < c_net[2] + self.catch_height)
-        chase = (v[:2] + self.gain * (p[:2] + self.lead * v[:2] - centre[:2])
+        d = jnp.linalg.norm(p[:2] - c_net[:2])
+        caught = (d < self.catch_radius) & (p[2] < c_net[2] + self.catch_height)
+        chase = (v[:2] + self.pursuit_gain * (p[:2] + self.lead * v[:2] - centre[:2])
                  + self.lag_gain * (v_team[:2] - v_net[:2]))
-        follow = self.follow_gain * (c_net[:2] - centre[:2])
-        # the formation height that puts the net's mean height ``below`` under the target:
-        # standoff while the net is far from under it, approach once it is close
-        far = jnp.clip((jnp.linalg.norm(p[:2] - c_net[:2]) - self.close) / self.close, 0.0, 1.0)
+        above_team = (centre[2] > p[2] - self.dive_gap) & (d > self.climb_radius)
+        horizontal = jnp.where(above_team, v[:2], chase)
+        far = jnp.clip((d - self.close) / (self.climb_radius - self.close), 0.0, 1.0)
         below = self.approach + far * (self.standoff - self.approach)
-        z_chase = p[2] - below + (centre[2] - c_net[2])
-        z = jnp.where(caught, centre[2] - self.soften, jnp.maximum(z_chase, self.min_altitude))
-        return _formation_velocities(self, jnp.where(caught, follow, chase), z, centre, uav)
+        z_chase = jnp.maximum(p[2] - below + (centre[2] - c_net[2]), self.min_altitude)
+        falling = v[2] < -self.fall_speed
+        z = jnp.where(caught, self.altitude, jnp.where(falling, centre[2], z_chase))
+        return _formation_velocities(self, horizontal, z, centre, uav)
 
     def __call__(self, scene, params, state) -> Setpoint:
         return Setpoint.from_velocity(self.velocities(params, state))
@@ -235,8 +252,10 @@ def team_policy(config, scene):
             knot_points=tuple(scene.point_names.index(net.knot_name(i, j))
                               for i in range(net.knots) for j in range(net.knots)),
             offsets=tuple(map(tuple, (start - start.mean(axis=0)).tolist())),
-            gain=team.gain, lag_gain=team.lag_gain, follow_gain=team.follow_gain, lead=team.lead,
-            approach=team.approach, standoff=team.standoff, close=team.close, soften=team.soften,
+            altitude=float(start.mean(axis=0)[2] if team.altitude is None else team.altitude),
+            gain=team.gain, pursuit_gain=team.pursuit_gain, lag_gain=team.lag_gain, lead=team.lead,
+            approach=team.approach, standoff=team.standoff, close=team.close,
+            climb_radius=team.climb_radius, dive_gap=team.dive_gap, min_altitude=team.min_altitude,
             catch_radius=team.catch_radius)
     centre = start.mean(axis=0)
     altitude = centre[2] if team.altitude is None else team.altitude
