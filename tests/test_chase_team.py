@@ -91,7 +91,7 @@ def test_the_chase_holds_its_height_under_a_falling_target_and_flies_to_altitude
 
 
 def test_the_chase_needs_velocity_setpoints():
-    cfg = load_config(CONFIG, [TEAM])
+    cfg = load_config(CONFIG, [f"quadrotors.{i}.controller.setpoint_mode=position" for i in range(4)] + [TEAM])
     scene, _, _ = build(cfg)
     with pytest.raises(ValueError, match="chase commands velocities"):
         team_policy(cfg, scene)

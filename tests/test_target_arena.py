@@ -65,16 +65,16 @@ def test_the_target_stays_in_its_arena_and_leaves_without_one():
     # it does use the arena: most targets come within 1 m of a wall
     near_wall = np.minimum(inside - LOW, HIGH - inside)[..., :2].min(axis=(1, 2))
     assert np.mean(near_wall < 1.0) > 0.5
-    free = _flights(fast)
+    free = _flights(fast + ["target.propulsion.arena=null"])
     assert np.mean(np.any((free[..., :2] < LOW[:2]) | (free[..., :2] > HIGH[:2]), axis=(1, 2))) > 0.5
 
 
 @pytest.mark.parametrize("sets, message", [
-    (["target.spawn.position={low: [-0.5, -0.5, 2.0], high: [0.5, 0.5, 3.5]}",
+    (["target.spawn.position={low: [-0.5, -0.5, 2.5], high: [0.5, 0.5, 4.0]}", "target.spawn.clearance=0",
       ARENA.replace("low: [-4.0, -4.0, 1.5]", "low: [-1.0, -4.0, 1.5]").replace("high: [4.0, 4.0", "high: [1.0, 4.0")],
      "target.propulsion.arena: 2 m and 8 m wide, no wider than the net (net.size = 2 m) on axis x: widen"),
     ([ARENA.replace("low: [-4.0, -4.0, 1.5]", "low: [-2.0, -4.0, 1.5]")],
-     "spawn.position: the box (low [-2.5, -2.5, 2.0], high [2.5, 2.5, 3.5]) reaches outside propulsion.arena"),
+     "spawn.position: the box (low [-2.5, -2.5, 2.5], high [2.5, 2.5, 4.0]) reaches outside propulsion.arena"),
     ([ARENA.replace("high: [4.0, 4.0, 5.0]", "high: [4.0, 4.0, 1.0]")], "propulsion.arena: empty range"),
     ([ARENA, "target.propulsion.altitude=[2.0, 6.0]"], "altitude: the band [2.0, 6.0] m is not inside the arena"),
     ([ARENA, "target.propulsion.wall_margin=-1"], "wall_margin"),
@@ -116,7 +116,7 @@ def test_the_spawn_keeps_its_clearance_and_stays_uniform_over_what_is_left():
     for q in (0.25, 0.5, 0.75):
         assert abs(np.mean(r <= np.quantile(ref_r, q)) - q) < 4 * np.sqrt(q * (1 - q) / r.size)
     # the first draw is the draw without a clearance, kept whenever it is already clear
-    plain = spawns([])
+    plain = spawns(["target.spawn.clearance=0"])
     kept = np.linalg.norm(plain[:, :2] - centre[:2], axis=-1) >= 1.5
     assert 0.5 < kept.mean() < 0.9
     np.testing.assert_array_equal(pos[kept], plain[kept])
