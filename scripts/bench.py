@@ -2070,9 +2070,9 @@ TRAIN_RUNS = ROOT / "docs" / "train"
 
 def _scripted_outcomes(runs) -> dict:
     """The scripted team's outcomes on the evaluation episodes of ``runs`` that compared
-    against it (``eval/comparison_episodes.csv``), keyed by evaluation seed: episode i of a
-    seed is the same episode in every evaluation, so a run evaluated on fewer episodes
-    pairs with the first of these."""
+    against it (``eval/comparison_episodes.csv``), keyed by ``(scene, evaluation seed)``:
+    episode i of a seed is the same episode in every evaluation of that environment, so a
+    run evaluated on fewer episodes pairs with the first of these."""
     import csv
     import json
 
@@ -2084,8 +2084,16 @@ def _scripted_outcomes(runs) -> dict:
             continue
         with table.open() as f:
             rows = list(csv.DictReader(f))
-        found[base["seed"]] = np.array([r["outcome_scripted"] == "success" for r in rows])
+        found[(_run_scene(run), base["seed"])] = np.array([r["outcome_scripted"] == "success" for r in rows])
     return found
+
+
+def _run_scene(run):
+    """The name of the scene a kept run trained on (its ``scene.yaml``'s ``name``)."""
+    import yaml
+
+    scene = run / "scene.yaml"
+    return yaml.safe_load(scene.read_text()).get("name") if scene.is_file() else None
 
 
 def _run_settings(run):
@@ -2158,7 +2166,7 @@ def training_runs_lines() -> list[str]:
 
             with (run / "eval" / "episodes.csv").open() as f:
                 mine = np.array([r["success"] == "1" for r in csv.DictReader(f)])
-            base = scripted.get(eval_seed)
+            base = scripted.get((_run_scene(run), eval_seed))
             if base is not None and len(base) >= len(mine):
                 d, lo, hi = paired_difference_interval(mine, base[:len(mine)])
                 versus = f"{100 * d:+.1f} ({100 * lo:+.1f} to {100 * hi:+.1f})"
