@@ -200,8 +200,7 @@ class TeamConfig(StrictModel):
     far target once its UAVs are ``dive_gap`` below it, never commands the formation under
     ``min_altitude``, and holds ``altitude`` once the target is in the net (``ChaseTeam``;
     ``lead``, ``lag_gain`` as above, the gap closed at ``pursuit_gain``, the UAVs kept in
-    formation at ``gain``). ``hold``: the team holds
-    its start formation.
+    formation at ``gain``). ``hold``: the team holds its start formation.
     """
 
     policy: Literal["scripted", "chase", "hold"] = "scripted"
