@@ -2089,11 +2089,12 @@ def _scripted_outcomes(runs) -> dict:
 
 
 def _run_scene(run):
-    """The name of the scene a kept run trained on (its ``scene.yaml``'s ``name``)."""
+    """The name of the scene a kept run was evaluated on (``scene_eval.yaml``, else the
+    ``scene.yaml`` it trained on)."""
     import yaml
 
-    scene = run / "scene.yaml"
-    return yaml.safe_load(scene.read_text()).get("name") if scene.is_file() else None
+    scene = next((run / f for f in ("scene_eval.yaml", "scene.yaml") if (run / f).is_file()), None)
+    return yaml.safe_load(scene.read_text()).get("name") if scene is not None else None
 
 
 def _run_settings(run):
