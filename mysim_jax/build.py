@@ -1,8 +1,8 @@
-"""Build ``(Scene, Params, State)`` from a validated :class:`~mysim_jax.config.SceneConfig`.
+"""Build ``(Scene, Params, State)`` from a validated :class:`~mysim_jax.config.scene.SceneConfig`.
 
 Everything here is host-side NumPy; nothing is traced or compiled. The explicit stability
 check of fixed-step integrators runs here (it needs the masses on both ends of each
-spring) and raises :class:`~mysim_jax.config.ConfigError` naming ``sim.dt``.
+spring) and raises :class:`~mysim_jax.config.scene.ConfigError` naming ``sim.dt``.
 """
 
 from __future__ import annotations
@@ -15,17 +15,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mysim_jax.config import FIXED_STEP_INTEGRATORS, ConfigError, SceneConfig, expand_capture
+from mysim_jax.config.scene import FIXED_STEP_INTEGRATORS, ConfigError, SceneConfig, expand_capture
 from mysim_jax.contact.build import build_contact, contact_stable_step
 from mysim_jax.contact.config import segment_table
 from mysim_jax.control.build import build_quadrotors, expand_cameras
 from mysim_jax.dynamics.joint_check import joint_groups, joint_problems
 from mysim_jax.dynamics.implicit_springs import spring_ends_on_markers
 from mysim_jax.dynamics.stability import NETWORK_STEP_SAFETY, scene_network_stable_step, stable_step
-from mysim_jax.effects import EFFECTS, BuildContext, scene_effects
+from mysim_jax.effects.registry import EFFECTS, BuildContext, scene_effects
 from mysim_jax.net.rope import build_rope
-from mysim_jax.npgeom import rotate
-from mysim_jax.types import JointBucket, Params, PhysState, Scene, State
+from mysim_jax.core.npgeom import rotate
+from mysim_jax.core.types import JointBucket, Params, PhysState, Scene, State
 
 # ``substeps: auto`` takes sub-steps of at most this fraction of the per-element explicit
 # stability limits of contact pairs and Baumgarte terms: a per-element estimate ignores
@@ -63,7 +63,7 @@ def _inertia_matrix(inertia) -> np.ndarray:
 
 def build(config: SceneConfig):
     """Assemble the scene. Returns ``(scene, params, state)``; what a run saves comes from
-    ``config.run_settings()`` (:class:`~mysim_jax.config.RunSettings`)."""
+    ``config.run_settings()`` (:class:`~mysim_jax.config.scene.RunSettings`)."""
     if config.sim.precision == "float64" and not jax.config.jax_enable_x64:
         raise ConfigError(
             f"sim.precision: float64 requested by scene '{config.name}' but JAX runs in 32-bit "
@@ -231,7 +231,7 @@ def build(config: SceneConfig):
         max_steps=config.sim.max_steps,
         implicit_iterations=config.sim.cg_iterations,
         # node forces are scattered (segment_sum): with the batch axis last
-        # (mysim_jax.batching) a scatter adds contiguous batch rows, where the dense
+        # (mysim_jax.core.batching) a scatter adds contiguous batch rows, where the dense
         # incidence matmul does n_nodes times the work (BENCHMARKS.md, sections a and b)
         accumulate="segment_sum",
         contact=contact_scene,

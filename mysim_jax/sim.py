@@ -27,6 +27,7 @@ import diffrax
 import jax
 import jax.numpy as jnp
 import numpy as np
+from tqdm.auto import tqdm
 
 from mysim_jax.contact.forces import contact_forces
 from mysim_jax.control.actuation import actuate
@@ -39,8 +40,8 @@ from mysim_jax.dynamics.markers import distribute_node_forces, node_states
 from mysim_jax.dynamics.quadrotor import aerodynamic_forces, rotor_forces
 from mysim_jax.dynamics.quaternion import quat_normalize
 from mysim_jax.dynamics.rigid_body import body_accelerations, inertia_inverse
-from mysim_jax.effects import scene_effects
-from mysim_jax.types import Accelerations, Params, PhysState, Scene, State
+from mysim_jax.effects.registry import scene_effects
+from mysim_jax.core.types import Accelerations, Params, PhysState, Scene, State
 
 
 def _spring_stage(scene, params, phys, nodes, inputs) -> Loads:
@@ -57,7 +58,7 @@ def force_stages(scene: Scene) -> tuple[tuple[str, ForceStage], ...]:
 
     Each stage is ``fn(scene, params, phys, nodes, inputs) -> Loads`` with ``nodes`` the
     ``(node_pos, node_vel)`` table and ``inputs`` the actuator commands held over the step
-    (``None`` when the scene has no actuators). Registered effects (:mod:`mysim_jax.effects`)
+    (``None`` when the scene has no actuators). Registered effects (:mod:`mysim_jax.effects.registry`)
     add their stages after these, each called with what its own update holds instead of
     ``inputs``; new effects register there, not here.
     """
@@ -213,7 +214,7 @@ def held_inputs(scene: Scene, params: Params, state: State, control=None):
 
 
 def effect_updates(scene: Scene, params: Params, state: State):
-    """Run the update of every effect the scene has (:mod:`mysim_jax.effects`), once per
+    """Run the update of every effect the scene has (:mod:`mysim_jax.effects.registry`), once per
     environment step. Returns ``(held, memory)``: what each effect's stages hold over the
     step, and the effects' new memory (both dicts by effect name)."""
     held, memory = {}, dict(state.effects)
@@ -301,7 +302,7 @@ class Trajectory:
 
 
 def output_times(run) -> np.ndarray:
-    """The output grid ``0, output_dt, ..., t_end`` of a :class:`~mysim_jax.config.RunSettings`
+    """The output grid ``0, output_dt, ..., t_end`` of a :class:`~mysim_jax.config.scene.RunSettings`
     (whose ``t_end`` lies on it)."""
     n = int(round(run.t_end / run.output_dt))
     return np.arange(n + 1) * run.output_dt
@@ -355,7 +356,7 @@ def single_env_scene(scene: Scene) -> Scene:
 def simulate(scene: Scene, params: Params, state: State, run, progress: bool = True, chunk: int = 200,
              policy=None) -> Trajectory:
     """Run the scene from ``state`` to ``run.t_end``, saving every ``run.output_dt``
-    (``run``: :class:`~mysim_jax.config.RunSettings`, e.g. ``config.run_settings()``; it is
+    (``run``: :class:`~mysim_jax.config.scene.RunSettings`, e.g. ``config.run_settings()``; it is
     not part of the physics: it sets how many steps run and which are saved).
 
     Fixed-step integrators run as jitted ``lax.scan`` chunks of ``chunk`` outputs with a
@@ -494,6 +495,5 @@ def _non_finite(scene: Scene, states: State, times, first_row: int):
 def _progress(total: int, enabled: bool, scene: Scene, name: str):
     if not enabled:
         return None
-    from tqdm.auto import tqdm
 
     return tqdm(total=total, desc=f"{name} ({scene.integrator})", unit="out", leave=False)

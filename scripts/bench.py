@@ -95,10 +95,10 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from tqdm.auto import tqdm  # noqa: E402
 
-from mysim_jax import batching  # noqa: E402
+from mysim_jax.core import batching  # noqa: E402
 from mysim_jax.bench.rope_kernel import from_node_columns, rope_net_kernel, to_node_columns  # noqa: E402
 from mysim_jax.build import build  # noqa: E402
-from mysim_jax.config import ConfigError, load_config  # noqa: E402
+from mysim_jax.config.scene import ConfigError, load_config  # noqa: E402
 from mysim_jax.dynamics.integrators import FIXED_STEP  # noqa: E402
 from mysim_jax.sim import output_times, rollout, single_env_scene, solve_adaptive, step, steps_per_output  # noqa: E402
 from mysim_jax.tasks.scripted import team_policy  # noqa: E402
@@ -266,7 +266,7 @@ def section_a(cfg, results) -> list[str]:
         "",
         f"`configs/rope_net.yaml` with `{' '.join('--set ' + o for o in THROUGHPUT_OVERRIDES)}` "
         f"({scene.n_points} point masses, {scene.n_springs} springs, {scene.accumulate!r} accumulation as "
-        "built). One call = `jax.jit(mysim_jax.batching.vmap(run_env, in_axes=(None, 0)))(params, states)` "
+        "built). One call = `jax.jit(mysim_jax.core.batching.vmap(run_env, in_axes=(None, 0)))(params, states)` "
         "(the library's batched path: the per-environment step evaluated with the batch axis last) where "
         "`run_env` is a `lax.scan` of K `mysim_jax.sim.step` calls: the batch of states is the single-env "
         "state broadcast to B copies, **params are shared by all envs (not vmapped)**; the last row "
@@ -340,7 +340,7 @@ def section_a(cfg, results) -> list[str]:
         f"One env step = one control period `sim.dt` = {cap_scene.dt:g} s: the scripted team policy "
         "(`mysim_jax.tasks.scripted.team_policy`) and the cascaded PID run once, then "
         f"{n_sub} physics sub-steps of {cap_scene.substep:.3g} s ({cap_scene.integrator}, `substeps: auto`). "
-        f"One call = `jax.jit(mysim_jax.batching.vmap(run_env, in_axes=(None, 0), chunk={batching.chunk_for(cap_state)}))(params, states)` "
+        f"One call = `jax.jit(mysim_jax.core.batching.vmap(run_env, in_axes=(None, 0), chunk={batching.chunk_for(cap_state)}))(params, states)` "
         "(blocks from `batching.chunk_for`) with `run_env` one "
         f"`mysim_jax.sim.rollout(scene, params, state, K, K, policy)` of K = {cfg.capture_steps} env steps "
         f"(a short rollout from the start: the target is still falling and the net is not yet hit; "
@@ -1518,7 +1518,7 @@ def summary_lines(results) -> list[str]:
                    f"**{'met' if v >= TARGET_ENV_STEPS else 'NOT met'}**.")
     if "kernel_ratio" in results:
         r = results["kernel_ratio"]
-        out.append("- Library (batch-last, `mysim_jax.batching.vmap`) / hand-written batch-last kernel (a), same run: "
+        out.append("- Library (batch-last, `mysim_jax.core.batching.vmap`) / hand-written batch-last kernel (a), same run: "
                    + ", ".join(f"B={b}: **{x:.2f}×**" for b, x in r.items())
                    + f" — target ≥ {TARGET_KERNEL_RATIO}× at B = 1024 and 4096: "
                    f"**{'met' if results['kernel_met'] else 'NOT met'}**.")
@@ -1630,7 +1630,7 @@ def summary_lines(results) -> list[str]:
 def _env_call(env, params, batch: int, n_steps: int, kind: str = "env", vmap: Callable = batching.vmap,
               compiler_options: dict | None = None):
     """AOT-compiled ``jit(vmap(...))`` over ``batch`` environments reset from distinct keys
-    (``vmap``: the library's batch-last ``mysim_jax.batching.vmap`` or ``jax.vmap``):
+    (``vmap``: the library's batch-last ``mysim_jax.core.batching.vmap`` or ``jax.vmap``):
     ``kind="env"``: ``n_steps`` team steps (:meth:`CaptureEnv.step` with the scripted team's
     actions); ``kind="control"``: ``n_steps`` control periods of the physics alone
     (:func:`mysim_jax.sim.step` with the scripted team's setpoint held). Returns a Compiled."""
@@ -1875,7 +1875,7 @@ def section_e(cfg, results) -> list[str]:
         f"`configs/capture_env_falling.yaml` (float32, {scene.n_points} point masses, {scene.n_springs} springs, "
         f"4 quadrotors and the target, contact, line drag; {env.control_steps} control periods of "
         f"{scene.dt * 1e3:g} ms per team step at 25 Hz, {scene.substeps} semi-implicit Euler sub-steps each). "
-        "One call = `jax.jit(mysim_jax.batching.vmap(run_env, chunk=c))(keys, states)` (batch axis last, in blocks of "
+        "One call = `jax.jit(mysim_jax.core.batching.vmap(run_env, chunk=c))(keys, states)` (batch axis last, in blocks of "
         f"c = `batching.chunk_for(state)` = {batching.chunk_for(env.reset(jax.random.PRNGKey(0), params)[1])} environments when B is larger) with `run_env` a `lax.scan` of K "
         "`CaptureEnv.step` calls whose actions are the scripted team's (`CaptureEnv.scripted_actions`): "
         "B environments reset from distinct keys, so their spawns, masses and wind differ; auto-reset "

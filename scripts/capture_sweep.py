@@ -22,7 +22,7 @@ def main(argv=None) -> int:
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
     args = parser.parse_args(argv)
 
-    from mysim_jax.config import ConfigError, load_config
+    from mysim_jax.config.scene import ConfigError, load_config
 
     try:
         config = load_config(args.config, args.overrides)

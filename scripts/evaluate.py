@@ -7,7 +7,7 @@
 ``--policy`` is ``scripted`` (the scripted intercept team), ``random`` (uniform actions),
 a trained policy (the ``policy/`` folder of a ``scripts/train.py`` run), or a Python file
 defining ``make_policy(env, params)`` that returns ``policy(key, obs, state, params) ->
-actions (n_agents, 3)`` for one environment (mysim_jax/tasks/policies.py). The scene needs
+actions (n_agents, 3)`` for one environment (mysim_jax/mappo/policies.py). The scene needs
 ``net:``, ``target:`` and controlled ``quadrotors:``; a scene without an ``env:`` block
 is evaluated with the defaults (``env: {}``, a note says so and ``config.yaml`` records
 them).
@@ -35,7 +35,7 @@ and writes ``comparison.json`` (both success rates and their paired difference w
 
 ``--perception FILE`` evaluates the team flying on estimates instead of true states: FILE is
 an ``env.perception`` block (YAML: ``uav_position``, ``uav_velocity``, ``target_position``,
-``target_velocity``, each ``{sigma, correlation_time}``; mysim_jax/tasks/env_config.py),
+``target_velocity``, each ``{sigma, correlation_time}``; mysim_jax/config/env.py),
 e.g. the one ``scripts/perception_gap.py fit`` writes from measured estimation errors.
 ``metrics.json`` then records it under ``perception``. ``scripts/perception_gap.py compare``
 sets such a run against one on true states over the same episodes (``--batch`` equal to
@@ -59,7 +59,7 @@ def _perception_block(path: str) -> dict:
 
     import yaml
 
-    from mysim_jax.config import ConfigError
+    from mysim_jax.config.scene import ConfigError
 
     file = Path(path)
     if not file.is_file():
@@ -106,9 +106,9 @@ def main(argv=None) -> int:
               "side by side", file=sys.stderr)
     args.batch = min(64 if args.batch is None else args.batch, args.episodes)
 
-    from mysim_jax.config import ConfigError, load_config
+    from mysim_jax.config.scene import ConfigError, load_config
     from mysim_jax.io.output import OutputError, check_output_dir
-    from mysim_jax.tasks.policies import PolicyError, check_policy_spec
+    from mysim_jax.mappo.policies import PolicyError, check_policy_spec
 
     try:
         perception = None
@@ -137,7 +137,7 @@ def main(argv=None) -> int:
         jax.config.update("jax_enable_x64", True)
 
     from mysim_jax.tasks.capture import make_env
-    from mysim_jax.tasks.policies import check_policy, policy_maker
+    from mysim_jax.mappo.policies import check_policy, policy_maker
 
     try:
         env, params = make_env(config)

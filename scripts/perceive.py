@@ -140,7 +140,7 @@ def main(argv=None) -> int:
 
 def _track(args) -> int:
     """--track mode: closed-loop gimbal tracking and target localisation (see the module doc)."""
-    from mysim_jax.config import ConfigError, dump_config, load_config
+    from mysim_jax.config.scene import ConfigError, dump_config, load_config
     from mysim_jax.io.output import OutputError, check_output_dir
     from mysim_jax.perception.camera import PerceptionError, intrinsics
 

@@ -68,7 +68,7 @@ def main(argv=None) -> int:
         if args.command == "fit":
             import yaml
 
-            from mysim_jax.tasks.env_config import PerceptionConfig
+            from mysim_jax.config.env import PerceptionConfig
 
             block = perception_block([_load_model(p) for p in args.uav], _load_model(args.target))
             PerceptionConfig(**block)                      # the block evaluate.py will read

@@ -45,13 +45,13 @@ def main(argv=None) -> int:
                         "gains.yaml of scripts/tune_pid.py); --set overrides still apply on top")
     args = parser.parse_args(argv)
 
-    from mysim_jax.config import ConfigError, check_output_memory, dump_config, load_config
+    from mysim_jax.config.scene import ConfigError, check_output_memory, dump_config, load_config
     from mysim_jax.io.output import OutputError, check_output_dir
 
     try:
         overrides = list(args.overrides)
         if args.gains is not None:
-            from mysim_jax.control.config import gain_overrides
+            from mysim_jax.config.quadrotor import gain_overrides
 
             overrides = gain_overrides(args.gains, args.config) + overrides
         config = load_config(args.config, overrides)
@@ -74,7 +74,7 @@ def main(argv=None) -> int:
         jax.config.update("jax_enable_x64", True)
 
     from mysim_jax.build import build
-    from mysim_jax.control.tracking import motor_columns, reference_columns, tracking_metrics
+    from mysim_jax.tuning.tracking import motor_columns, reference_columns, tracking_metrics
     from mysim_jax.io.output import staged_output
     from mysim_jax.io.plots import plot_kinematics, plot_path
     from mysim_jax.io.replay import write_replay_html
@@ -87,7 +87,7 @@ def main(argv=None) -> int:
         print(f"error: {args.config}: {err}", file=sys.stderr)
         return 2
 
-    from mysim_jax.io.capture_plots import capture_report
+    from mysim_jax.tasks.capture_plots import capture_report
     from mysim_jax.tasks.scripted import team_policy
 
     policy = team_policy(config, scene)

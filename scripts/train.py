@@ -68,7 +68,7 @@ def main(argv=None) -> int:
         return _error(f"--process-id {args.process_id} with --num-processes {args.num_processes}: the id must be "
                       "0 to N-1 and N at least 1")
 
-    from mysim_jax.config_base import ConfigError
+    from mysim_jax.core.config_base import ConfigError
     from mysim_jax.io.output import OutputError
     from mysim_jax.mappo.run import describe_run, prepare, train_run
 

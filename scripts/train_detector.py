@@ -57,7 +57,7 @@ def main(argv=None) -> int:
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bars")
     args = parser.parse_args(argv)
 
-    from mysim_jax.config_base import ConfigError
+    from mysim_jax.core.config_base import ConfigError
     from mysim_jax.io.output import OutputError, check_output_dir
     from mysim_jax.perception.detect.config import load_config
 

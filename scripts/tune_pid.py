@@ -6,7 +6,7 @@
 
 Differentiates the mean squared tracking error over the scene's run (or ``--horizon``
 seconds) with respect to the log-gains (``gain = gain₀ exp(θ)``: positive, relative
-steps; see mysim_jax/control/tuning.py) and runs Adam (global-norm clipping, non-finite
+steps; see mysim_jax/tuning/gains.py) and runs Adam (global-norm clipping, non-finite
 updates skipped). Writes into OUT:
 
 * ``gains.yaml`` — the tuned gains (``simulate.py SCENE --gains OUT/gains.yaml``);
@@ -52,7 +52,7 @@ def main(argv=None) -> int:
         print("error: --iterations >= 0, --lr > 0, --clip > 0, --every >= 1", file=sys.stderr)
         return 2
 
-    from mysim_jax.config import ConfigError, dump_config, load_config
+    from mysim_jax.config.scene import ConfigError, dump_config, load_config
     from mysim_jax.io.output import OutputError, check_output_dir, staged_output
 
     try:
@@ -79,8 +79,8 @@ def main(argv=None) -> int:
     import yaml
 
     from mysim_jax.build import build
-    from mysim_jax.control.tracking import evaluate_tracking
-    from mysim_jax.control.tuning import gains_to_dict, horizon_study, tune, with_gains
+    from mysim_jax.tuning.tracking import evaluate_tracking
+    from mysim_jax.tuning.gains import gains_to_dict, horizon_study, tune, with_gains
 
     try:
         scene, params, state = build(config)

@@ -41,7 +41,7 @@ def rope_net_problem():
     import jax.numpy as jnp
 
     from mysim_jax.build import build
-    from mysim_jax.config import load_config
+    from mysim_jax.config.scene import load_config
     from mysim_jax.sim import rollout
 
     scene, params, state = build(load_config(ROOT / "configs" / "rope_net.yaml",
@@ -65,7 +65,7 @@ def capture_problem():
     import jax
     import jax.numpy as jnp
 
-    from mysim_jax.config import load_config
+    from mysim_jax.config.scene import load_config
     from mysim_jax.tasks.capture import make_env
 
     env, params = make_env(load_config(ROOT / "configs" / "capture_env_falling.yaml", ["level=train"]))
@@ -114,7 +114,7 @@ def collectives(run, *args) -> list[str]:
 def devices(out: str) -> None:
     import jax
 
-    from mysim_jax import batching, parallel
+    from mysim_jax.core import batching, parallel
 
     assert jax.device_count() == 2, jax.devices()
     start, run = rope_net_problem()
@@ -150,7 +150,7 @@ def devices(out: str) -> None:
 def capture(out: str) -> None:
     import jax
 
-    from mysim_jax import parallel
+    from mysim_jax.core import parallel
 
     assert jax.device_count() == 2, jax.devices()
     params, keys, episode = capture_problem()
@@ -169,7 +169,7 @@ def host(process_id: int, port: int, out: str) -> None:
     jax.distributed.initialize(coordinator_address=f"127.0.0.1:{port}", num_processes=2,
                                process_id=process_id, initialization_timeout=60)
     try:
-        from mysim_jax import parallel
+        from mysim_jax.core import parallel
 
         start, run = rope_net_problem()
         mesh = parallel.env_mesh()                  # every process's devices
@@ -194,7 +194,7 @@ def trainer(out: str) -> None:
 
     import jax
 
-    from mysim_jax import parallel
+    from mysim_jax.core import parallel
     from mysim_jax.mappo.config import AlgoConfig
     from mysim_jax.mappo.toy import ReachEnv
     from mysim_jax.mappo.trainer import Trainer

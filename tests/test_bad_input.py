@@ -374,7 +374,7 @@ def test_a_solve_that_gives_up_on_its_first_interval_keeps_the_initial_row(tmp_p
     assert "gave up after t = 0 s" in err and "wrote the finite part" in err
     cols = read_trajectory_csv(out / "trajectory.csv")
     assert list(cols["time"]) == [0.0] and json.loads((out / "metrics.json").read_text())["n_outputs"] == 1
-    from mysim_jax.config import load_config
+    from mysim_jax.config.scene import load_config
 
     ball = load_config(CONFIGS / "collision_light.yaml").points[1]                  # released at z = 0.5 m
     np.testing.assert_allclose([cols[f"{ball.name}_{a}"][0] for a in "xyz"], ball.pos, rtol=0, atol=1e-7)
@@ -398,7 +398,7 @@ def test_a_failed_run_leaves_nothing_half_written(tmp_path, monkeypatch):
 def test_validating_every_shipped_scene_does_not_import_jax():
     """Config checks run before JAX is imported (scripts report bad input in a fraction of
     a second); a module that pulls JAX into the config path breaks that."""
-    code = ("import sys, glob, os\nfrom mysim_jax.config import load_config\n"
+    code = ("import sys, glob, os\nfrom mysim_jax.config.scene import load_config\n"
             "from mysim_jax.mappo.config import load_train_config\n"
             "from mysim_jax.perception.detect.config import load_config as load_detector_config\n"
             "for f in sorted(glob.glob('configs/*.yaml')):\n"
@@ -417,7 +417,7 @@ def test_simulate_reports_an_infinite_state_and_keeps_no_non_finite_row():
     import jax.numpy as jnp
 
     from mysim_jax.build import build
-    from mysim_jax.config import load_config
+    from mysim_jax.config.scene import load_config
     from mysim_jax.sim import simulate
 
     config = load_config(ROPE, ["sim.precision=float32", "sim.t_end=0.01"])
@@ -433,7 +433,7 @@ def test_saved_outputs_larger_than_the_memory_are_refused_before_the_run():
     """simulate.py's check (before anything compiles): the saved outputs' estimate
     (rows x columns x (the scene's float size + 8 bytes of CSV column)) against the memory
     the machine has, naming the fields that size it."""
-    from mysim_jax.config import ConfigError, check_output_memory, load_config
+    from mysim_jax.config.scene import ConfigError, check_output_memory, load_config
 
     config = load_config(ROPE)
     rows, columns = config.output_size()

@@ -1,4 +1,4 @@
-"""``mysim_jax.batching.vmap`` (batch axis last) against ``jax.vmap`` (batch axis first).
+"""``mysim_jax.core.batching.vmap`` (batch axis last) against ``jax.vmap`` (batch axis first).
 
 The two must compute the same function: on the library's rope-net rollout and on small
 functions that exercise every batch-last rule (and the fallback) on their own (the
@@ -15,9 +15,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mysim_jax import batching
+from mysim_jax.core import batching
 from mysim_jax.build import build
-from mysim_jax.config import load_config
+from mysim_jax.config.scene import load_config
 from mysim_jax.sim import rollout, step
 
 ROPE32 = ["sim.precision=float32", "sim.integrator=semi_implicit_euler"]

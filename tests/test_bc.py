@@ -38,7 +38,7 @@ def trainer():
 
 
 def test_capture_iterations_run_in_blocks_sized_from_the_real_state(trainer):
-    from mysim_jax import batching
+    from mysim_jax.core import batching
 
     env, params = trainer.env, trainer.env_params
     # one environment's state, traced (shapes and dtypes, as the trainer sizes blocks from)

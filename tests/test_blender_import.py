@@ -11,7 +11,7 @@ import sys
 import numpy as np
 import pytest
 
-from mysim_jax.config import expand_capture, load_config
+from mysim_jax.config.scene import expand_capture, load_config
 from mysim_jax.io import blender_import as bi
 from mysim_jax.io.trajectory import write_trajectory_csv
 

@@ -14,8 +14,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mysim_jax import batching
-from mysim_jax.config import ConfigError, load_config
+from mysim_jax.core import batching
+from mysim_jax.config.scene import ConfigError, load_config
 from mysim_jax.contact.broad_phase import select_pairs
 from mysim_jax.contact.forces import ALL_PAIRS, contact_loads
 from mysim_jax.tasks.capture import make_env

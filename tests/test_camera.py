@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from mysim_jax.build import build
-from mysim_jax.config import load_config
+from mysim_jax.config.scene import load_config
 from mysim_jax.dynamics.constraints import constraint_error
 from mysim_jax.dynamics.gimbal import gimbal_command, gimbal_state
 from mysim_jax.dynamics.quaternion import quat_conj, quat_mul, quat_rotate, quat_to_rotvec

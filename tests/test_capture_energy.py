@@ -65,7 +65,7 @@ from capture_energy_reference import EnergyModel, cumulative_trapezoid
 from conftest import CONFIGS
 
 from mysim_jax.build import build
-from mysim_jax.config import config_from_dict
+from mysim_jax.config.scene import config_from_dict
 from mysim_jax.sim import rollout
 
 DT = 2.0e-5          # s, one RK4 sub-step per step, every step saved

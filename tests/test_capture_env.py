@@ -1,4 +1,4 @@
-"""The capture environment (mysim_jax/tasks/capture.py, rewards.py, env_config.py).
+"""The capture environment (mysim_jax/tasks/capture.py, rewards.py, config/env.py).
 
 Reward terms and checks are tested on constructed snapshots (each term's sign and scale
 against its formula in the rewards module docstring); the environment's API on a small
@@ -16,9 +16,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mysim_jax.config import ConfigError, load_config
+from mysim_jax.config.scene import ConfigError, load_config
 from mysim_jax.tasks.capture import make_env
-from mysim_jax.tasks.env_config import FAILURES, REWARD_TERMS, FailureConfig, RewardScales, SuccessConfig
+from mysim_jax.config.env import FAILURES, REWARD_TERMS, FailureConfig, RewardScales, SuccessConfig
 from mysim_jax.tasks.rewards import Snapshot, checks, cost_terms, inside_polygon, outcome_terms, potential_terms
 
 SMALL = ["env={}", "net.knots=3", "net.tethers.n_masses=1", "sim.t_end=0.4", "sim.precision=float32",
@@ -269,7 +269,7 @@ def test_batched_step_matches_single_steps_for_64_envs(small, how):
     rounding over the 300 sub-steps of the policy step; observations and rewards differ
     by under 4e-6; over these 64, 6.1e-6 for both maps). Flags, counters and keys are
     equal."""
-    from mysim_jax import batching
+    from mysim_jax.core import batching
 
     env, params, reset, step = small
     n = 64                        # the bound below was measured over 1024 environments
@@ -360,7 +360,7 @@ def test_shaping_is_potential_based_its_discounted_sum_telescopes(small):
     (Φ(s_T) = 0 when the episode ends by an outcome): whatever the team does, shaping adds
     only the difference of the end potentials, so it cannot change the best policy."""
     env, params, reset, step = small
-    from mysim_jax.tasks.env_config import SHAPING_TERMS
+    from mysim_jax.config.env import SHAPING_TERMS
 
     gamma = float(params.discount)
     constant = jnp.full((4, 3), 0.4, jnp.float32)

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mysim_jax.config import ConfigError, load_config
+from mysim_jax.config.scene import ConfigError, load_config
 from mysim_jax.tasks.capture import make_env
 
 SMALL = ["env={}", "net.knots=3", "net.tethers.n_masses=1", "sim.t_end=0.4", "sim.precision=float32",

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from pettingzoo.test import parallel_api_test, parallel_seed_test
 
-from mysim_jax.config import load_config
+from mysim_jax.config.scene import load_config
 from mysim_jax.tasks.pettingzoo_env import CaptureParallelEnv
 
 from conftest import CONFIGS

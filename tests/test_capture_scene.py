@@ -15,7 +15,7 @@ import pytest
 import yaml
 
 from mysim_jax.build import build
-from mysim_jax.config import ConfigError, config_from_dict, load_config
+from mysim_jax.config.scene import ConfigError, config_from_dict, load_config
 from mysim_jax.sim import simulate
 from conftest import CONFIGS
 
@@ -139,7 +139,7 @@ def test_validating_a_capture_config_does_not_import_jax():
     import subprocess
     import sys
 
-    code = ("import sys; from mysim_jax.config import load_config; "
+    code = ("import sys; from mysim_jax.config.scene import load_config; "
             f"load_config(r'{FALLING}'); load_config(r'{MANEUVERING}'); "
             "assert 'jax' not in sys.modules, 'jax imported'")
     subprocess.run([sys.executable, "-c", code], check=True)
@@ -165,7 +165,7 @@ def test_spawn_is_reproducible_from_the_seed_and_inside_the_ranges():
 
 
 def test_spawn_vmaps_over_keys():
-    from mysim_jax.tasks.target import spawn_target
+    from mysim_jax.effects.target import spawn_target
 
     scene, params, state = build(load_config(FALLING))
     body = scene.body_names.index("target")

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from mysim_jax.build import build
-from mysim_jax.config import ConfigError, load_config
+from mysim_jax.config.scene import ConfigError, load_config
 from mysim_jax.tasks.scripted import ChaseTeam, team_policy
 
 CONFIG = "configs/capture_env_maneuvering.yaml"

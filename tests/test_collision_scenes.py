@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 
 from mysim_jax.build import build
-from mysim_jax.config import load_config
+from mysim_jax.config.scene import load_config
 from mysim_jax.io.trajectory import read_trajectory_csv
 from mysim_jax.sim import simulate
 

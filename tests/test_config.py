@@ -9,7 +9,7 @@ import pytest
 import yaml
 
 from mysim_jax.build import build
-from mysim_jax.config import ConfigError, config_from_dict, dump_config, load_config
+from mysim_jax.config.scene import ConfigError, config_from_dict, dump_config, load_config
 from mysim_jax.dynamics.stability import NETWORK_STEP_SAFETY, scene_network_stable_step
 from mysim_jax.sim import rollout
 

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from mysim_jax.build import build
-from mysim_jax.config import ConfigError, config_from_dict
+from mysim_jax.config.scene import ConfigError, config_from_dict
 from mysim_jax.contact.forces import contact_forces
 from mysim_jax.dynamics.markers import node_states
 from mysim_jax.sim import rollout

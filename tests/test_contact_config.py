@@ -7,7 +7,7 @@ import pytest
 import yaml
 
 from mysim_jax.build import AUTO_SUBSTEP_SAFETY, build
-from mysim_jax.config import ConfigError, config_from_dict, load_config
+from mysim_jax.config.scene import ConfigError, config_from_dict, load_config
 from mysim_jax.dynamics.stability import stable_step
 from mysim_jax.sim import force_stages
 

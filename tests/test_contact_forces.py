@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from mysim_jax.build import build
-from mysim_jax.config import config_from_dict, load_config
+from mysim_jax.config.scene import config_from_dict, load_config
 from mysim_jax.contact.forces import contact_forces
 from mysim_jax.dynamics.markers import node_states
 from mysim_jax.dynamics.quaternion import quat_rotate

@@ -30,9 +30,9 @@ import numpy as np
 import pytest
 import yaml
 
-from mysim_jax import vecmath
+from mysim_jax.core import vecmath
 from mysim_jax.build import build
-from mysim_jax.config import config_from_dict
+from mysim_jax.config.scene import config_from_dict
 from mysim_jax.contact.energy import mechanical_energy
 from mysim_jax.contact.forces import pair_penetration, sphere_kinematics
 from mysim_jax.sim import solve_adaptive, step

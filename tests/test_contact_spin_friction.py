@@ -17,7 +17,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from mysim_jax.build import build
-from mysim_jax.config import config_from_dict
+from mysim_jax.config.scene import config_from_dict
 from mysim_jax.contact.forces import contact_forces
 
 pytestmark = pytest.mark.float64

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from mysim_jax.build import build
-from mysim_jax.config import config_from_dict
+from mysim_jax.config.scene import config_from_dict
 from mysim_jax.contact.build import contact_stable_step
 
 pytestmark = pytest.mark.float64

@@ -16,7 +16,7 @@ import jax
 import numpy as np
 import pytest
 
-from mysim_jax.config_base import ConfigError
+from mysim_jax.core.config_base import ConfigError
 from mysim_jax.mappo.config import CurriculumConfig, load_scene, train_config_from_dict
 from mysim_jax.mappo.curriculum import Curriculum
 
@@ -98,7 +98,7 @@ def test_a_resumed_curriculum_continues_as_the_uninterrupted_one():
 
 
 def test_scaled_ranges_scale_the_target_s_difficulty_only_and_resets_draw_from_them():
-    from mysim_jax.config import load_config
+    from mysim_jax.config.scene import load_config
     from mysim_jax.tasks.capture import TARGET_DIFFICULTY, make_env, scaled_target_ranges
 
     env, params = make_env(load_config(ROOT / "configs" / "capture_env_maneuvering.yaml"))

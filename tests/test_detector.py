@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mysim_jax.config_base import ConfigError
+from mysim_jax.core.config_base import ConfigError
 from mysim_jax.perception.camera import PerceptionError, intrinsics
 from mysim_jax.perception.detect import Detection, default_weights_path, load_detector
 from mysim_jax.perception.detect.config import config_from_dict
@@ -315,16 +315,16 @@ def test_target_rows_name_the_best_box_and_agree_with_the_metrics(tmp_path):
 
 
 def test_prefetch_keeps_the_order_and_raises_errors():
-    from mysim_jax.perception.detect.train import _prefetch
+    from mysim_jax.perception.detect.steps import prefetch
 
     counter = iter(range(100))
-    assert list(_prefetch(lambda: next(counter), 7)) == list(range(7))
+    assert list(prefetch(lambda: next(counter), 7)) == list(range(7))
 
     def boom():
         raise ValueError("bad frame")
 
     with pytest.raises(ValueError, match="bad frame"):
-        list(_prefetch(boom, 3))
+        list(prefetch(boom, 3))
 
 
 def test_held_out_split_is_disjoint_from_training():

@@ -14,7 +14,7 @@ import jax
 import pytest
 
 from mysim_jax.build import build
-from mysim_jax.config import load_config
+from mysim_jax.config.scene import load_config
 from mysim_jax.sim import step
 from mysim_jax.tasks.scripted import team_policy
 

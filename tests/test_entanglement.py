@@ -1,4 +1,4 @@
-"""Entanglement of an evading drone in the net's lines (mysim_jax/tasks/entanglement.py).
+"""Entanglement of an evading drone in the net's lines (mysim_jax/effects/entanglement.py).
 
 The touch test is checked against a NumPy reference written here: the distance from the
 target's centre to the net's knot lattice (straight segments between neighbouring knots,
@@ -15,11 +15,11 @@ import numpy as np
 import pytest
 
 from mysim_jax.build import build
-from mysim_jax.config import ConfigError, load_config
+from mysim_jax.config.scene import ConfigError, load_config
 from mysim_jax.sim import step
-from mysim_jax.tasks.entanglement import ENTANGLEMENT, rotors_touch_lines
+from mysim_jax.effects.entanglement import ENTANGLEMENT, rotors_touch_lines
 from mysim_jax.tasks.scripted import team_policy
-from mysim_jax.tasks.target import TARGET, evasive_command
+from mysim_jax.effects.target import TARGET, evasive_command
 
 CONFIG = "configs/capture_env_maneuvering.yaml"
 TIME, MARGIN = 0.2, 0.02
@@ -140,9 +140,9 @@ def test_simulate_verdict_needs_the_entanglement_column_to_reach_the_threshold()
     (the trajectory's ``target_entanglement`` column) is 1 over the last 0.5 s."""
     from mysim_jax.io.trajectory import trajectory_columns
     from mysim_jax.sim import Trajectory
-    from mysim_jax.tasks.entanglement import EntanglementMemory
+    from mysim_jax.effects.entanglement import EntanglementMemory
     from mysim_jax.tasks.outcome import capture_outcome
-    from mysim_jax.types import Accelerations
+    from mysim_jax.core.types import Accelerations
 
     cfg, scene, params, state = _scene()
     s = _place(scene, state, np.asarray(cfg.net.center) + [0.05, 0.03, cfg.target.radius])
@@ -172,9 +172,9 @@ def test_simulate_verdict_takes_the_scenes_success_thresholds():
     """capture_outcome reads env.success (min_entanglement here) when the scene has it."""
     from mysim_jax.io.trajectory import trajectory_columns
     from mysim_jax.sim import Trajectory
-    from mysim_jax.tasks.entanglement import EntanglementMemory
+    from mysim_jax.effects.entanglement import EntanglementMemory
     from mysim_jax.tasks.outcome import capture_outcome
-    from mysim_jax.types import Accelerations
+    from mysim_jax.core.types import Accelerations
 
     cfg, scene, params, state = _scene(["env.success.min_entanglement=0.5"])
     s = _place(scene, state, np.asarray(cfg.net.center) + [0.05, 0.03, cfg.target.radius])

@@ -10,9 +10,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mysim_jax.config import load_config
+from mysim_jax.config.scene import load_config
 from mysim_jax.io.trajectory import read_trajectory_csv
-from mysim_jax.tasks.env_config import FAILURES, REWARD_TERMS
+from mysim_jax.config.env import FAILURES, REWARD_TERMS
 
 from conftest import CONFIGS, ROOT
 
@@ -152,7 +152,7 @@ def test_record_episode_stops_at_the_pre_reset_state():
 
 def test_policy_files_are_checked_before_compiling(tmp_path):
     from mysim_jax.tasks.capture import make_env
-    from mysim_jax.tasks.policies import PolicyError, check_policy, policy_maker
+    from mysim_jax.mappo.policies import PolicyError, check_policy, policy_maker
 
     env, params = make_env(load_config(CONFIG, ["env={}", *SMALL]))
     good = tmp_path / "hold.py"

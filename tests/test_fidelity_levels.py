@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import yaml
 
-from mysim_jax.config import ConfigError, config_from_dict, dump_config, load_config
+from mysim_jax.config.scene import ConfigError, config_from_dict, dump_config, load_config
 from mysim_jax.net.config import net_mass
 
 from conftest import CONFIGS

@@ -27,7 +27,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from mysim_jax.build import build
-from mysim_jax.config import ConfigError, apply_override, config_from_dict, load_config
+from mysim_jax.config.scene import ConfigError, apply_override, config_from_dict, load_config
 
 from conftest import CONFIGS
 from yaml_edits import edit, yaml_paths

@@ -24,7 +24,7 @@ import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from mysim_jax.config_base import ConfigError
+from mysim_jax.core.config_base import ConfigError
 from mysim_jax.io.output import OutputError
 from mysim_jax.mappo.run import describe_run, prepare
 

@@ -25,10 +25,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mysim_jax import batching
+from mysim_jax.core import batching
 from mysim_jax.bench import stability_margin as SM
 from mysim_jax.build import IMPLICIT_AUTO_FACTOR, build
-from mysim_jax.config import IMPLICIT_ITERATIONS, ConfigError, config_from_dict, load_config
+from mysim_jax.config.scene import IMPLICIT_ITERATIONS, ConfigError, config_from_dict, load_config
 from mysim_jax.dynamics import implicit_springs as IS
 from mysim_jax.dynamics.forces import spring_forces
 from mysim_jax.dynamics.markers import node_states
@@ -323,7 +323,7 @@ def test_implicit_iterations_with_another_integrator_is_an_error():
 
 
 def test_config_with_implicit_euler_validates_without_jax():
-    code = ("import sys; from mysim_jax.config import load_config; "
+    code = ("import sys; from mysim_jax.config.scene import load_config; "
             f"c = load_config({str(ROPE_NET)!r}, ['sim.integrator=implicit_euler', 'sim.implicit_iterations=7']); "
             "assert c.sim.cg_iterations == 7; assert 'jax' not in sys.modules, 'jax imported'")
     subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)

@@ -51,7 +51,7 @@ def flight(tmp_path_factory):
     """4 s of the small figure-eight (uav_track_small.yaml) in float64, saved at 1 kHz,
     written to and read back from a trajectory CSV as scripts/simulate.py does."""
     from mysim_jax.build import build
-    from mysim_jax.config import load_config
+    from mysim_jax.config.scene import load_config
     from mysim_jax.io.trajectory import read_trajectory_csv, trajectory_columns, write_trajectory_csv
     from mysim_jax.sim import simulate
 

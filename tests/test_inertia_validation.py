@@ -8,7 +8,7 @@ check is what stops it, also when the zero moment hides in a full matrix.
 
 import pytest
 
-from mysim_jax.config import ConfigError, config_from_dict
+from mysim_jax.config.scene import ConfigError, config_from_dict
 
 
 def _body(inertia):

@@ -15,7 +15,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from mysim_jax.build import build
-from mysim_jax.config import ConfigError, config_from_dict
+from mysim_jax.config.scene import ConfigError, config_from_dict
 from mysim_jax.dynamics.constraints import constraint_error
 from mysim_jax.dynamics.joint_check import joint_jacobian, joint_problems
 from mysim_jax.dynamics.quaternion import quat_from_rotvec, quat_mul

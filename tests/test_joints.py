@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from mysim_jax.build import build
-from mysim_jax.config import config_from_dict
+from mysim_jax.config.scene import config_from_dict
 from mysim_jax.dynamics.constraints import constraint_error
 from mysim_jax.dynamics.quaternion import quat_rotate
 from mysim_jax.sim import rollout

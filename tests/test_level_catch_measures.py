@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from mysim_jax.bench import levels
-from mysim_jax.config import load_config
+from mysim_jax.config.scene import load_config
 from mysim_jax.tasks.capture import make_env
 from mysim_jax.tasks.episode import record_columns, record_episode
 from mysim_jax.tasks.evaluate import scripted_policy

@@ -150,7 +150,7 @@ def test_pinhole_range_from_rendered_boxes(tmp_path):
     against the true distance. Measured: max relative error 2.8 %. The bound is the box's
     pixel quantisation: boxes enclose whole pixels, so the size is off by up to one pixel,
     1 / 17 = 6 % at 8 m."""
-    from mysim_jax.config import load_config
+    from mysim_jax.config.scene import load_config
     from mysim_jax.perception.render import Renderer, look_at
 
     path = tmp_path / "scene.yaml"

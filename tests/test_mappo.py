@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import yaml
 
-from mysim_jax.config_base import ConfigError
+from mysim_jax.core.config_base import ConfigError
 from mysim_jax.mappo.config import AlgoConfig, train_config_from_dict
 from mysim_jax.mappo.losses import RunningStats, gae, gaussian_log_prob, policy_loss, value_loss
 from mysim_jax.mappo.toy import ReachEnv
@@ -331,7 +331,7 @@ def test_restored_checkpoint_leaves_are_placed_as_the_fresh_states(tmp_path):
 def test_network_memory_is_checked_against_what_the_machine_has():
     """The estimate is a lower bound that grows with the square of the layer widths; the
     check refuses, naming algo.hidden, only what exceeds the memory it is given."""
-    from mysim_jax.config_base import ConfigError
+    from mysim_jax.core.config_base import ConfigError
     from mysim_jax.mappo.config import AlgoConfig, check_memory, network_memory_bytes
 
     small, wide = AlgoConfig(hidden=[128, 128]), AlgoConfig(hidden=[4096, 4096])
@@ -350,7 +350,7 @@ def test_the_run_memory_estimate_counts_the_rollout_and_states_the_trainer_holds
     (jax.eval_shape of the rollout, float32), and three environment states per
     environment; a total over the memory given is refused naming every part and the
     fields of the largest."""
-    from mysim_jax import batching
+    from mysim_jax.core import batching
     from mysim_jax.mappo.config import check_memory_needs
 
     env = ReachEnv()

@@ -20,7 +20,7 @@ import pytest
 mujoco = pytest.importorskip("mujoco")
 
 from mysim_jax.build import build  # noqa: E402
-from mysim_jax.config import load_config  # noqa: E402
+from mysim_jax.config.scene import load_config  # noqa: E402
 from mysim_jax.io.mjcf import mujoco_point_positions, mujoco_point_velocities, scene_to_mjcf  # noqa: E402
 from mysim_jax.sim import accelerations, rollout  # noqa: E402
 

@@ -1,4 +1,4 @@
-"""The environment axis on several devices and hosts (mysim_jax/parallel.py).
+"""The environment axis on several devices and hosts (mysim_jax/core/parallel.py).
 
 A JAX process's device count is fixed when jax is imported, so the two-device and
 two-process runs happen in child processes (tests/parallel_worker.py) started with their
@@ -33,7 +33,7 @@ import numpy as np
 import pytest
 
 from conftest import ROOT
-from mysim_jax import parallel
+from mysim_jax.core import parallel
 from mysim_jax.mappo.config import reach_training_text
 
 WORKER = ROOT / "tests" / "parallel_worker.py"

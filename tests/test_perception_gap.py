@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 import yaml
 
-from mysim_jax.config import load_config
-from mysim_jax.tasks.env_config import PerceptionConfig
+from mysim_jax.config.scene import load_config
+from mysim_jax.config.env import PerceptionConfig
 from mysim_jax.tasks.perception_gap import GapError, compare_evaluations, perception_block
 from mysim_jax.tasks.sweep import paired_difference_interval
 

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 
 from mysim_jax.build import build
-from mysim_jax.config import config_from_dict, load_config
+from mysim_jax.config.scene import config_from_dict, load_config
 from mysim_jax.control.pid import CONTROLLERS, control_time, flat_body_rates
 from mysim_jax.control.setpoint import reference_setpoint
 from mysim_jax.control.reference import reference_derivatives, reference_pose
-from mysim_jax.control.tracking import evaluate_tracking
+from mysim_jax.tuning.tracking import evaluate_tracking
 from mysim_jax.dynamics.quadrotor import allocation_matrix
 
 from conftest import CONFIGS

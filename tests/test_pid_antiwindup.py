@@ -24,7 +24,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from mysim_jax.build import build
-from mysim_jax.config import config_from_dict
+from mysim_jax.config.scene import config_from_dict
 from mysim_jax.control.pid import CONTROLLERS, control_time
 from mysim_jax.control.setpoint import reference_setpoint
 

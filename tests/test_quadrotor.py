@@ -11,7 +11,7 @@ from scipy.integrate import quad, solve_ivp
 from scipy.spatial.transform import Rotation
 
 from mysim_jax.build import build
-from mysim_jax.config import ConfigError, config_from_dict, load_config
+from mysim_jax.config.scene import ConfigError, config_from_dict, load_config
 from mysim_jax.control.pid import CONTROLLERS
 from mysim_jax.control.setpoint import reference_setpoint
 from mysim_jax.dynamics.quadrotor import allocation_inverse, allocation_matrix, motor_response, rotor_wrench, wind_force

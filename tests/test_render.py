@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import yaml
 
-from mysim_jax.config import config_from_dict, dump_config
+from mysim_jax.config.scene import config_from_dict, dump_config
 from mysim_jax.perception.camera import Intrinsics, PerceptionError, intrinsics, project, quat_to_matrix
 from mysim_jax.perception.render import Renderer, load_run, look_at, write_images, write_video
 

@@ -18,10 +18,10 @@ import numpy as np
 import pytest
 
 from mysim_jax.build import build
-from mysim_jax.config import expand_capture, load_config
-from mysim_jax.io.capture_plots import net_lines
+from mysim_jax.config.scene import expand_capture, load_config
+from mysim_jax.tasks.capture_plots import net_lines
 from mysim_jax.io.replay import ReplayError, frame_rows, replay_figure, write_replay_html
-from mysim_jax.npgeom import rotate
+from mysim_jax.core.npgeom import rotate
 
 from conftest import CONFIGS, scene_files
 

@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mysim_jax.tasks.env_config import CRASHES, REWARD_TERMS, return_bounds
+from mysim_jax.config.env import CRASHES, REWARD_TERMS, return_bounds
 
 TRAIN_FILE = "configs/train_capture_falling.yaml"
 EPISODES = 16

@@ -1,4 +1,4 @@
-"""Draws computed as one (mysim_jax/rng.py) are ``jax.random``'s draws, bit for bit."""
+"""Draws computed as one (mysim_jax/core/rng.py) are ``jax.random``'s draws, bit for bit."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from mysim_jax import rng
+from mysim_jax.core import rng
 
 SHAPES = [(), (3,), (4, 3), (2, 2, 5), (1,)]
 LOWS = [-1.0, np.array([0.0, -2.0, 5.0]), 0.5, np.full((2, 2, 5), -3.0), 2.0]

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from mysim_jax.build import build
-from mysim_jax.config import config_from_dict, load_config
+from mysim_jax.config.scene import config_from_dict, load_config
 from mysim_jax.dynamics.quaternion import quat_rotate_inv
 from mysim_jax.net.rope import build_rope, rope_rest_lengths
 from mysim_jax.sim import accelerations, rollout

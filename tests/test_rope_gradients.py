@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from mysim_jax.build import build
-from mysim_jax.config import load_config
+from mysim_jax.config.scene import load_config
 from mysim_jax.sim import rollout
 
 from conftest import CONFIGS

@@ -13,7 +13,7 @@ import pytest
 
 from mysim_jax.bench.rope_kernel import from_node_columns, rope_net_kernel, to_node_columns
 from mysim_jax.build import build
-from mysim_jax.config import load_config
+from mysim_jax.config.scene import load_config
 from mysim_jax.sim import rollout
 
 

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from mysim_jax.build import build
-from mysim_jax.config import load_config
+from mysim_jax.config.scene import load_config
 from mysim_jax.sim import simulate
 
 from conftest import CONFIGS

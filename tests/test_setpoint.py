@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 from mysim_jax.build import build
-from mysim_jax.config import ConfigError, config_from_dict
+from mysim_jax.config.scene import ConfigError, config_from_dict
 from mysim_jax.control.actuation import actuate
-from mysim_jax.control.config import check_setpoint
+from mysim_jax.config.quadrotor import check_setpoint
 from mysim_jax.control.pid import control_time
 from mysim_jax.control.setpoint import Setpoint, limit_setpoint, reference_setpoint, setpoint_from_action
 from mysim_jax.sim import simulate, step
@@ -351,8 +351,8 @@ def test_check_setpoint_names_the_field():
 
 
 def test_setpoint_validation_does_not_import_jax():
-    code = ("import sys\nfrom mysim_jax.config import config_from_dict\n"
-            "from mysim_jax.control.config import check_setpoint\n"
+    code = ("import sys\nfrom mysim_jax.config.scene import config_from_dict\n"
+            "from mysim_jax.config.quadrotor import check_setpoint\n"
             "raw = {'name': 's', 'sim': {'t_end': 1.0, 'dt': 1e-3, 'output_dt': 1e-2}, 'bodies': [{'name': 'u', 'mass': 0.28, 'inertia': [1.4e-4, 1.4e-4, 2.17e-4]}],\n"
             "       'quadrotors': [{'body': 'u', 'reference': {'center': [0, 0, 1]}}]}\n"
             "check_setpoint({'position': [[0, 0, 1]]}, config_from_dict(raw, 's'))\n"

@@ -19,7 +19,7 @@ import yaml
 
 from mysim_jax.bench import stability_margin as SM
 from mysim_jax.build import build
-from mysim_jax.config import ConfigError, config_from_dict
+from mysim_jax.config.scene import ConfigError, config_from_dict
 from mysim_jax.dynamics.constraints import constraint_error
 from mysim_jax.dynamics.stability import (NETWORK_STEP_SAFETY, network_stable_step, spring_network_nodes, stable_step,
                                           stable_step_all_below)

@@ -3,7 +3,7 @@ the box whatever its flight, and bad arenas are refused before anything compiles
 
 The flight is the target's own model integrated here, not through the scene: its
 propulsion cancels gravity and adds the commanded acceleration
-(:func:`mysim_jax.tasks.target.evasive_command`, held over each ``sim.dt``), quadratic
+(:func:`mysim_jax.effects.target.evasive_command`, held over each ``sim.dt``), quadratic
 drag slows it, the quadrotors stay where they start (the target flees their centroid,
 so it runs for the walls)."""
 
@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 
 from mysim_jax.build import build
-from mysim_jax.config import ConfigError, load_config
-from mysim_jax.tasks.target import evasive_command, spawn_target
+from mysim_jax.config.scene import ConfigError, load_config
+from mysim_jax.effects.target import evasive_command, spawn_target
 
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "capture_env_maneuvering.yaml"
 LOW, HIGH = np.array([-4.0, -4.0, 1.5]), np.array([4.0, 4.0, 5.0])

@@ -13,7 +13,7 @@ body in 12 separate spells (0.46 s in all), and counting the inner segments, who
 snap them taut and slack, there are 187 switches.
 
 Independent parts (``tests/tethered_reference.py``): the scene is read from the same YAML
-as a plain dict (``yaml.safe_load``; no ``mysim_jax.config``, ``build``, exporter or any
+as a plain dict (``yaml.safe_load``; no ``mysim_jax.config.scene``, ``build``, exporter or any
 ``mysim_jax`` function), and the equations of motion are written out again in NumPy from
 the documented physics (rope discretisation and tension-only law of
 ``mysim_jax/net/rope.py``, quaternion w-x-y-z body → world, body-frame angular velocity,
@@ -195,7 +195,7 @@ def test_reference_is_converged_across_switches():
 @pytest.mark.float64
 def test_simulator_matches_reference_through_switches(reference):
     from mysim_jax.build import build
-    from mysim_jax.config import config_from_dict
+    from mysim_jax.config.scene import config_from_dict
     from mysim_jax.sim import simulate
 
     ref, out = reference
@@ -257,7 +257,7 @@ def test_gradient_through_slack_to_taut_matches_central_differences(reference):
     Measured relative errors of the gradient: 6.6e-9, 1.2e-8, 3.0e-8 (tolerance 1e-6).
     """
     from mysim_jax.build import build
-    from mysim_jax.config import config_from_dict
+    from mysim_jax.config.scene import config_from_dict
     from mysim_jax.sim import rollout
 
     ref, out = reference

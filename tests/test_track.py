@@ -4,7 +4,7 @@ the simulator (search, centring, a forced loss and the recovery), bad input."""
 import numpy as np
 import pytest
 
-from mysim_jax.config import load_config
+from mysim_jax.config.scene import load_config
 from mysim_jax.perception.camera import PerceptionError, intrinsics
 from mysim_jax.perception.track import (Detection, GimbalGeometry, GimbalTracker, OracleDetector, TrackerConfig,
                                         check_tracking_scene, image_detector, run_tracking, tracking_metrics)

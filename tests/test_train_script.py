@@ -63,7 +63,7 @@ def test_outputs_and_learning(tmp_path):
     assert float(rows[1]["success_rate"]) < 0.3
     # the saved policy refuses an environment of another shape, naming both
     from mysim_jax.mappo.toy import ReachEnv
-    from mysim_jax.tasks.policies import PolicyError, policy_maker
+    from mysim_jax.mappo.policies import PolicyError, policy_maker
 
     with pytest.raises(PolicyError, match="trained on observations of size 8"):
         policy_maker(str(out / "policy"))(ReachEnv(n_agents=3), None)
@@ -280,7 +280,7 @@ def test_capture_environment_end_to_end_tiny(tmp_path):
     # evaluation's scene is the level full with the same overrides
     scene_text = (out / "scene.yaml").read_text()
     assert "setpoint_mode: velocity" in scene_text and "discount: 0.99" in scene_text and "level: train" in scene_text
-    from mysim_jax.config import load_config
+    from mysim_jax.config.scene import load_config
 
     trained_on, evaluated_on = load_config(out / "scene.yaml"), load_config(out / "scene_eval.yaml")
     assert trained_on.level == "train" and trained_on.net.masses_per_edge == 0
@@ -307,7 +307,7 @@ def test_capture_environment_end_to_end_tiny(tmp_path):
         summary["selection"]["selected_iteration"]
 
     from mysim_jax.tasks.capture import make_env
-    from mysim_jax.tasks.policies import check_policy, policy_maker
+    from mysim_jax.mappo.policies import check_policy, policy_maker
 
     env, params = make_env(evaluated_on)
     policy = policy_maker(str(out / "policy"))(env, params)
@@ -315,7 +315,7 @@ def test_capture_environment_end_to_end_tiny(tmp_path):
 
 
 def test_policy_folders_are_checked(tmp_path):
-    from mysim_jax.tasks.policies import PolicyError, check_policy_spec, policy_maker
+    from mysim_jax.mappo.policies import PolicyError, check_policy_spec, policy_maker
 
     empty = tmp_path / "empty"
     empty.mkdir()

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from mysim_jax.build import build
-from mysim_jax.config import load_config
-from mysim_jax.control.tracking import evaluate_tracking
-from mysim_jax.control.tuning import log_gain_loss, tune, with_gains, zeros_like_gains
+from mysim_jax.config.scene import load_config
+from mysim_jax.tuning.tracking import evaluate_tracking
+from mysim_jax.tuning.gains import log_gain_loss, tune, with_gains, zeros_like_gains
 
 from conftest import CONFIGS
 

@@ -6,8 +6,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from mysim_jax.build import build
-from mysim_jax.config import load_config
-from mysim_jax.control.tracking import position_errors
+from mysim_jax.config.scene import load_config
+from mysim_jax.tuning.tracking import position_errors
 from mysim_jax.sim import rollout
 
 from conftest import CONFIGS

@@ -14,8 +14,8 @@ import pytest
 from mysim_jax.perception.camera import R_BODY_CV, intrinsics, project, quat_to_matrix
 from mysim_jax.perception.features import FeatureTracker, relative_rotation
 from mysim_jax.perception.ground import GroundTexture, view_ground
-from mysim_jax.perception.metrics import read_tum, trajectory_errors, write_tum
-from mysim_jax.perception.vio import (CameraModel, ImuNoise, ImuSamples, NavState, Trajectory, VioConfig,
+from mysim_jax.perception.metrics import PoseTrack, read_tum, trajectory_errors, write_tum
+from mysim_jax.perception.vio import (CameraModel, ImuNoise, ImuSamples, NavState, VioConfig,
                                       dead_reckoning, matrix_to_quat, run_vio)
 
 # The paper's fixed camera (Table camera offset), pitched 50 deg down as in
@@ -79,7 +79,7 @@ def synthetic_flight(duration: float, rate: float = 200.0, body: str = "uav0", c
 def write_synthetic_run(run_dir, duration: float, camera_quat=CAMERA_QUAT) -> dict:
     """A run folder as scripts/simulate.py writes it (config.yaml, trajectory.csv) holding
     the analytic flight; the config is configs/uav_vio_flight.yaml with the camera's quat."""
-    from mysim_jax.config import dump_config, load_config
+    from mysim_jax.config.scene import dump_config, load_config
     from mysim_jax.io.trajectory import write_trajectory_csv
 
     from conftest import CONFIGS
@@ -298,7 +298,7 @@ def short_vio(texture):
     frames = ((cols["time"][r], _render(intr, R, pc, texture, rng)) for r, R, pc in zip(rows, Rs, ps))
     result = run_vio(frames, imu, _camera_model(intr), init, ImuNoise(), VioConfig())
     dr = dead_reckoning(imu, init, cols["time"][rows])
-    truth = Trajectory(t=cols["time"][rows], p=p[rows], q=q[rows])
+    truth = PoseTrack(t=cols["time"][rows], p=p[rows], q=q[rows])
     return result, dr, truth
 
 
@@ -334,7 +334,7 @@ def test_tum_round_trip(tmp_path):
 
     cols = synthetic_flight(1.0)
     p, q, _ = _truth(cols)
-    traj = Trajectory(t=cols["time"], p=p, q=q)
+    traj = PoseTrack(t=cols["time"], p=p, q=q)
     write_tum(tmp_path / "t.tum", traj)
     back = read_tum(tmp_path / "t.tum")
     np.testing.assert_allclose(back.t, traj.t, atol=1e-9)
@@ -351,8 +351,8 @@ def test_metrics_of_a_known_offset():
     the start has a rotation error of 2 deg, which alignment removes."""
     cols = synthetic_flight(12.0, rate=50.0)
     p, q, _ = _truth(cols)
-    truth = Trajectory(t=cols["time"], p=p, q=q)
-    shifted = Trajectory(t=truth.t, p=p + np.array([0.3, -0.4, 0.0]), q=q)
+    truth = PoseTrack(t=cols["time"], p=p, q=q)
+    shifted = PoseTrack(t=truth.t, p=p + np.array([0.3, -0.4, 0.0]), q=q)
     e = trajectory_errors(truth, shifted, rpe_delta_m=2.0)
     assert e["ate_rmse_m"] == pytest.approx(0.5, abs=1e-9)
     assert e["ate_max_m"] == pytest.approx(0.5, abs=1e-9)
@@ -363,7 +363,7 @@ def test_metrics_of_a_known_offset():
 
     c, s = np.cos(np.radians(2)), np.sin(np.radians(2))
     Rz = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
-    turned = Trajectory(t=truth.t, p=(p - p[0]) @ Rz.T + p[0], q=matrix_to_quat(Rz @ quat_to_matrix(q)))
+    turned = PoseTrack(t=truth.t, p=(p - p[0]) @ Rz.T + p[0], q=matrix_to_quat(Rz @ quat_to_matrix(q)))
     e = trajectory_errors(truth, turned, rpe_delta_m=2.0)
     assert e["ate_rotation_rmse_deg"] == pytest.approx(2.0, abs=1e-6)
     assert e["ate_rmse_m"] > 0.01 and e["ate_aligned_rmse_m"] < 1e-6

@@ -33,8 +33,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from mysim_jax.core import batching
 from mysim_jax.dynamics.forces import spring_tension
 from mysim_jax.dynamics.markers import node_states
+from mysim_jax.tasks.episode import episode_rollout
+from mysim_jax.tasks.evaluate import scripted_policy
 
 CATCH_EPISODES = 32     # scripted catches recorded per level (BENCHMARKS.md (i))
 CATCH_RATE = 50.0       # Hz: their policy rate, a multiple of every level's control period
@@ -64,10 +67,6 @@ def catch_measures(env, params, net, key, n_episodes: int, chunk: int = 8) -> di
     :func:`~mysim_jax.tasks.episode.episode_rollout`, its saved states reduced step by
     step): ``target`` and ``centre`` ``(..., 3)`` [m], ``sag``, ``size``, ``tension``
     [N], ``touching`` and ``done``."""
-    from mysim_jax import batching
-    from mysim_jax.tasks.episode import episode_rollout
-    from mysim_jax.tasks.evaluate import scripted_policy
-
     if net is None or net.tethers is None:
         raise ValueError("catch_measures: the scene has no tethered net")
     centre, corners, springs, around = _net_layout(env, net)

@@ -21,9 +21,18 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
+import yaml
 
 from mysim_jax.bench.timing import median, time_round_robin
+from mysim_jax.build import build
+from mysim_jax.config.scene import config_from_dict
+from mysim_jax.io.trajectory import trajectory_columns
+from mysim_jax.perception.camera import intrinsics
+from mysim_jax.perception.render import Renderer, look_at
+from mysim_jax.sim import simulate
+from mysim_jax.tasks.scripted import team_policy
 
 CAPTURE_FALLING = Path(__file__).resolve().parents[2] / "configs" / "capture_falling.yaml"
 CAMERA_QUAT = (0.88112, -0.115075, 0.277816, 0.364972)   # yaw 45 deg, then pitch 35 deg down
@@ -35,14 +44,6 @@ SIZES = ((1920, 1080), (640, 360))
 
 def capture_run(t_end: float = 1.6, progress: bool = False):
     """(config, columns) of the capture scene with ``cam0`` on uav0, simulated for ``t_end`` s."""
-    import yaml
-
-    from mysim_jax.build import build
-    from mysim_jax.config import config_from_dict
-    from mysim_jax.io.trajectory import trajectory_columns
-    from mysim_jax.sim import simulate
-    from mysim_jax.tasks.scripted import team_policy
-
     raw = yaml.safe_load(CAPTURE_FALLING.read_text())
     raw["sim"]["t_end"] = t_end
     raw["quadrotors"][0]["cameras"] = [{"name": "cam0", "mount": "fixed", "quat": list(CAMERA_QUAT)}]
@@ -56,9 +57,6 @@ def capture_run(t_end: float = 1.6, progress: bool = False):
 
 def views(config, columns) -> dict[str, tuple[object, int]]:
     """view name -> (camera, row), as in the module doc."""
-    from mysim_jax.perception.camera import intrinsics
-    from mysim_jax.perception.render import Renderer, look_at
-
     t = columns["time"]
     probe = Renderer(config, intrinsics(width=160, height=90))
     seen, whole = [], []
@@ -89,9 +87,6 @@ class RenderRow:
 
 def measure(config, columns, sizes=SIZES, repeats: int = 5, section: str = "h") -> tuple[list[RenderRow], dict]:
     """Time every view at every size; also returns the 640 x 360 frames (view -> Frame) for a picture."""
-    from mysim_jax.perception.camera import intrinsics
-    from mysim_jax.perception.render import Renderer
-
     chosen = views(config, columns)
     renderers = {(w, h): Renderer(config, intrinsics(width=w, height=h)) for w, h in sizes}
     calls, meta, frames = {}, {}, {}
@@ -111,8 +106,6 @@ def measure(config, columns, sizes=SIZES, repeats: int = 5, section: str = "h") 
 
 def example_image(frames: dict) -> np.ndarray:
     """(360, 1280, 3) uint8 RGB: the onboard and observer frames side by side, target boxes drawn."""
-    import cv2
-
     tiles = []
     for name in ("onboard", "observer"):
         image = frames[name].image.copy()

@@ -19,7 +19,7 @@ import yaml
 from tqdm.auto import tqdm
 
 from mysim_jax.build import build
-from mysim_jax.config import ConfigError, config_from_dict
+from mysim_jax.config.scene import ConfigError, config_from_dict
 from mysim_jax.dynamics.stability import scene_network_stable_step
 from mysim_jax.sim import rollout
 

@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mysim_jax import batching
+from mysim_jax.core import batching
 from mysim_jax.sim import step
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -191,7 +191,7 @@ def compile_batched(label: str, run_env: Callable, params, state, batch: int, n_
                     batch_params: bool = False, chunk: int | None = None, keep_hlo: bool = False,
                     vmap: Callable = batching.vmap, compiler_options: dict | None = None) -> Compiled:
     """``jit(vmap(run_env))`` over a batch of ``batch`` copies of ``state``; ``vmap`` is
-    the library's ``mysim_jax.batching.vmap`` (batch axis last, the default) or
+    the library's ``mysim_jax.core.batching.vmap`` (batch axis last, the default) or
     ``jax.vmap`` (batch axis first).
 
     ``run_env(params, state) -> state`` runs one env for ``n_steps`` steps. Params are

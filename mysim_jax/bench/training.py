@@ -8,7 +8,7 @@ Three AOT-compiled calls on the same ``num_envs`` environments, timed round-robi
 * ``rollout`` — the rollout alone (policy sampling, critic values, environment steps);
 * ``env`` — ``num_steps`` batched environment steps with zero actions (hover in velocity
   mode), no networks: the environment's own throughput in the same layout
-  (:func:`mysim_jax.batching.vmap`, the trainer's blocks).
+  (:func:`mysim_jax.core.batching.vmap`, the trainer's blocks).
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import jax
 import jax.numpy as jnp
 
-from mysim_jax import batching
+from mysim_jax.core import batching
 from mysim_jax.bench.timing import aot_compile, median, time_round_robin
 
 

@@ -1,4 +1,4 @@
-"""Broad phase for sphere–capsule contact (an effect, see :mod:`mysim_jax.effects`).
+"""Broad phase for sphere–capsule contact (an effect, see :mod:`mysim_jax.effects.registry`).
 
 A net's lines are hundreds of capsules, and a sphere (the target) touches a handful of
 them at a time. With ``contact.broad_phase: {capsules: K, margin: m}`` the pairs are
@@ -11,7 +11,7 @@ sub-step:
   are evaluated (:func:`mysim_jax.contact.forces.contact_loads` with their indices);
 * if more than K of a sphere's pairs have a gap below the margin, the step evaluates
   all pairs instead (a per-environment ``lax.cond``: batched with
-  :func:`mysim_jax.batching.vmap`, a block of environments pays for all pairs only when
+  :func:`mysim_jax.core.batching.vmap`, a block of environments pays for all pairs only when
   one of them needs it).
 
 The forces are the all-pairs forces exactly as long as no capsule outside the K closes a

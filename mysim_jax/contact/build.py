@@ -1,12 +1,12 @@
 """Host-side assembly of the contact structure (NumPy only, nothing traced).
 
 :func:`build_contact` turns the validated ``contact:`` block into a static
-:class:`~mysim_jax.contact.types.ContactScene`, traced
-:class:`~mysim_jax.contact.types.ContactParams`, and the explicit stability limit of the
+:class:`~mysim_jax.core.contact_types.ContactScene`, traced
+:class:`~mysim_jax.core.contact_types.ContactParams`, and the explicit stability limit of the
 stiffest contact for fixed-step integrators (:func:`contact_stable_step`).
 
 Capsules are listed by the scene's spring names (``rope[j]``); their end nodes are looked
-up in the :class:`~mysim_jax.types.Scene`'s spring tables when the force stage is traced
+up in the :class:`~mysim_jax.core.types.Scene`'s spring tables when the force stage is traced
 (:func:`mysim_jax.contact.forces.capsule_nodes`), so node numbering stays the scene
 builder's business.
 """
@@ -20,7 +20,7 @@ import numpy as np
 
 from mysim_jax.contact.config import (GROUND, ContactConfig, capsule_pairs, resolve_members, resolve_segments,
                                       sphere_and_segment_groups)
-from mysim_jax.contact.types import ContactParams, ContactScene
+from mysim_jax.core.contact_types import ContactParams, ContactScene
 from mysim_jax.dynamics.stability import spring_stable_steps
 
 

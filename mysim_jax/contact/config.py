@@ -48,8 +48,8 @@ The force law is the sphere pairs' (:mod:`mysim_jax.contact.forces`).
 ``friction`` is left out (or ``null``) for frictionless contact. ``smoothing`` is used by
 ``model: smooth`` only (see :mod:`mysim_jax.contact.law`).
 
-This module imports nothing from :mod:`mysim_jax.config` (which imports it); its models
-share the base and field types of :mod:`mysim_jax.config_base`.
+This module imports nothing from :mod:`mysim_jax.config.scene` (which imports it); its models
+share the base and field types of :mod:`mysim_jax.core.config_base`.
 """
 
 from __future__ import annotations
@@ -59,7 +59,7 @@ from typing import Annotated, Literal, NamedTuple
 
 from pydantic import Field, model_validator
 
-from mysim_jax.config_base import Finite, Name, NonNegFloat, PosFloat, StrictModel
+from mysim_jax.core.config_base import Finite, Name, NonNegFloat, PosFloat, StrictModel
 
 GROUND = "ground"
 
@@ -127,7 +127,7 @@ def segment_table(ropes=(), springs=()) -> tuple[Segment, ...]:
     """Every spring of a scene in the order of ``Scene.spring_names``: each rope's
     ``n_masses + 1`` segments (masses ``rope_0 .. rope_{N-1}`` between its two ends), then
     the springs. ``ropes``/``springs``: objects with ``name``, ``start``, ``end`` (and
-    ``n_masses`` for ropes), e.g. :class:`~mysim_jax.config.RopeConfig`."""
+    ``n_masses`` for ropes), e.g. :class:`~mysim_jax.config.scene.RopeConfig`."""
     table = []
     for r in ropes:
         chain = [r.start] + [f"{r.name}_{j}" for j in range(r.n_masses)] + [r.end]
@@ -330,8 +330,8 @@ def contact_problems(contact: ContactConfig, point_names: list[str], body_names:
     members or segments that match nothing, objects or segments with two radii, pairs that
     list no pair.
 
-    ``ropes`` and ``springs`` (the scene's :class:`~mysim_jax.config.RopeConfig` and
-    :class:`~mysim_jax.config.SpringConfig` entries) are what ``segments`` patterns match;
+    ``ropes`` and ``springs`` (the scene's :class:`~mysim_jax.config.scene.RopeConfig` and
+    :class:`~mysim_jax.config.scene.SpringConfig` entries) are what ``segments`` patterns match;
     their :func:`segment_table` is recorded on ``contact`` for
     :func:`~mysim_jax.contact.build.build_contact`.
     """

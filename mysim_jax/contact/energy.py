@@ -18,11 +18,11 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-from mysim_jax import vecmath
+from mysim_jax.core import vecmath
 from mysim_jax.contact.forces import capsule_geometry, pair_penetration, sphere_kinematics
 from mysim_jax.dynamics.forces import spring_lengths
 from mysim_jax.dynamics.markers import node_states
-from mysim_jax.types import Params, PhysState, Scene
+from mysim_jax.core.types import Params, PhysState, Scene
 
 
 def _contact_potential(depth, cp):

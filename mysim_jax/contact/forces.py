@@ -52,12 +52,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mysim_jax import vecmath
+from mysim_jax.core import vecmath
 from mysim_jax.contact import law
 from mysim_jax.dynamics.forces import Loads
 from mysim_jax.dynamics.markers import node_states, scatter_rows
 from mysim_jax.dynamics.quaternion import quat_rotate, quat_rotate_inv
-from mysim_jax.types import Params, PhysState, Scene
+from mysim_jax.core.types import Params, PhysState, Scene
 
 MIN_SEGMENT_LENGTH = 1e-9
 """[m] A capsule's segment shorter than this is treated as its first end point."""

@@ -60,7 +60,7 @@ import abc
 import jax
 import jax.numpy as jnp
 
-from mysim_jax.contact.types import ContactParams
+from mysim_jax.core.contact_types import ContactParams
 
 
 def hermite_step(x, x0, h0, x1, h1):

@@ -19,11 +19,13 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
-from mysim_jax.config import BodyConfig, JointConfig, MarkerConfig, SceneConfig
+from mysim_jax.config.scene import BodyConfig, JointConfig, MarkerConfig, SceneConfig
+from mysim_jax.config.scene import ConfigError, FIXED_STEP_INTEGRATORS
 from mysim_jax.control.pid import ControlParams, ControlState, PIDGains
 from mysim_jax.control.reference import ReferenceParams
 from mysim_jax.dynamics.quadrotor import QuadrotorParams, QuadrotorScene
 from mysim_jax.dynamics.rotor_layout import allocation_matrix_np, rotor_positions_np
+from mysim_jax.dynamics.stability import stable_step
 
 NO_LAG_TIME_CONSTANT = 1e-9   # s: exp(-dt/τ) underflows to 0, the motor follows its command
 R_Y_90 = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
@@ -135,9 +137,6 @@ def _check_servo_stability(config: SceneConfig, bodies) -> None:
     """Reject a gimbal servo too stiff for the fixed step: each axis is a torsional
     spring-damper (kp, kd) between the camera and the UAV, ω² = kp (1/J_cam + 1/J_uav)
     about that axis (at the start attitude)."""
-    from mysim_jax.config import FIXED_STEP_INTEGRATORS, ConfigError
-    from mysim_jax.dynamics.stability import stable_step
-
     integrator = config.sim.integrator
     if integrator not in FIXED_STEP_INTEGRATORS or config.sim.substeps == "auto":
         return

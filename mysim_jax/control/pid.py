@@ -75,7 +75,7 @@ motor can follow: the vehicle does not fly. Two readings make them fly:
 
 Controller memory (:class:`ControlState`) lives in the environment State, so the whole
 closed loop is a pure function of (Params, State) and vmaps; the gains are Params, so
-it differentiates (:mod:`mysim_jax.control.tuning`).
+it differentiates (:mod:`mysim_jax.tuning.gains`).
 """
 
 from __future__ import annotations
@@ -88,7 +88,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from mysim_jax import vecmath
+from mysim_jax.core import vecmath
 from mysim_jax.control.reference import ReferenceParams, reference_derivatives
 from mysim_jax.dynamics.quadrotor import allocation_inverse, allocation_matrix
 from mysim_jax.dynamics.quaternion import quat_to_matrix

@@ -1,7 +1,7 @@
 """Reference trajectories ``r_d(t)``, ``ψ_d(t)`` for the quadrotors (paper Sec. 2.2: by
 differential flatness, position and yaw are the four outputs a quadrotor can track).
 
-A Lissajous reference per quadrotor (config: :class:`mysim_jax.control.config.ReferenceConfig`)::
+A Lissajous reference per quadrotor (config: :class:`mysim_jax.config.quadrotor.ReferenceConfig`)::
 
     r_d(t) = center + amplitude ⊙ sin(multiple ⊙ φ(t) + phase),   φ(t) = 2π s(t) / period
     ψ_d(t) = yaw_center + yaw_amplitude sin(yaw_multiple φ(t) + yaw_phase)

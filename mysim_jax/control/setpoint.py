@@ -36,10 +36,10 @@ them before the controller sees it:
   carry it slightly past; the box limits commands, it is not a wall).
 
 A reference inside the limits passes through unchanged, bit for bit (the config check
-:func:`~mysim_jax.control.config.reference_problems` makes sure of it for references
+:func:`~mysim_jax.config.quadrotor.reference_problems` makes sure of it for references
 from a file). :func:`setpoint_from_action` maps a policy's normalised action in
 ``[-1, 1]`` onto the box (position mode) or onto ``±max_speed`` (velocity mode). For
-setpoints written in a config or a script, :func:`mysim_jax.control.config.check_setpoint`
+setpoints written in a config or a script, :func:`mysim_jax.config.quadrotor.check_setpoint`
 rejects values beyond the limits before anything runs, naming the field.
 """
 
@@ -48,7 +48,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 from flax import struct
 
-from mysim_jax import vecmath
+from mysim_jax.core import vecmath
 from mysim_jax.control.pid import flat_body_rates
 from mysim_jax.control.reference import reference
 

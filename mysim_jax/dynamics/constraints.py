@@ -19,7 +19,7 @@ of the constraint function, so adding a joint type means writing its rows only.
 The system is solved by the Schur complement ``(G M⁻¹ Gᵀ) λ = G a₀ − rhs`` with
 ``a₀ = M⁻¹F`` the unconstrained accelerations — one small dense solve per connected
 group, never one dense system for the whole scene. Groups of identical structure are
-stacked in a :class:`~mysim_jax.types.JointBucket` and solved with ``vmap``.
+stacked in a :class:`~mysim_jax.core.types.JointBucket` and solved with ``vmap``.
 """
 
 from __future__ import annotations
@@ -28,9 +28,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mysim_jax import vecmath
+from mysim_jax.core import vecmath
 from mysim_jax.dynamics.quaternion import quat_from_rotvec, quat_mul, quat_rotate, quat_to_matrix
-from mysim_jax.types import JointBucket, Params, PhysState, Scene
+from mysim_jax.core.types import JointBucket, Params, PhysState, Scene
 
 
 def joint_rows(joint_type: str, pos_i, rot_i, pos_j, rot_j):

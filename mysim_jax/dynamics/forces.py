@@ -20,9 +20,9 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from mysim_jax import vecmath
+from mysim_jax.core import vecmath
 from mysim_jax.dynamics.markers import scatter_rows, take_rows
-from mysim_jax.types import Params, Scene
+from mysim_jax.core.types import Params, Scene
 
 
 @struct.dataclass

@@ -26,7 +26,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-from mysim_jax import vecmath
+from mysim_jax.core import vecmath
 from mysim_jax.dynamics.forces import Loads
 from mysim_jax.dynamics.quaternion import quat_mul, quat_rotate, quat_rotate_inv, quat_to_matrix
 

@@ -58,10 +58,10 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from mysim_jax import vecmath
+from mysim_jax.core import vecmath
 from mysim_jax.dynamics.forces import spring_tension
 from mysim_jax.dynamics.markers import take_rows
-from mysim_jax.types import Params, PhysState, Scene
+from mysim_jax.core.types import Params, PhysState, Scene
 
 @dataclass(frozen=True)
 class ImplicitSprings:

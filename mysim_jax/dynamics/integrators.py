@@ -1,7 +1,7 @@
 """Time integrators for the multibody state.
 
 All integrators share one small interface: ``step(accel_fn, phys, h) -> phys`` advances
-a :class:`~mysim_jax.types.PhysState` by ``h`` given ``accel_fn(phys) -> Accelerations``.
+a :class:`~mysim_jax.core.types.PhysState` by ``h`` given ``accel_fn(phys) -> Accelerations``.
 They hold no memory between steps.
 
 * :class:`SemiImplicitEuler` — symplectic Euler: velocities first, then positions with
@@ -28,9 +28,9 @@ from typing import Callable
 import jax
 import jax.numpy as jnp
 
-from mysim_jax import vecmath
+from mysim_jax.core import vecmath
 from mysim_jax.dynamics.quaternion import quat_derivative, quat_integrate, quat_normalize
-from mysim_jax.types import Accelerations, PhysState
+from mysim_jax.core.types import Accelerations, PhysState
 
 AccelFn = Callable[[PhysState], Accelerations]
 

@@ -5,7 +5,7 @@ Its world position is ``p_b + R_b r_m`` and its velocity ``v_b + R_b (ω_b × r_
 (ω in the body frame). A force ``F`` (world) applied at the marker acts on the body as
 ``F`` at the centre of mass plus the body-frame torque ``r_m × (R_bᵀ F)``.
 
-Springs, rope segments and loads address *nodes* (see :mod:`mysim_jax.types`): points,
+Springs, rope segments and loads address *nodes* (see :mod:`mysim_jax.core.types`): points,
 markers and anchors in one table, so one gather and one scatter serve them all.
 """
 
@@ -15,9 +15,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mysim_jax import vecmath
+from mysim_jax.core import vecmath
 from mysim_jax.dynamics.quaternion import quat_mul, quat_rotate, quat_rotate_inv
-from mysim_jax.types import Params, PhysState, Scene
+from mysim_jax.core.types import Params, PhysState, Scene
 
 
 def marker_kinematics(scene: Scene, params: Params, phys: PhysState):
@@ -103,7 +103,7 @@ def scatter_rows(values, index, n: int, method: str):
     """Sum rows of ``values`` ``(k, 3)`` into ``n`` rows by the static ``index`` ``(k,)``.
 
     ``method="segment_sum"`` uses ``jax.ops.segment_sum`` (a scatter-add; with the batch
-    axis last, see :mod:`mysim_jax.batching`, it adds contiguous batch rows);
+    axis last, see :mod:`mysim_jax.core.batching`, it adds contiguous batch rows);
     ``"matmul"`` multiplies by a constant one-hot matrix. BENCHMARKS.md section (b)
     measures both.
     """

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from mysim_jax import vecmath
+from mysim_jax.core import vecmath
 
 
 def quat_mul(p, q):

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from mysim_jax import vecmath
+from mysim_jax.core import vecmath
 
 
 def inertia_inverse(inertia):

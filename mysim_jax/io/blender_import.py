@@ -299,7 +299,7 @@ def _parse_pairs(values, what, convert=str) -> dict:
 
 def _bpy():
     try:
-        import bpy
+        import bpy                 # an optional extra: pip install -e '.[blender]'
     except ImportError:
         raise ImportError("bpy (Blender as a Python module) is not installed: pip install -e '.[blender]' on "
                           "Python 3.11, or run this file inside Blender: blender --background --python "
@@ -336,7 +336,7 @@ def _checker_material(name, size):
 
 def _mesh_object(name, build, materials, collection):
     """An object ``name`` with a mesh made by ``build(bm)`` (bmesh)."""
-    import bmesh
+    import bmesh              # ships with bpy, an optional extra (pip install -e '.[blender]')
 
     bpy = _bpy()
     bm = bmesh.new()
@@ -352,8 +352,8 @@ def _mesh_object(name, build, materials, collection):
 
 
 def _box(bm, size, center=(0, 0, 0), angle=0.0, material=0):
-    import bmesh
-    from mathutils import Matrix
+    import bmesh              # ships with bpy, an optional extra (pip install -e '.[blender]')
+    from mathutils import Matrix  # ships with bpy, an optional extra
 
     matrix = Matrix.Translation(center) @ Matrix.Rotation(angle, 4, "Z") @ Matrix.Diagonal((*size, 1.0))
     geom = bmesh.ops.create_cube(bm, size=1.0, matrix=matrix)
@@ -363,8 +363,8 @@ def _box(bm, size, center=(0, 0, 0), angle=0.0, material=0):
 
 def _shape(kind, radius):
     """A bmesh builder for ``kind`` (sizes in metres; a quadrotor's nose has material 1)."""
-    import bmesh
-    from mathutils import Matrix
+    import bmesh              # ships with bpy, an optional extra (pip install -e '.[blender]')
+    from mathutils import Matrix  # ships with bpy, an optional extra
 
     if kind == "quadrotor":
         def build(bm):
@@ -396,7 +396,7 @@ def _fcurves(id_data):
     try:
         return anim.action.fcurves
     except AttributeError:
-        from bpy_extras import anim_utils
+        from bpy_extras import anim_utils  # ships with bpy, an optional extra
 
         return anim_utils.action_get_channelbag_for_slot(anim.action, anim.action_slot).fcurves
 
@@ -496,7 +496,7 @@ def _import_usd(name, path, collection):
 def _scene_camera(name, body, collection):
     """A Blender camera with the paper's intrinsics, child of ``body``: it looks along the
     body's +x axis, image right = body −y, image down = body −z."""
-    from mathutils import Matrix
+    from mathutils import Matrix  # ships with bpy, an optional extra
 
     bpy = _bpy()
     data = bpy.data.cameras.new(f"{name}_view")

@@ -21,7 +21,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.ticker import MaxNLocator  # noqa: E402
 
-from mysim_jax.tasks.env_config import FAILURES, REWARD_TERMS  # noqa: E402
+from mysim_jax.config.env import FAILURES, REWARD_TERMS  # noqa: E402
 
 SUCCESS_COLOR, FAILURE_COLOR, TIMEOUT_COLOR = "tab:green", "tab:red", "0.55"
 

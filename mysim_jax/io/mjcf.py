@@ -7,7 +7,7 @@
   rotate the body, so the inertia does not enter the dynamics); a site at its centre;
 * every anchor is a site on the world body;
 * every spring (rope segments are springs in the scene's spring table, see
-  :mod:`mysim_jax.types` for the node numbering) is a spatial tendon between two sites with
+  :mod:`mysim_jax.core.types` for the node numbering) is a spatial tendon between two sites with
   ``stiffness`` = k, ``damping`` = c and ``springlength`` = rest length, which gives the
   force ``k (s − s̄) + c ṡ`` along the segment (tension positive) — the same law as
   :func:`mysim_jax.dynamics.forces.spring_tension` for ``linear`` springs;
@@ -37,7 +37,7 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
-from mysim_jax.types import Params, Scene, State
+from mysim_jax.core.types import Params, Scene, State
 
 # Slide joints never rotate a body, so the inertia is irrelevant; it only has to be
 # positive for MuJoCo's compiler.

@@ -43,8 +43,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import plotly.io
 
-from mysim_jax.npgeom import rotate
+from mysim_jax.config.scene import expand_capture
+from mysim_jax.core.npgeom import rotate
 
 COLORS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#17becf",
           "#bcbd22", "#7f7f7f")
@@ -180,8 +182,6 @@ def _rope_polylines(ropes, nodes):
 def required_names(config) -> dict[str, str]:
     """Every name the replay of ``config`` reads from the columns, mapped to ``"point"``
     (needs ``NAME_x/y/z``) or ``"body"`` (also ``NAME_qw/qx/qy/qz``)."""
-    from mysim_jax.config import expand_capture
-
     full, _ = expand_capture(config)
     names = {p.name: "point" for p in full.points}
     names.update({f"{r.name}_{k}": "point" for r in full.ropes for k in range(r.n_masses)})
@@ -239,8 +239,6 @@ def _trail(xyz, time, trail, max_points=TRAIL_POINTS):
 
 def _describe(columns, config, rows, trail) -> _Scene:
     """Everything to draw, per frame and static, from what the config contains."""
-    from mysim_jax.config import expand_capture
-
     full, _ = expand_capture(config)
     nodes = _Nodes(columns, full, rows)
     time = columns["time"][rows]
@@ -463,8 +461,6 @@ def write_replay_html(columns, config, path, title: str | None = None, max_frame
     HTML file with plotly.js inline. ``columns``: trajectory columns; ``config``: the scene
     config the run was simulated with. Raises :class:`ReplayError` naming what is missing
     when the columns do not fit the config."""
-    import plotly.io
-
     fig = replay_figure(columns, config, title=title, max_frames=max_frames, trail=trail)
     path = Path(path)
     plotly.io.write_html(fig, path, include_plotlyjs=True, full_html=True, auto_play=False, div_id="replay",

@@ -7,7 +7,7 @@ One header row, then one row per output time. Columns::
     for every body:   NAME_x NAME_y NAME_z NAME_qw NAME_qx NAME_qy NAME_qz
                       NAME_vx NAME_vy NAME_vz NAME_ax NAME_ay NAME_az NAME_wx NAME_wy NAME_wz
 
-and, for an evading target with entanglement (:mod:`mysim_jax.tasks.entanglement`), the
+and, for an evading target with entanglement (:mod:`mysim_jax.effects.entanglement`), the
 column ``TARGET_entanglement`` (the share of its propulsion lost, 0 to 1).
 
 Positions and velocities are world-frame (m, m/s), accelerations world-frame (m/s²),
@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from mysim_jax.sim import Trajectory
-from mysim_jax.types import Scene
+from mysim_jax.core.types import Scene
 
 _XYZ = ("x", "y", "z")
 

@@ -30,7 +30,7 @@ import numpy as np
 import optax
 from flax import struct
 
-from mysim_jax import batching
+from mysim_jax.core import batching
 from mysim_jax.mappo.losses import RunningStats
 
 

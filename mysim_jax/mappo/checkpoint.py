@@ -29,11 +29,15 @@ import json
 import os
 import re
 from pathlib import Path
+import subprocess
+import sys
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import serialization
+from jax.experimental import multihost_utils
+import orbax.checkpoint as ocp
 
 POLICY_JSON = "policy.json"
 POLICY_PARAMS = "policy.msgpack"
@@ -60,8 +64,6 @@ class Checkpoints:
     """Orbax checkpoints of a run's :class:`TrainerState` in ``folder``."""
 
     def __init__(self, folder: str | os.PathLike, keep: int = 2):
-        import orbax.checkpoint as ocp
-
         self._ocp = ocp
         self.folder = Path(folder).absolute()
         options = ocp.CheckpointManagerOptions(max_to_keep=keep, enable_async_checkpointing=False, create=True)
@@ -120,7 +122,6 @@ class Checkpoints:
                     reason = f"restoring it failed: {type(exc).__name__}: {first}"
                 else:
                     if jax.process_count() > 1:   # every process has chosen before any renaming
-                        from jax.experimental import multihost_utils
 
                         multihost_utils.sync_global_devices("mysim_jax checkpoint chosen")
                     if jax.process_index() == 0:
@@ -144,9 +145,6 @@ class Checkpoints:
         (None: it restored). For checkpoints without a checksum file: orbax abandons a
         failed restore with reads still in flight, whose completions then print tracebacks
         from its closed event loop; in a child they end with it."""
-        import subprocess
-        import sys
-
         code = ("import sys, orbax.checkpoint as ocp\n"
                 "m = ocp.CheckpointManager(sys.argv[1])\n"
                 "m.restore(int(sys.argv[2]), args=ocp.args.StandardRestore())\n"

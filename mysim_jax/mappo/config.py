@@ -27,7 +27,7 @@ Instead of ``scene``, ``env.builtin: reach`` selects a small built-in task
 Sizes derived from these (the batch, the minibatch, the number of iterations) are
 properties, computed rather than stored. Everything is checked here, before JAX is
 imported: unknown keys, a minibatch count that does not divide the batch, a non-positive
-learning rate, a missing scene file, each as a :class:`~mysim_jax.config_base.ConfigError`
+learning rate, a missing scene file, each as a :class:`~mysim_jax.core.config_base.ConfigError`
 naming the field.
 """
 
@@ -38,9 +38,11 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 from pydantic import Field, ValidationError, model_validator
+import yaml
 
-from mysim_jax.config_base import (ConfigError, Name, PosFloat, StrictModel, available_memory_bytes,
-                                   format_validation_error, read_yaml_file)
+from mysim_jax.config.scene import apply_override, load_config
+from mysim_jax.core.config_base import (ConfigError, Name, PosFloat, StrictModel, available_memory_bytes,
+                                        format_validation_error, read_yaml_file)
 
 PosInt = Annotated[int, Field(gt=0)]
 NonNegInt = Annotated[int, Field(ge=0)]
@@ -281,8 +283,6 @@ class TrainConfig(StrictModel):
 
 def apply_overrides(raw: dict, overrides) -> dict:
     """``key=value`` overrides (``algo.lr=1e-3``) applied to a copy of a raw dict."""
-    from mysim_jax.config import apply_override
-
     raw = copy.deepcopy(raw)
     for ov in overrides:
         apply_override(raw, ov)
@@ -342,8 +342,6 @@ def load_eval_scene(config: TrainConfig, train_path: str | Path, scene=None):
     """The scene the final evaluation runs on (``env.eval_scene``, or ``env.scene`` at
     ``env.eval_level``, or the training scene ``scene``), or None for a builtin
     environment. Raises ConfigError naming the field."""
-    from mysim_jax.config import load_config
-
     if config.env.scene is None:
         return None
     if config.env.eval_scene is not None:
@@ -362,12 +360,10 @@ def load_eval_scene(config: TrainConfig, train_path: str | Path, scene=None):
 
 
 def load_scene(config: TrainConfig, train_path: str | Path, level: str | None = None):
-    """The validated :class:`~mysim_jax.config.SceneConfig` of ``env.scene`` with
+    """The validated :class:`~mysim_jax.config.scene.SceneConfig` of ``env.scene`` with
     ``env.set`` applied (then ``level=LEVEL`` when ``level`` is given), or None for a
     builtin environment. Raises ConfigError naming ``env.scene`` when the file is missing
     or is not a capture scene with an ``env:`` block."""
-    from mysim_jax.config import load_config
-
     path = scene_path(config, train_path)
     if path is None:
         return None
@@ -449,8 +445,6 @@ def reach_training_text(name: str, total_env_steps: int, **run) -> str:
     """A small training file (YAML text) for the builtin reach task, as the tests and
     ``scripts/resume_soak.py`` train it: 32 environments x 16 steps, lr 3e-3, initial
     policy std 0.5; ``run`` gives the ``run:`` section's values (seed 1 unless given)."""
-    import yaml
-
     algo = {"num_envs": 32, "num_steps": 16, "total_env_steps": int(total_env_steps), "lr": 3.0e-3, "init_std": 0.5}
     return yaml.safe_dump({"name": name, "env": {"builtin": "reach"}, "algo": algo, "run": {"seed": 1, **run}},
                           sort_keys=False, default_flow_style=None)

@@ -32,11 +32,34 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import jax
+from jax.experimental import multihost_utils
+import jax.numpy as jnp
+import numpy as np
+from tensorboardX import SummaryWriter
+from tqdm.auto import tqdm
 import yaml
+import matplotlib
 
-from mysim_jax.config_base import ConfigError
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+from mysim_jax.config.scene import dump_config
+from mysim_jax.core import parallel
+from mysim_jax.core.config_base import ConfigError
+from mysim_jax.io.output import check_output_dir
+from mysim_jax.mappo import bc
+from mysim_jax.mappo.checkpoint import Checkpoints, save_policy
 from mysim_jax.mappo.config import (TrainConfig, load_eval_scene, load_scene, load_train_config,
                                     train_config_from_dict)
+from mysim_jax.mappo.config import check_memory, check_memory_needs, describe
+from mysim_jax.mappo.curriculum import Curriculum
+from mysim_jax.mappo.toy import ReachEnv
+from mysim_jax.mappo.trainer import Trainer, deterministic_policy, deterministic_policy_fn
+from mysim_jax.tasks.capture import make_env, scaled_target_ranges
+from mysim_jax.tasks.evaluate import Evaluator, scripted_policy
+from mysim_jax.tasks.report import comparison_line, summary_line, write_comparison, write_evaluation
+from mysim_jax.tasks.sweep import wilson_interval
 
 TRAIN_FILE = "train.yaml"
 SCENE_FILE = "scene.yaml"
@@ -63,8 +86,6 @@ class Prepared:
     @property
     def evaluates_elsewhere(self) -> bool:
         """Whether the final evaluation runs on another scene than training."""
-        from mysim_jax.config import dump_config
-
         return (self.scene is not None and self.eval_scene is not None
                 and dump_config(self.eval_scene) != dump_config(self.scene))
 
@@ -83,10 +104,6 @@ def prepare(config_path: str | None, overrides=(), out: str | None = None, resum
     """Check a training file (with its profile ``profile`` applied, then ``overrides``) or a
     run folder to resume, and the output folder. Raises ConfigError or OutputError with a
     one-line message; imports no JAX."""
-    from mysim_jax.io.output import check_output_dir
-
-    from mysim_jax.mappo.config import check_memory
-
     if resume is not None:
         run = Path(resume)
         if not (run / TRAIN_FILE).is_file():
@@ -112,8 +129,6 @@ def prepare(config_path: str | None, overrides=(), out: str | None = None, resum
 
 def describe_run(p: Prepared) -> str:
     """One line: what will run, and where it writes."""
-    from mysim_jax.mappo.config import describe
-
     what = f"builtin:{p.config.env.builtin}" if p.scene is None else f"{p.scene.name} (level {p.scene.level})"
     if p.evaluates_elsewhere:
         what += f", evaluated at level {p.eval_scene.level}"
@@ -123,8 +138,6 @@ def describe_run(p: Prepared) -> str:
 
 
 def _write_run_files(p: Prepared) -> None:
-    from mysim_jax.config import dump_config
-
     p.out.mkdir(parents=True, exist_ok=True)
     data = p.config.model_dump(mode="json")
     # resolved: the profile's values are in the file; its description names it
@@ -149,12 +162,8 @@ def _silent(*args, **kwargs) -> None:
 
 def training_mesh(config, source: str):
     """The devices a run splits its environments over (``run.devices``): None for one
-    device, else a :func:`mysim_jax.parallel.env_mesh`. Raises ConfigError when more devices
+    device, else a :func:`mysim_jax.core.parallel.env_mesh`. Raises ConfigError when more devices
     are asked for than JAX sees, or when ``algo.num_envs`` does not split into them."""
-    import jax
-
-    from mysim_jax import parallel
-
     available = jax.devices()
     n = len(available) if config.run.devices is None else config.run.devices
     if n > len(available):
@@ -170,15 +179,11 @@ def training_mesh(config, source: str):
 def make_environment(p: Prepared):
     """``(env, env_params)`` of the run."""
     if p.scene is None:
-        from mysim_jax.mappo.toy import ReachEnv
-
         env = ReachEnv()
         return env, env.default_params()
-    import jax
 
     if p.scene.sim.precision == "float64":
         jax.config.update("jax_enable_x64", True)
-    from mysim_jax.tasks.capture import make_env
 
     return make_env(p.scene)
 
@@ -190,7 +195,6 @@ def make_eval_environment(p: Prepared, env, env_params):
     values, not what the policy sees)."""
     if not p.evaluates_elsewhere:
         return env, env_params
-    from mysim_jax.tasks.capture import make_env
 
     eval_env, eval_params = make_env(p.eval_scene)
     if (eval_env.obs_size, tuple(eval_env.action_shape)) != (env.obs_size, tuple(env.action_shape)):
@@ -218,8 +222,6 @@ def _write_rows(path: Path, rows: list[dict]) -> None:
 
 
 def _column(rows: list[dict], key: str):
-    import numpy as np
-
     def value(r):
         v = r.get(key, "")
         return float(v) if v not in ("", None) else np.nan
@@ -237,11 +239,6 @@ def plot_curves(rows: list[dict], path: Path, title: str, best_iteration: int | 
     """
     if not rows:
         return None
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    import numpy as np
 
     x = _column(rows, "env_steps")
     panels = [("mean_return", "mean episode return"), ("success_rate", "success rate"),
@@ -298,11 +295,6 @@ def plot_runs(runs: dict[str, list[dict]], path: Path, title: str) -> Path | Non
     the training episodes' success (exploration on), one colour per run."""
     if not runs:
         return None
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    import numpy as np
 
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.2), sharey=True)
     for i, (name, rows) in enumerate(runs.items()):
@@ -332,9 +324,6 @@ def plot_runs(runs: dict[str, list[dict]], path: Path, title: str) -> Path | Non
 
 def evaluate_builtin(env, env_params, policy, episodes: int, seed: int) -> dict:
     """Success rate of ``policy`` on the builtin environment (``episodes`` episodes)."""
-    import jax
-    import jax.numpy as jnp
-
     def one_episode(key):
         k0, k1 = jax.random.split(key)
         obs, state = env.reset(k0, env_params)
@@ -352,7 +341,6 @@ def evaluate_builtin(env, env_params, policy, episodes: int, seed: int) -> dict:
 
     keys = jax.random.split(jax.random.PRNGKey(seed), episodes)
     success = jax.device_get(jax.jit(jax.vmap(one_episode))(keys))
-    from mysim_jax.tasks.sweep import wilson_interval
 
     k = int(success.sum())
     lo, hi = wilson_interval(k, episodes)
@@ -366,15 +354,6 @@ def _selection_row(stats) -> dict:
 def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=print) -> dict:
     """Train (or resume) the run ``p`` to its end, evaluate, write everything. Returns
     ``summary.json``'s dict."""
-    import jax
-    import jax.numpy as jnp
-    import numpy as np
-
-    from mysim_jax.mappo.checkpoint import Checkpoints, save_policy
-    from mysim_jax.mappo.trainer import Trainer, deterministic_policy, deterministic_policy_fn
-
-    from mysim_jax.mappo.config import check_memory_needs
-
     c = p.config
     # several processes (jax.distributed): every one computes, the first writes the run
     # folder, the logs and the evaluation, and decides when to stop
@@ -419,9 +398,6 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
         log(f"resuming {p.out} at iteration {start_iteration} of {c.algo.num_iterations}")
     curriculum = None
     if p.scene is not None and c.env.curriculum is not None:
-        from mysim_jax.mappo.curriculum import Curriculum
-        from mysim_jax.tasks.capture import scaled_target_ranges
-
         curriculum = Curriculum.resumed(c.env.curriculum, rows)
         trainer.set_episode_ranges(scaled_target_ranges(env_params.ranges, curriculum.fraction))
         log(f"curriculum: stage {curriculum.stage + 1} of {len(c.env.curriculum.stages)} (the target's speed, jink "
@@ -431,8 +407,6 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
     selection = c.run.selection if p.scene is not None else None
     evaluator = None
     if selection is not None:
-        from mysim_jax.tasks.evaluate import Evaluator
-
         evaluator = Evaluator(env, env_params, trainer.policy_fn(), batch=min(selection.episodes, c.run.eval_batch))
         select_key = jax.random.PRNGKey(selection.seed)
 
@@ -448,8 +422,6 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
     bc_path = p.out / "bc.json"
     if not restored:
         if c.algo.init == "bc":
-            from mysim_jax.mappo import bc
-
             log(f"behaviour cloning the scripted team: {c.algo.bc.num_envs} environments x {c.algo.bc.steps} steps")
             state, report = bc.clone(trainer, state, k_bc)
             if lead:
@@ -467,13 +439,9 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
                 _write_rows(p.out / "metrics.csv", rows)
             ckpt.save(0, trainer.place(state))
 
-    from tensorboardX import SummaryWriter
-
     writer = SummaryWriter(str(p.out / "tb"), purge_step=start_iteration + 1) if lead else None
     bar = None
     if progress:
-        from tqdm.auto import tqdm
-
         bar = tqdm(total=c.algo.num_iterations, initial=start_iteration, desc=f"training {c.name}", unit="it")
     limit_s = None if c.run.time_limit_min is None else 60.0 * c.run.time_limit_min
     iteration_times = []
@@ -490,7 +458,6 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
         last_iteration = iteration == c.algo.num_iterations
         over_time = limit_s is not None and previous_wall + time.perf_counter() - t_start > limit_s
         if many and limit_s is not None:      # the first process's clock decides for all
-            from jax.experimental import multihost_utils
 
             over_time = bool(multihost_utils.broadcast_one_to_all(np.bool_(over_time)))
         row = {"iteration": iteration, "env_steps": iteration * c.algo.batch_size,
@@ -539,7 +506,6 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
     best_iteration = int(state.best_iteration)
     if not lead:
         # the others end here; the first process writes and evaluates, then all leave together
-        from jax.experimental import multihost_utils
 
         multihost_utils.sync_global_devices("mysim_jax run written")
         return {}
@@ -591,9 +557,6 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
         if p.scene is None:
             summary["evaluation"] = evaluate_builtin(env, env_params, policy, c.run.eval_episodes, c.run.eval_seed)
         else:
-            from mysim_jax.tasks.evaluate import Evaluator, scripted_policy
-            from mysim_jax.tasks.report import comparison_line, summary_line, write_comparison, write_evaluation
-
             # on the evaluation scene (env.eval_level): the policy's residual base, if any,
             # is that scene's scripted team
             eval_base = eval_env.scripted_actions if c.algo.residual else None
@@ -634,7 +597,5 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
         summary["evaluation_wall_s"] = round(time.perf_counter() - t_eval, 1)
     (p.out / "summary.json").write_text(json.dumps(summary, indent=2))
     if many:
-        from jax.experimental import multihost_utils
-
         multihost_utils.sync_global_devices("mysim_jax run written")
     return summary

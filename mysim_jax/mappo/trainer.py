@@ -20,7 +20,7 @@ learns corrections to it); the log-probabilities are those of the residual.
 
 **Iteration** (:meth:`Trainer.iteration`, one ``jax.jit``): a ``lax.scan`` of
 ``num_steps`` policy steps of ``num_envs`` environments (the environment step batched with
-:func:`mysim_jax.batching.vmap`, batch axis last, in cache-sized blocks), then GAE, then
+:func:`mysim_jax.core.batching.vmap`, batch axis last, in cache-sized blocks), then GAE, then
 ``update_epochs`` passes over ``num_minibatches`` shuffled minibatches of team transitions
 with Adam on ``policy loss + vf_coef * value loss − ent_coef * entropy``, the gradient's
 global norm clipped to ``max_grad_norm``, the learning rate constant or decaying linearly to
@@ -32,7 +32,7 @@ value of its last state (``info["final_global_state"]``).
 Everything the next iteration needs is in :class:`TrainerState` (environments included),
 so a checkpoint of it resumes a run exactly.
 
-**Several devices** (``mesh``, a :func:`mysim_jax.parallel.env_mesh`): the environments'
+**Several devices** (``mesh``, a :func:`mysim_jax.core.parallel.env_mesh`): the environments'
 leaves of the state (``env_state``, ``obs``, ``global_state``) are split over the mesh's
 ``"env"`` axis and everything else is replicated; the iteration is the same jitted program,
 partitioned by XLA from those shardings. Each device steps its own block of environments
@@ -55,7 +55,8 @@ import optax
 from flax import struct
 from jax.sharding import NamedSharding, PartitionSpec as P
 
-from mysim_jax import batching
+from mysim_jax.core import batching, parallel
+from mysim_jax.mappo.config import network_memory_bytes
 from mysim_jax.mappo.losses import (RunningStats, gae, gaussian_entropy, gaussian_log_prob, normalize_advantages,
                                     policy_loss, value_loss)
 
@@ -177,8 +178,6 @@ class Trainer:
         rollout's buffers (a :class:`Transition` per environment and step, float32, plus
         the advantages and value targets computed from it). XLA's temporaries inside the
         step come on top: this is a lower bound, for refusing sizes that cannot fit."""
-        from mysim_jax.mappo.config import network_memory_bytes
-
         c = self.config
         n, act = self.env.action_shape
         obs, state = self.env.obs_size, self.env.state_size
@@ -203,7 +202,6 @@ class Trainer:
         rest replicated (unchanged without a mesh; arrays already in place are not copied)."""
         if self.mesh is None:
             return ts
-        from mysim_jax import parallel
 
         if jax.process_count() == 1:
             envs = parallel.shard_envs((ts.env_state, ts.obs, ts.global_state), self.mesh)

@@ -53,8 +53,8 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import Field, field_validator
 
-from mysim_jax.config_base import Name, NonNegFloat, PosFloat, StrictModel, Vec3
-from mysim_jax.npgeom import rotate
+from mysim_jax.core.config_base import Name, NonNegFloat, PosFloat, StrictModel, Vec3
+from mysim_jax.core.npgeom import rotate
 
 MAX_KNOTS = 64          # per side: 4096 knots, ~8000 edges, far beyond a carried net
 

@@ -1,4 +1,4 @@
-"""Air drag on the net's lines (an effect, see :mod:`mysim_jax.effects`).
+"""Air drag on the net's lines (an effect, see :mod:`mysim_jax.effects.registry`).
 
 Every lumped mass of the net and its tethers carries the quadratic drag of the piece of
 line it stands for (:mod:`mysim_jax.net.config`): ``F_i = −½ ρ (C_d d ℓ)_i |v_i| v_i``
@@ -15,8 +15,9 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from mysim_jax import vecmath
+from mysim_jax.core import vecmath
 from mysim_jax.dynamics.forces import Loads
+from mysim_jax.net.config import net_elements
 
 
 @dataclass(frozen=True)
@@ -45,7 +46,6 @@ class _LineDrag:
         net = config.net
         if net is None or net.air_density == 0.0:
             return None
-        from mysim_jax.net.config import net_elements
 
         bodies = {b.name: b for b in config.bodies}
         areas = net_elements(net, bodies, {q.body for q in config.quadrotors} & set(bodies)).drag_area

@@ -33,7 +33,7 @@ from typing import Annotated
 
 from pydantic import Field
 
-from mysim_jax.config_base import PosFloat, StrictModel
+from mysim_jax.core.config_base import PosFloat, StrictModel
 
 Pixels = Annotated[int, Field(gt=0, le=16384)]
 

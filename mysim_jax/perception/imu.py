@@ -71,9 +71,10 @@ from dataclasses import dataclass
 from typing import Literal
 from pathlib import Path
 
+import allantools
 import numpy as np
 
-from mysim_jax.config_base import NonNegFloat, PosFloat, StrictModel, UnitQuat, Vec3
+from mysim_jax.core.config_base import NonNegFloat, PosFloat, StrictModel, UnitQuat, Vec3
 
 EUROC_HEADER = ("#timestamp [ns],w_RS_S_x [rad s^-1],w_RS_S_y [rad s^-1],w_RS_S_z [rad s^-1],"
                 "a_RS_S_x [m s^-2],a_RS_S_y [m s^-2],a_RS_S_z [m s^-2]")
@@ -376,8 +377,6 @@ def allan_deviation(x, rate: float, taus) -> tuple[np.ndarray, np.ndarray]:
     and duplicates, are dropped. Returns ``(taus_used (M',), adev (M',) or (M', k))``, the
     deviation in the units of ``x``.
     """
-    import allantools     # imports SciPy (about a second): only when an Allan deviation is asked for
-
     x = np.asarray(x, dtype=float)
     if x.ndim not in (1, 2) or len(x) < 3:
         raise ImuError(f"allan_deviation takes (N,) or (N, k) samples with N >= 3, got shape {x.shape}")

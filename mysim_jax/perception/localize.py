@@ -50,6 +50,7 @@ from dataclasses import dataclass
 from itertools import combinations
 
 import numpy as np
+from tqdm.auto import tqdm
 
 from mysim_jax.perception.camera import Intrinsics, PerceptionError
 
@@ -279,8 +280,6 @@ def localize_record(record, pose_noise: PoseNoise | None = None, methods=METHODS
                     range_sigma: float = 0.05, progress: bool = False) -> Localisation:
     """Estimate the target in every frame of a :class:`~mysim_jax.perception.track.TrackingRecord`
     from its detections, with the true camera poses or ``pose_noise``-perturbed ones."""
-    from tqdm.auto import tqdm
-
     intr = record.intr
     R, p = record.camera_R, record.camera_p
     if pose_noise is not None:

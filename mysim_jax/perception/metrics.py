@@ -3,7 +3,7 @@
 TUM format (one pose per line, space separated): ``t x y z qx qy qz qw`` with ``t`` in s,
 the position in m (world) and the body -> world unit quaternion scalar-last, as the TUM
 RGB-D benchmark and ``evo`` read it. In memory poses are
-:class:`~mysim_jax.perception.vio.Trajectory` (quaternions scalar-first, as everywhere in
+:class:`PoseTrack` (quaternions scalar-first, as everywhere in
 this project).
 
 Errors (:func:`trajectory_errors`) come from ``evo``'s Python API, after pairing the poses
@@ -21,26 +21,47 @@ of the estimate and the reference by time (``evo.core.sync.associate_trajectorie
 from __future__ import annotations
 
 import copy
+from dataclasses import dataclass
+import logging
 import os
 from pathlib import Path
 
+from evo.core import metrics, sync
+from evo.core.trajectory import PoseTrajectory3D
+from evo.main_ape import ape
+from evo.main_rpe import rpe
 import numpy as np
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
 
 from mysim_jax.perception.camera import PerceptionError
-from mysim_jax.perception.vio import Trajectory
 
 
 # --- TUM files -----------------------------------------------------------------------
 
 
-def write_tum(path: str | os.PathLike, traj: Trajectory) -> None:
+@dataclass(frozen=True)
+class PoseTrack:
+    """Body poses over time (TUM files store these)."""
+
+    t: np.ndarray           # (N,) s
+    p: np.ndarray           # (N, 3) m, world
+    q: np.ndarray           # (N, 4) scalar-first unit quaternions, body -> world
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+
+def write_tum(path: str | os.PathLike, traj: PoseTrack) -> None:
     """Write ``traj`` as a TUM trajectory file."""
     q = np.asarray(traj.q, dtype=float)
     data = np.column_stack([traj.t, traj.p, q[:, 1:], q[:, :1]])
     np.savetxt(path, data, fmt="%.9f", header="t x y z qx qy qz qw", comments="# ")
 
 
-def read_tum(path: str | os.PathLike) -> Trajectory:
+def read_tum(path: str | os.PathLike) -> PoseTrack:
     """Read a TUM trajectory file (comment lines start with #)."""
     try:
         data = np.loadtxt(path, comments="#", ndmin=2)
@@ -48,33 +69,25 @@ def read_tum(path: str | os.PathLike) -> Trajectory:
         raise PerceptionError(f"{path}: not a readable TUM trajectory file ({exc})") from None
     if data.shape[1] != 8:
         raise PerceptionError(f"{path}: a TUM line has 8 numbers (t x y z qx qy qz qw), found {data.shape[1]}")
-    return Trajectory(t=data[:, 0], p=data[:, 1:4], q=np.column_stack([data[:, 7], data[:, 4:7]]))
+    return PoseTrack(t=data[:, 0], p=data[:, 1:4], q=np.column_stack([data[:, 7], data[:, 4:7]]))
 
 
 # --- evo -----------------------------------------------------------------------------
 
 
-def to_evo(traj: Trajectory, name: str = ""):
+def to_evo(traj: PoseTrack, name: str = ""):
     """The trajectory as an ``evo.core.trajectory.PoseTrajectory3D``."""
-    from evo.core.trajectory import PoseTrajectory3D
-
     return PoseTrajectory3D(positions_xyz=np.asarray(traj.p, dtype=float),
                             orientations_quat_wxyz=np.asarray(traj.q, dtype=float),
                             timestamps=np.asarray(traj.t, dtype=float), meta={"name": name})
 
 
-def trajectory_errors(reference: Trajectory, estimate: Trajectory, rpe_delta_m: float = 10.0,
+def trajectory_errors(reference: PoseTrack, estimate: PoseTrack, rpe_delta_m: float = 10.0,
                       max_time_diff: float = 1e-3) -> dict:
     """Errors of ``estimate`` against ``reference`` (see the module doc); a JSON-ready dict.
 
     Poses are paired by time within ``max_time_diff`` seconds.
     """
-    import logging
-
-    from evo.core import metrics, sync
-    from evo.main_ape import ape
-    from evo.main_rpe import rpe
-
     logging.getLogger("evo").setLevel(logging.WARNING)
     ref, est = sync.associate_trajectories(to_evo(reference, "reference"), to_evo(estimate, "estimate"),
                                            max_diff=max_time_diff)
@@ -113,7 +126,7 @@ def gauss_markov_fit(t: np.ndarray, error: np.ndarray) -> dict:
     whose process ``e' = rho e + sigma √(1 - rho²) ξ`` has the correlation time
     ``tau = -Δt / ln rho`` (0 for rho <= 0: white; ``inf`` for rho >= 1). ``pooled`` holds
     the same over all axes together (isotropic sigma = √(mean sigma²)). A simulator can then
-    replay errors with these statistics (:class:`mysim_jax.tasks.env_config.PerceptionConfig`).
+    replay errors with these statistics (:class:`mysim_jax.config.env.PerceptionConfig`).
     """
     t = np.asarray(t, dtype=float)
     e = np.asarray(error, dtype=float).reshape(len(t), -1)
@@ -135,7 +148,7 @@ def gauss_markov_fit(t: np.ndarray, error: np.ndarray) -> dict:
 # --- plots ---------------------------------------------------------------------------
 
 
-def position_error(reference: Trajectory, estimate: Trajectory) -> tuple[np.ndarray, np.ndarray]:
+def position_error(reference: PoseTrack, estimate: PoseTrack) -> tuple[np.ndarray, np.ndarray]:
     """Times (s) and (unaligned) position errors (m) of the estimate's poses at the reference's times."""
     idx = np.searchsorted(reference.t, estimate.t).clip(0, len(reference.t) - 1)
     prev = (idx - 1).clip(0)
@@ -143,18 +156,13 @@ def position_error(reference: Trajectory, estimate: Trajectory) -> tuple[np.ndar
     return estimate.t, np.linalg.norm(estimate.p - reference.p[idx], axis=1)
 
 
-def plot_estimates(reference: Trajectory, estimates: dict[str, Trajectory], out_dir: str | os.PathLike,
+def plot_estimates(reference: PoseTrack, estimates: dict[str, PoseTrack], out_dir: str | os.PathLike,
                    title: str = "", diagnostics=None) -> list[str]:
     """Estimated against true paths (top view and 3D) and position error over time.
 
     Writes ``estimation_paths.png`` and ``estimation_error.png`` (and ``vio_features.png``
     from per-frame ``diagnostics`` when given) into ``out_dir``; returns the file names.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     out_dir = Path(out_dir)
     colours = {"true": "k"}
     palette = ["tab:blue", "tab:red", "tab:green", "tab:orange"]

@@ -55,7 +55,10 @@ from typing import Iterable, Iterator, Literal
 
 import cv2
 import numpy as np
+from tqdm.auto import tqdm
 
+from mysim_jax.config.scene import ConfigError, load_config
+from mysim_jax.io.trajectory import read_trajectory_csv
 from mysim_jax.perception.camera import (R_BODY_CV, CameraPoses, Intrinsics, PerceptionError, check_sees_ground,
                                          intrinsics as make_intrinsics, quat_to_matrix)
 from mysim_jax.perception.ground import GroundTexture, view_ground
@@ -235,9 +238,6 @@ class Run:
 
 def load_run(folder: str | Path) -> Run:
     """Read ``trajectory.csv`` and ``config.yaml`` of a run folder written by ``scripts/simulate.py``."""
-    from mysim_jax.config import ConfigError, load_config
-    from mysim_jax.io.trajectory import read_trajectory_csv
-
     folder = Path(folder)
     if not folder.is_dir():
         raise PerceptionError(f"run folder {folder} does not exist; write one with "
@@ -517,8 +517,6 @@ class Renderer:
         return self._iterate(columns, name, poses, rows, progress)
 
     def _iterate(self, columns, name, poses, rows, progress):
-        from tqdm.auto import tqdm
-
         for r in tqdm(rows, desc=f"render {name}", unit="frame", disable=not progress):
             yield self._render(columns, name, poses, r)
 

@@ -57,11 +57,18 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Callable, Sequence
 
+import jax
 import numpy as np
+from tqdm.auto import tqdm
 
-from mysim_jax.perception.camera import Intrinsics, PerceptionError, quat_to_matrix
+from mysim_jax.build import build
+from mysim_jax.control.build import R_Y_90, gimbal_marker_frames
+from mysim_jax.perception.camera import Intrinsics, PerceptionError, intrinsics as make_intrinsics, quat_to_matrix
 from mysim_jax.perception.detect import Detection   # noqa: F401  (the detections this module handles)
+from mysim_jax.perception.localize import box_size_px, box_touches_border, fuse, pixel_bearings, sphere_range
 from mysim_jax.perception.render import Frame, Renderer
+from mysim_jax.sim import rollout, single_env_scene
+from mysim_jax.tasks.scripted import team_policy
 
 
 # --- detections -----------------------------------------------------------------------------
@@ -143,8 +150,6 @@ class GimbalGeometry:
     """
 
     def __init__(self, camera_config):
-        from mysim_jax.control.build import R_Y_90, gimbal_marker_frames
-
         if getattr(camera_config, "mount", None) != "gimbal":
             raise PerceptionError(f"camera '{getattr(camera_config, 'name', camera_config)}' is not on a gimbal "
                                   f"(mount: {getattr(camera_config, 'mount', None)!r}); tracking needs "
@@ -431,9 +436,6 @@ class TrackingRecord:
 def _team_point(frames, detections, intr, radius) -> np.ndarray | None:
     """(3,) m: the target's position from other cameras' detections (least squares over their
     rays, with ranges from whole boxes; one camera needs a range), or None."""
-    from mysim_jax.perception.localize import (box_size_px, box_touches_border, fuse, pixel_bearings,
-                                               sphere_range)
-
     boxes = np.array([np.asarray(d.box, float) for d in detections])
     centres = np.stack([(boxes[:, 0] + boxes[:, 2]) / 2, (boxes[:, 1] + boxes[:, 3]) / 2], -1)
     bearings = pixel_bearings(intr, np.array([f.R for f in frames]), centres)
@@ -450,8 +452,6 @@ def _consensus_point(frames, detections, intr) -> np.ndarray | None:
     is triangulated (the midpoint of their closest approach); the pair whose rays pass
     closest to each other, as an angle seen from the cameras, wins, so one camera on a false
     detection does not move the point (unlike a least-squares fit of all rays)."""
-    from mysim_jax.perception.localize import pixel_bearings
-
     origins = np.array([np.asarray(f.p, float) for f in frames])
     rays = pixel_bearings(intr, np.array([f.R for f in frames]), np.array([box_centre(d.box) for d in detections]))
     best = None
@@ -483,7 +483,6 @@ def associate(detections: Sequence, frame: Frame, point, gate_deg: float | None,
     d = np.asarray(point, float) - np.asarray(frame.p, float)
     if not np.linalg.norm(d) > 1e-9:
         return list(detections)
-    from mysim_jax.perception.localize import pixel_bearings
 
     gate = gate_deg + np.degrees(np.arcsin(min(1.0, radius / np.linalg.norm(d))))
     d /= np.linalg.norm(d)
@@ -547,14 +546,6 @@ def run_tracking(config, detector: FrameDetector | None = None, intr: Intrinsics
     target (:class:`~mysim_jax.perception.render.Renderer`; ``"auto"``: a drone for a
     maneuvering target, else a sphere).
     """
-    import jax
-    from tqdm.auto import tqdm
-
-    from mysim_jax.build import build
-    from mysim_jax.perception.camera import intrinsics as make_intrinsics
-    from mysim_jax.sim import rollout, single_env_scene
-    from mysim_jax.tasks.scripted import team_policy
-
     check_tracking_scene(config)
     if not frame_rate > 0:
         raise PerceptionError(f"frame_rate must be positive, got {frame_rate}")

@@ -10,9 +10,15 @@ import json
 from pathlib import Path
 
 import numpy as np
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
 
 from mysim_jax.perception.localize import (METHODS, PoseNoise, box_size_px, box_touches_border, localize_record,
                                            size_range_fits, sphere_range)
+from mysim_jax.perception.metrics import gauss_markov_fit
+from mysim_jax.perception.target_filter import target_filter
 from mysim_jax.perception.track import TrackingRecord, target_moving, tracking_metrics
 
 
@@ -36,10 +42,6 @@ def size_range_data(record: TrackingRecord, min_visible: float = 0.95) -> dict:
 
 
 def _plot_pointing(record: TrackingRecord, path: Path) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     err = record.pixel_error()
     inview = record.in_view()
     fig, ax = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
@@ -61,10 +63,6 @@ def _plot_pointing(record: TrackingRecord, path: Path) -> None:
 
 
 def _plot_localisation(loc, path_err: Path, path_paths: Path) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     errors = loc.errors()
     fig, ax = plt.subplots(figsize=(9, 4.5))
     for m in errors:
@@ -104,10 +102,6 @@ def _plot_localisation(loc, path_err: Path, path_paths: Path) -> None:
 
 
 def _plot_size_range(data: dict, fits: dict, path: Path) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     a, d = data["alpha"], data["distance"]
     xs = np.geomspace(a.min(), a.max(), 100)
     fig, ax = plt.subplots(figsize=(6.5, 4.8))
@@ -139,9 +133,6 @@ def target_error_model(record: TrackingRecord, loc, poses: str = "true", method:
     velocity estimate, and a Gauss-Markov fit of each one's error against the true target
     (:func:`mysim_jax.perception.metrics.gauss_markov_fit`), from the first fix on: the
     ``error_model`` that ``scripts/perception_gap.py fit --target`` reads."""
-    from mysim_jax.perception.metrics import gauss_markov_fit
-    from mysim_jax.perception.target_filter import target_filter
-
     p, v = target_filter(loc.t, loc.estimates[method], position_sigma=position_sigma, jerk_sigma=jerk_sigma)
     ok = np.all(np.isfinite(p), axis=1)
     if ok.sum() < 3:

@@ -78,13 +78,26 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass, field
+import json
 from pathlib import Path
+import time
 from typing import Iterable, Iterator
 
+import cv2
 import numpy as np
+from tqdm import tqdm
 
+from mysim_jax.config.scene import load_config
+from mysim_jax.core.config_base import ConfigError
+from mysim_jax.io.trajectory import read_trajectory_csv
 from mysim_jax.perception.camera import Intrinsics, PerceptionError
+from mysim_jax.perception.camera import (CameraPoses, R_BODY_CV, body_pose_columns, camera_poses, check_sees_ground,
+                                         intrinsics, quat_to_matrix)
 from mysim_jax.perception.features import FeatureTracker, TrackerConfig
+from mysim_jax.perception.ground import GroundTexture, view_ground
+from mysim_jax.perception.imu import ImuConfig, ImuError, simulate_imu
+from mysim_jax.perception.metrics import PoseTrack, gauss_markov_fit, plot_estimates, trajectory_errors, write_tum
+from mysim_jax.perception.render import Renderer
 
 GRAVITY = 9.81          # m/s^2, along -z of the world
 
@@ -139,18 +152,6 @@ class NavState:
     R: np.ndarray           # (3, 3) body -> world
     p: np.ndarray           # (3,) m, world
     v: np.ndarray           # (3,) m/s, world
-
-
-@dataclass(frozen=True)
-class Trajectory:
-    """Body poses over time (TUM files store these)."""
-
-    t: np.ndarray           # (N,) s
-    p: np.ndarray           # (N, 3) m, world
-    q: np.ndarray           # (N, 4) scalar-first unit quaternions, body -> world
-
-    def __len__(self) -> int:
-        return len(self.t)
 
 
 @dataclass(frozen=True)
@@ -239,7 +240,7 @@ class FrameDiagnostics:
 class VioResult:
     """Estimates at every image (causal: each uses only the images and IMU samples up to it)."""
 
-    trajectory: Trajectory
+    trajectory: PoseTrack
     velocity: np.ndarray        # (F, 3) m/s, world
     accel_bias: np.ndarray      # (F, 3) m/s^2, estimate
     gyro_bias: np.ndarray       # (F, 3) rad/s, estimate
@@ -247,6 +248,15 @@ class VioResult:
 
 
 # --- rotations -----------------------------------------------------------------------
+
+
+def _gtsam():
+    """The gtsam module. Imported here, not at the top, because gtsam is a large compiled
+    library that only the estimator uses: camera models, IMU samples and TUM files load
+    without it."""
+    import gtsam
+
+    return gtsam
 
 
 def matrix_to_quat(R: np.ndarray) -> np.ndarray:
@@ -303,7 +313,7 @@ def _check_imu(imu) -> None:
 
 
 def _preintegration_params(noise: ImuNoise, scale: float = 1.0, gravity: float = GRAVITY):
-    import gtsam
+    gtsam = _gtsam()
 
     params = gtsam.PreintegrationParams.MakeSharedU(gravity)
     I3 = np.eye(3)
@@ -362,19 +372,19 @@ class _ImuIntegrator:
 
 
 def _gtsam_nav(state: NavState):
-    import gtsam
+    gtsam = _gtsam()
 
     return gtsam.NavState(gtsam.Rot3(np.asarray(state.R, dtype=float)), np.asarray(state.p, dtype=float),
                           np.asarray(state.v, dtype=float))
 
 
 def dead_reckoning(imu, initial: NavState, times: np.ndarray, noise: ImuNoise = ImuNoise(),
-                   gravity: float = GRAVITY) -> Trajectory:
+                   gravity: float = GRAVITY) -> PoseTrack:
     """IMU-only poses at ``times`` (s, increasing, >= initial.t), integrated from ``initial``
     with zero bias: the NavState is predicted from one time to the next with a fresh
     preintegration each time (one preintegration over a long run loses accuracy once its
     rotation grows large)."""
-    import gtsam
+    gtsam = _gtsam()
 
     times = np.asarray(times, dtype=float)
     if len(times) and (times[0] < initial.t - 1e-9 or np.any(np.diff(times) < 0)):
@@ -394,29 +404,29 @@ def dead_reckoning(imu, initial: NavState, times: np.ndarray, noise: ImuNoise = 
         last = max(last, t)
         p[i] = state.position()
         R[i] = state.attitude().matrix()
-    return Trajectory(t=times, p=p, q=matrix_to_quat(R))
+    return PoseTrack(t=times, p=p, q=matrix_to_quat(R))
 
 
 # --- back end ------------------------------------------------------------------------
 
 
 def _X(k):
-    import gtsam
+    gtsam = _gtsam()
     return gtsam.symbol("x", k)
 
 
 def _V(k):
-    import gtsam
+    gtsam = _gtsam()
     return gtsam.symbol("v", k)
 
 
 def _B(k):
-    import gtsam
+    gtsam = _gtsam()
     return gtsam.symbol("b", k)
 
 
 def _L(j):
-    import gtsam
+    gtsam = _gtsam()
     return gtsam.symbol("l", j)
 
 
@@ -452,7 +462,7 @@ class VioEstimator:
 
     def __init__(self, camera: CameraModel, imu, initial: NavState, noise: ImuNoise = ImuNoise(),
                  config: VioConfig = VioConfig(), gravity: float = GRAVITY):
-        import gtsam
+        gtsam = _gtsam()
 
         self.camera = camera
         self.config = config
@@ -523,7 +533,7 @@ class VioEstimator:
 
     def add_image(self, t: float, image: np.ndarray) -> tuple:
         """Process the image taken at ``t`` (s); return the body's (R (3, 3), p (3,), v (3,)) estimate."""
-        import gtsam
+        gtsam = _gtsam()
 
         predicted = self._predict_uv(t)
         ff = self.tracker.track(image, predicted)
@@ -564,9 +574,7 @@ class VioEstimator:
         return t_obs > t_now - self.config.lag + 1e-6
 
     def _add_keyframe(self, t: float, ff) -> tuple[int, int, float]:
-        import time
-
-        import gtsam
+        gtsam = _gtsam()
 
         c = self.config
         k = len(self.kf_t)
@@ -696,7 +704,7 @@ class VioEstimator:
     def _reset(self, k: int, t: float, pose, vel):
         """Re-initialise the smoother at keyframe ``k`` (time ``t``) with priors on the pose
         ``pose``, velocity ``vel`` and the last bias estimate; forget every landmark."""
-        import gtsam
+        gtsam = _gtsam()
 
         c = self.config
         self.n_resets += 1
@@ -769,7 +777,7 @@ def run_vio(frames: Iterable[tuple[float, np.ndarray]], imu, camera: CameraModel
         bgs.append(est.bias.gyroscope())
     if not ts:
         raise PerceptionError("run_vio: no images")
-    traj = Trajectory(t=np.asarray(ts), p=np.asarray(ps), q=matrix_to_quat(np.asarray(Rs)))
+    traj = PoseTrack(t=np.asarray(ts), p=np.asarray(ps), q=matrix_to_quat(np.asarray(Rs)))
     return VioResult(trajectory=traj, velocity=np.asarray(vs), accel_bias=np.asarray(bas),
                      gyro_bias=np.asarray(bgs), diagnostics=est.diagnostics())
 
@@ -806,8 +814,6 @@ def _fixed_cameras(config) -> dict[str, tuple[str, object]]:
 
 def camera_model_from_config(intr: Intrinsics, camera_config) -> CameraModel:
     """The pose on the body of a ``mount: fixed`` camera of a scene (its ``offset`` and ``quat``)."""
-    from mysim_jax.perception.camera import R_BODY_CV, quat_to_matrix
-
     return CameraModel(intr=intr, body_R_cam=quat_to_matrix(np.asarray(camera_config.quat)) @ R_BODY_CV,
                        body_t_cam=np.asarray(camera_config.offset, dtype=float))
 
@@ -827,8 +833,6 @@ def _needed_columns(body: str, camera: str) -> dict[str, str]:
 
 def imu_in_body_frame(data, config) -> ImuSamples:
     """IMU samples turned from the IMU's axes into the body's (``config.orientation``, IMU -> body)."""
-    from mysim_jax.perception.camera import quat_to_matrix
-
     R_bi = quat_to_matrix(np.asarray(config.orientation, dtype=float))
     return ImuSamples(t=np.asarray(data.t, dtype=float), gyro=np.asarray(data.gyro) @ R_bi.T,
                       accel=np.asarray(data.accel) @ R_bi.T)
@@ -846,11 +850,6 @@ def prepare_perception(run_dir: str | os.PathLike, camera: str | None = None, bo
     or camera rate that cannot be used, a camera that does not see the ground, a run the
     IMU cannot sample.
     """
-    from mysim_jax.config_base import ConfigError
-    from mysim_jax.config import load_config
-    from mysim_jax.io.trajectory import read_trajectory_csv
-    from mysim_jax.perception.camera import camera_poses, check_sees_ground, intrinsics
-
     run = Path(run_dir)
     if not run.is_dir():
         raise PerceptionError(f"{run_dir}: no such run folder; give a folder written by scripts/simulate.py "
@@ -924,11 +923,9 @@ def prepare_perception(run_dir: str | os.PathLike, camera: str | None = None, bo
     if len(rows) < 3:
         raise PerceptionError(f"the run ({t[-1] - t[0]:g} s) gives only {len(rows)} images at "
                               f"{camera_rate:g} Hz; VIO needs at least 3")
-    from mysim_jax.perception.camera import CameraPoses
 
     poses = camera_poses(columns, camera)
     check_sees_ground(intr, CameraPoses(name=camera, t=poses.t[rows], R=poses.R[rows], p=poses.p[rows]))
-    from mysim_jax.perception.imu import ImuConfig, ImuError, simulate_imu
 
     imu_config = imu_config or ImuConfig()
     try:
@@ -941,21 +938,17 @@ def prepare_perception(run_dir: str | os.PathLike, camera: str | None = None, bo
                          imu=imu_in_body_frame(imu, imu_config), seed=int(seed))
 
 
-def true_trajectory(columns: dict, body: str, rows: np.ndarray | None = None) -> Trajectory:
+def true_trajectory(columns: dict, body: str, rows: np.ndarray | None = None) -> PoseTrack:
     """The body's true poses (all rows, or ``rows``) from trajectory columns."""
-    from mysim_jax.perception.camera import body_pose_columns
-
     pos, quat = body_pose_columns(columns, body)
     t = np.asarray(columns["time"], dtype=float)
     rows = np.arange(len(t)) if rows is None else np.asarray(rows)
     q = quat[rows] / np.linalg.norm(quat[rows], axis=1, keepdims=True)
-    return Trajectory(t=t[rows], p=pos[rows], q=q * np.where(q[:, :1] < 0, -1.0, 1.0))
+    return PoseTrack(t=t[rows], p=pos[rows], q=q * np.where(q[:, :1] < 0, -1.0, 1.0))
 
 
 def initial_state(columns: dict, body: str, row: int = 0) -> NavState:
     """The body's true state at ``row`` (the estimator's initial state)."""
-    from mysim_jax.perception.camera import body_pose_columns, quat_to_matrix
-
     pos, quat = body_pose_columns(columns, body)
     v = np.array([columns[f"{body}_v{k}"][row] for k in "xyz"], dtype=float)
     return NavState(t=float(columns["time"][row]), R=quat_to_matrix(quat[row]), p=pos[row], v=v)
@@ -966,9 +959,6 @@ def render_ground_images(job: PerceptionJob, texture=None, noise_sigma: float = 
     """(t s, (H, W) uint8 image) of the job's camera at its image rows: the textured ground
     (:func:`mysim_jax.perception.ground.view_ground`) in grey levels 0-255, plus white
     pixel noise of ``noise_sigma`` grey levels (seeded)."""
-    from mysim_jax.perception.camera import camera_poses
-    from mysim_jax.perception.ground import GroundTexture, view_ground
-
     texture = texture or GroundTexture(seed=seed)
     poses = camera_poses(job.columns, job.camera)
     rng = np.random.default_rng(seed)
@@ -987,11 +977,6 @@ def render_scene_images(job: PerceptionJob, noise_sigma: float = 1.0,
     every other UAV, the net, the tethers and the target that come into view (moving
     objects whose features the front end has to reject), in grey levels 0-255 (OpenCV's
     RGB -> grey weights), plus white pixel noise of ``noise_sigma`` grey levels (seeded)."""
-    import cv2
-
-    from mysim_jax.perception.ground import GroundTexture
-    from mysim_jax.perception.render import Renderer
-
     renderer = Renderer(job.config, job.camera_model.intr, texture=GroundTexture(seed=seed))
     rng = np.random.default_rng(seed)
     for frame in renderer.render_many(job.columns, job.camera, [int(r) for r in job.rows], progress=False):
@@ -1002,8 +987,6 @@ def render_scene_images(job: PerceptionJob, noise_sigma: float = 1.0,
 
 def draw_features(image: np.ndarray, features, text: str = "") -> np.ndarray:
     """(H, W, 3) BGR copy of a grey image with its features: tracked ones green, new ones red."""
-    import cv2
-
     out = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
     n_old = len(features.ids) - features.n_new
     radius = max(2, image.shape[1] // 200)
@@ -1030,14 +1013,6 @@ def run_perception(job: PerceptionJob, out_dir: str | os.PathLike, config: VioCo
     tracked features (``frame_<t>.png``) and, with ``video``, ``features.mp4`` (the image
     sequence with the features drawn). Returns the metrics.
     """
-    import json
-    import time
-
-    import cv2
-    from tqdm import tqdm
-
-    from mysim_jax.perception.metrics import gauss_markov_fit, plot_estimates, trajectory_errors, write_tum
-
     out = Path(out_dir)
     seed = job.seed
     imu = job.imu
@@ -1076,7 +1051,7 @@ def run_perception(job: PerceptionJob, out_dir: str | os.PathLike, config: VioCo
     if writer is not None:
         writer.release()
     vio_wall = time.perf_counter() - t0
-    vio = Trajectory(t=np.asarray(ts), p=np.asarray(ps), q=matrix_to_quat(np.asarray(Rs)))
+    vio = PoseTrack(t=np.asarray(ts), p=np.asarray(ps), q=matrix_to_quat(np.asarray(Rs)))
     t1 = time.perf_counter()
     dr = dead_reckoning(imu, init, vio.t, noise, gravity=job.gravity)
     dr_wall = time.perf_counter() - t1

@@ -52,7 +52,7 @@ and ``γ`` = ``env.discount``; ``info["terms"]`` holds every weighted term ``(n_
 **Episode end.** ``terminated`` on success (the target held at every policy step over
 ``success.hold_time``, from its first held step: the measure of
 :func:`~mysim_jax.tasks.outcome.capture_outcome` on the policy-step grid)
-or any failure (:data:`~mysim_jax.tasks.env_config.FAILURES`); ``truncated`` when the
+or any failure (:data:`~mysim_jax.config.env.FAILURES`); ``truncated`` when the
 time limit is reached without either. ``info`` flags which (``success``,
 ``failures[name]``, ``timeout``; ``missed`` when the target reached the ground, ``crashed``
 for any other failure) and carries the episode's return and length. On either,
@@ -76,19 +76,20 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from mysim_jax import rng
 from mysim_jax.build import build
+from mysim_jax.config.capture import TeamConfig
+from mysim_jax.config.env import (COST_TERMS, CRASHES, FAILURES, MISSES, OUTCOME_TERMS, REWARD_TERMS,
+                                  SHAPING_TERMS, NoiseConfig)
 from mysim_jax.control.setpoint import setpoint_from_action
+from mysim_jax.core import rng
+from mysim_jax.core.types import Params, State
 from mysim_jax.dynamics.quaternion import quat_rotate
+from mysim_jax.effects.target import spawn_target
 from mysim_jax.sim import step as sim_step
-from mysim_jax.tasks.env_config import (COST_TERMS, CRASHES, FAILURES, MISSES, OUTCOME_TERMS, REWARD_TERMS,
-                                        SHAPING_TERMS, NoiseConfig)
 from mysim_jax.tasks.intercept import CatchPoint, predict_catch
 from mysim_jax.tasks.outcome import border_knots
 from mysim_jax.tasks.rewards import Snapshot, checks, cost_terms, outcome_terms, potential_terms
 from mysim_jax.tasks.scripted import team_policy
-from mysim_jax.tasks.target import spawn_target
-from mysim_jax.types import Params, State
 
 
 @struct.dataclass
@@ -663,6 +664,4 @@ def _perception(config, policy_dt: float) -> list:
 
 
 def _default_team():
-    from mysim_jax.tasks.config import TeamConfig
-
     return TeamConfig(policy="scripted")

@@ -37,9 +37,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from mysim_jax.config.env import FAILURES, REWARD_TERMS
 from mysim_jax.control.setpoint import setpoint_from_action
+from mysim_jax.io.trajectory import trajectory_columns
 from mysim_jax.sim import Trajectory, accelerations, effect_updates, held_inputs
-from mysim_jax.tasks.env_config import FAILURES, REWARD_TERMS
+from mysim_jax.tasks.evaluate import episode_keys
+from mysim_jax.tuning.tracking import motor_columns, reference_columns
 
 
 def held_accelerations(env, sim_params, sim, actions):
@@ -65,8 +68,6 @@ def episode_rollout(env, params, policy, key, index=0):
     (``auto_reset=False``): rows after the first ``done`` step on from the ended episode's
     state, and :func:`record_episode` drops them.
     """
-    from mysim_jax.tasks.evaluate import episode_keys
-
     k_reset, _, _ = episode_keys(key, index, 0)
     obs, start = env.reset(k_reset, params)
     sim_params = env.episode_params(params, start.episode)
@@ -148,9 +149,6 @@ def record_episode(env, params, policy, key, index: int = 0) -> EpisodeRecord:
 def record_columns(env, record: EpisodeRecord) -> dict[str, np.ndarray]:
     """The ``trajectory.csv`` columns ``scripts/simulate.py`` writes (states, then the
     controller's reference and motor columns) for a recorded episode."""
-    from mysim_jax.control.tracking import motor_columns, reference_columns
-    from mysim_jax.io.trajectory import trajectory_columns
-
     traj = record.trajectory
     columns = trajectory_columns(env.scene, traj)
     columns.update(reference_columns(env.scene, record.sim_params, traj.time))

@@ -9,7 +9,7 @@ evaluated with one key fly the same episodes, and their outcomes can be compared
 by episode (:func:`mysim_jax.tasks.sweep.paired_difference_interval`).
 
 :func:`run_episodes` runs ``batch`` environment slots side by side (one jitted batch-last
-:func:`mysim_jax.batching.vmap` of :meth:`CaptureEnv.step` scanned over ``chunk`` policy
+:func:`mysim_jax.core.batching.vmap` of :meth:`CaptureEnv.step` scanned over ``chunk`` policy
 steps per call, a progress bar between calls). Episodes ``0 .. batch − 1`` start in the
 slots; each slot holds the number of the episode it starts next, and when its episode
 ends it resets into that one at once. Between calls, slots that have started their next
@@ -33,9 +33,10 @@ from dataclasses import dataclass, field
 import jax
 import jax.numpy as jnp
 import numpy as np
+from tqdm.auto import tqdm
 
-from mysim_jax import batching, parallel
-from mysim_jax.tasks.env_config import FAILURES, REWARD_TERMS
+from mysim_jax.core import batching, parallel
+from mysim_jax.config.env import FAILURES, REWARD_TERMS
 from mysim_jax.tasks.sweep import wilson_interval
 
 
@@ -156,7 +157,7 @@ class Evaluator:
         self._compiled = {}
 
     def _advance(self, batch: int):
-        # batch axis last inside, in cache-sized blocks (mysim_jax.batching); split over
+        # batch axis last inside, in cache-sized blocks (mysim_jax.core.batching); split over
         # this process's devices when it has several
         if batch not in self._compiled:
             self._compiled[batch] = parallel.jit_envs(self._batched, batch, in_axes=(0, None, None))
@@ -178,7 +179,6 @@ class Evaluator:
         rows = {}
         bar = None
         if progress:
-            from tqdm.auto import tqdm
             bar = tqdm(total=n, desc=desc, unit="ep")
         steps = 0
         while len(rows) < n:

@@ -5,7 +5,7 @@ A falling sphere of mass ``m`` and drag constant ``k = ½ ρ C_d π r²`` obeys
 
     dv/dt = g − (k / m) |v| v,         dp/dt = v
 
-(quadratic drag in still air, as :mod:`mysim_jax.tasks.target` applies it). Quadratic drag
+(quadratic drag in still air, as :mod:`mysim_jax.effects.target` applies it). Quadratic drag
 couples the axes through ``|v|``, so there is no closed form for the time at which the
 target comes down to the height ``z_catch`` of the net; :func:`predict_catch` integrates
 the two equations above with ``n_steps`` fixed midpoint (RK2) steps over ``horizon``
@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from mysim_jax import vecmath
+from mysim_jax.core import vecmath
 
 HORIZON = 3.0     # s, how far ahead the fall is integrated
 N_STEPS = 30      # midpoint steps over the horizon (0.1 s each)
@@ -71,7 +71,7 @@ def predict_catch(pos, vel, z_catch, gravity, drag_per_mass, horizon: float = HO
     # the first sample at or below z_catch (the last one when none is)
     i = jnp.where(crossed, jnp.argmax(below), n_steps)
     j = jnp.maximum(i - 1, 0)
-    # rows i and j as masked sums, not gathers: batch-last (mysim_jax.batching) has a rule
+    # rows i and j as masked sums, not gathers: batch-last (mysim_jax.core.batching) has a rule
     # for every primitive of the step, and gathers with traced indices are not among them
     rows = jnp.arange(n_steps + 1)
     pick = lambda x, k: jnp.sum(jnp.where((rows == k)[:, None], x, 0.0), axis=0)   # noqa: E731

@@ -26,7 +26,7 @@ import numpy as np
 from matplotlib.path import Path as PolygonPath
 
 from mysim_jax.dynamics.forces import spring_tension
-from mysim_jax.npgeom import rotate
+from mysim_jax.core.npgeom import rotate
 
 MAX_RELATIVE_SPEED = 0.5   # m/s
 NET_SURFACE_KNOTS = 3      # knots whose mean height is the net under the target (rewards.above_net)

@@ -5,7 +5,7 @@ Two steps, both on files the other scripts write:
 * :func:`perception_block` turns measured estimation errors (the ``error_model`` of
   ``scripts/perceive.py``'s ``metrics.json``: a first-order Gauss-Markov fit of each
   estimate's unaligned error) into an ``env.perception`` block
-  (:class:`mysim_jax.tasks.env_config.PerceptionConfig`): the UAVs' position and velocity
+  (:class:`mysim_jax.config.env.PerceptionConfig`): the UAVs' position and velocity
   errors from their visual-inertial odometry, the target's from the team's fused
   localisation. Several UAVs' fits combine into one (``sigma``: the RMS over UAVs;
   correlation time: their mean).

@@ -29,7 +29,7 @@ are the episode's last (the functional env's ``info["final_obs"]`` and
 
 **Infos** per agent at each step: ``terms`` (the agent's weighted reward terms, floats,
 summing to its reward), ``success``, ``failed``, ``failures`` (name -> bool, the checks of
-:data:`~mysim_jax.tasks.env_config.FAILURES`), ``timeout``, ``held``, ``touching`` and the
+:data:`~mysim_jax.config.env.FAILURES`), ``timeout``, ``held``, ``touching`` and the
 episode's running ``episode_return`` (the agent's) and ``episode_length`` (steps). The
 infos of ``reset`` are empty dicts.
 
@@ -52,6 +52,9 @@ import gymnasium
 import jax
 import numpy as np
 from gymnasium import spaces
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from matplotlib.patches import Circle
 from pettingzoo import ParallelEnv
 
 from mysim_jax.tasks.capture import CaptureEnv, EnvParams, make_env
@@ -219,10 +222,6 @@ class CaptureParallelEnv(ParallelEnv):
                 for i, a in enumerate(self.possible_agents)}
 
     def _render_rgb(self) -> np.ndarray:
-        from matplotlib.backends.backend_agg import FigureCanvasAgg
-        from matplotlib.figure import Figure
-        from matplotlib.patches import Circle
-
         env = self.capture_env
         phys = jax.device_get(self._state.sim.phys)
         uav = np.asarray(phys.body_pos)[list(env.quad_bodies)]

@@ -15,11 +15,21 @@ replays slot 0's first episode, and writes into ``out`` (through
 
 from __future__ import annotations
 
+import csv
 import json
 from pathlib import Path
 
 import jax
 import numpy as np
+
+from mysim_jax.config.scene import dump_config
+from mysim_jax.io.eval_plots import episode_columns, evaluation_plots, outcome_labels, plot_episode_rewards
+from mysim_jax.io.output import staged_output
+from mysim_jax.io.trajectory import write_trajectory_csv
+from mysim_jax.tasks.capture_plots import capture_report
+from mysim_jax.tasks.episode import record_columns, record_episode, step_columns
+from mysim_jax.tasks.evaluate import run_episodes
+from mysim_jax.tasks.sweep import paired_difference_interval
 
 
 def write_evaluation(out: Path, config, env, params, policy, *, policy_name: str, episodes: int, batch: int,
@@ -29,14 +39,6 @@ def write_evaluation(out: Path, config, env, params, policy, *, policy_name: str
     """Evaluate ``policy`` on ``episodes`` episodes and write the report into ``out``.
     Returns the ``metrics.json`` dict. ``stats``: the episodes' EpisodeStats when they
     have been run already (episodes ``0 .. episodes − 1`` of ``seed``)."""
-    from mysim_jax.config import dump_config
-    from mysim_jax.io.capture_plots import capture_report
-    from mysim_jax.io.eval_plots import episode_columns, evaluation_plots, outcome_labels, plot_episode_rewards
-    from mysim_jax.io.output import staged_output
-    from mysim_jax.io.trajectory import write_trajectory_csv
-    from mysim_jax.tasks.episode import record_columns, record_episode, step_columns
-    from mysim_jax.tasks.evaluate import run_episodes
-
     key = jax.random.PRNGKey(seed)
     batch = min(batch, episodes)
     if stats is None:
@@ -102,8 +104,6 @@ def compare(a, b, names=("a", "b")) -> dict:
     paired difference ``a − b`` with its 95 % interval
     (:func:`~mysim_jax.tasks.sweep.paired_difference_interval`), and the episode counts
     where only one of them succeeded."""
-    from mysim_jax.tasks.sweep import paired_difference_interval
-
     if a.n != b.n:
         raise ValueError(f"compare: {a.n} and {b.n} episodes; a paired comparison needs the same episodes")
     d, lo, hi = paired_difference_interval(a.success, b.success)
@@ -127,10 +127,6 @@ def write_comparison(out: Path, a, b, *, names=("a", "b"), seed: int | None = No
     """Write ``comparison.json`` and ``comparison_episodes.csv`` (per episode, each team's
     outcome and length) into the existing folder ``out``; returns the comparison
     (:func:`compare`)."""
-    import csv
-
-    from mysim_jax.io.eval_plots import outcome_labels
-
     out = Path(out)
     result = {**compare(a, b, names), "seed": seed, **(extra or {})}
     (out / "comparison.json").write_text(json.dumps(result, indent=2))

@@ -9,7 +9,7 @@ with ``F`` potential-based shaping (Ng, Harada & Russell 1999), ``c`` a per-step
 ``−Φ(s_0)`` to every discounted return whatever the team does, so it guides learning but
 cannot change which policy is optimal; and because ``Φ`` and the cost are bounded, no
 episode's accumulated shaping and cost can outweigh its outcome when the outcome weights
-exceed the bound :func:`~mysim_jax.tasks.env_config.return_bounds` computes (a scene whose
+exceed the bound :func:`~mysim_jax.config.env.return_bounds` computes (a scene whose
 weights do not is refused when it is loaded). So for every team a caught episode returns
 more than any missed one, and a missed one more than any crashed one.
 
@@ -44,7 +44,7 @@ position; ``(·)_xy`` the horizontal part; scales ``L_d, V_a, Ω, L_s, D, V_s`` 
 
 Outcomes (beyond the paper, which has none): **success** ``+1`` on the step the target
 has been held for ``hold_time`` (an evading target with entanglement,
-:mod:`mysim_jax.tasks.entanglement`, is held only once its entanglement reaches
+:mod:`mysim_jax.effects.entanglement`, is held only once its entanglement reaches
 ``success.min_entanglement``: a drone still flying can sit in the net's outline without
 being caught); **miss** ``−1`` on the step the target reaches the
 ground; **crash** ``−1`` on the step a UAV fails (ground, tilt, altitude, a collision, a
@@ -58,7 +58,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from mysim_jax import vecmath
+from mysim_jax.core import vecmath
 from mysim_jax.dynamics.quaternion import quat_rotate
 
 
@@ -79,7 +79,7 @@ class Snapshot:
     attach: jnp.ndarray         # (n_tethers, 3) m, tether attachment markers
     line_a: jnp.ndarray         # (n_lines, 3) m, ends of the net's line segments
     line_b: jnp.ndarray         # (n_lines, 3) m
-    # () in [0, 1], the evading target's entanglement (mysim_jax.tasks.entanglement);
+    # () in [0, 1], the evading target's entanglement (mysim_jax.effects.entanglement);
     # None in scenes without it
     entanglement: jnp.ndarray | None = None
 
@@ -195,7 +195,7 @@ def checks(snap: Snapshot, *, target_radius, line_radius, contact_margin, succes
 
 def potential_terms(snap: Snapshot, flags: Checks, *, catch_point, slots, scales, touched) -> dict:
     """The unweighted potential terms ``φ_k`` ``name -> (n,)`` of one state (module
-    docstring; :data:`~mysim_jax.tasks.env_config.SHAPING_TERMS`). ``catch_point`` (3,) m;
+    docstring; :data:`~mysim_jax.config.env.SHAPING_TERMS`). ``catch_point`` (3,) m;
     ``slots`` (n, 3) m; ``scales`` a RewardScales; ``touched`` (): the target has touched
     the net in this episode (this state included)."""
     n = snap.uav_pos.shape[0]

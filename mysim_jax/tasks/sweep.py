@@ -12,18 +12,19 @@ from __future__ import annotations
 import math
 import types
 from dataclasses import dataclass
+import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mysim_jax import batching, parallel
+from mysim_jax.core import batching, parallel
 from mysim_jax.build import build
 from mysim_jax.io.trajectory import trajectory_columns
 from mysim_jax.sim import rollout, steps_per_output
 from mysim_jax.tasks.outcome import CaptureOutcome, capture_outcome
 from mysim_jax.tasks.scripted import team_policy
-from mysim_jax.tasks.target import spawn_target
+from mysim_jax.effects.target import spawn_target
 
 
 @dataclass
@@ -79,8 +80,6 @@ def paired_difference_interval(a, b, z: float = 1.96) -> tuple[float, float, flo
 
 def capture_sweep(config, seeds) -> SweepResult:
     """Run ``config`` (a capture SceneConfig with ``net``, ``target`` and ``team``) once per seed."""
-    import time
-
     seeds = list(seeds)
     scene, params, state = build(config)
     policy = team_policy(config, scene)

@@ -54,13 +54,16 @@ def default_weights_path() -> Path:
 def load_detector(path: str | Path | None = None):
     """The learned detector with weights from ``path`` (default: the committed ones,
     :func:`default_weights_path`). Returns a :class:`~mysim_jax.perception.detect.model.CNNDetector`."""
+    # imported here: the model imports JAX and flax, this module NumPy only (and the model
+    # imports Detection from here)
     from mysim_jax.perception.detect.model import CNNDetector
 
     return CNNDetector.load(default_weights_path() if path is None else path)
 
 
 def __getattr__(name):
-    # the baseline imports OpenCV, the CNN imports JAX: both only when asked for
+    # the baseline imports OpenCV, the CNN imports JAX: both only when asked for (and both
+    # import Detection from here)
     if name == "ColourBlobDetector":
         from mysim_jax.perception.detect.classical import ColourBlobDetector
         return ColourBlobDetector

@@ -2,7 +2,7 @@
 
 Unknown keys, booleans given for numbers, non-positive sizes or counts, probabilities outside
 [0, 1] and crops that do not fit the image are errors naming the field
-(:class:`~mysim_jax.config_base.ConfigError`).
+(:class:`~mysim_jax.core.config_base.ConfigError`).
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from typing import Annotated, Literal
 
 from pydantic import Field, ValidationError, model_validator
 
-from mysim_jax.config_base import (ConfigError, PosFloat, StrictModel, format_validation_error, read_yaml_file)
+from mysim_jax.core.config_base import (ConfigError, PosFloat, StrictModel, format_validation_error, read_yaml_file)
 
 PosInt = Annotated[int, Field(gt=0)]
 Prob = Annotated[float, Field(ge=0.0, le=1.0, allow_inf_nan=False)]

@@ -50,6 +50,7 @@ the share of the whole silhouette outside it; the counted fraction is
 
 from __future__ import annotations
 
+import colorsys
 import copy
 from dataclasses import dataclass, field
 from functools import lru_cache
@@ -59,7 +60,8 @@ from typing import Iterator
 import numpy as np
 import yaml
 
-from mysim_jax.perception.camera import CameraPoses, intrinsics
+from mysim_jax.config.scene import config_from_dict
+from mysim_jax.perception.camera import CameraPoses, Intrinsics, intrinsics
 from mysim_jax.perception.ground import GroundTexture
 from mysim_jax.perception.render import Lighting, Renderer
 
@@ -109,8 +111,6 @@ def random_palette(rng: np.random.Generator) -> Palette:
     grey to saturated, its dark and light tones 0-40 deg of hue apart; sky of any hue, mostly
     pale. Redrawn while both ground colours are within ``PALETTE_EXCLUSION`` of a held-out
     palette's."""
-    import colorsys
-
     def hsv(h, s, v):
         return tuple(float(x) for x in colorsys.hsv_to_rgb(h % 1.0, s, v))
 
@@ -174,8 +174,6 @@ class Sample:
 def scene_config(kind: str):
     """The capture scene of target ``kind`` ('sphere' or 'drone'), cameras removed (the
     dataset's camera is a free one)."""
-    from mysim_jax.config import config_from_dict
-
     raw = yaml.safe_load(SCENE_FILES[kind].read_text())
     raw = copy.deepcopy(raw)
     for q in raw.get("quadrotors", []):
@@ -341,8 +339,6 @@ def whole_silhouette_px(renderer_args: dict, intr, columns, poses, depth: float,
     """Pixels of the target's unoccluded silhouette in an image of ``intr``'s camera widened on
     every side by the target's apparent diameter plus 2 px (so none of it is cut), rendered
     with ``Renderer(**renderer_args)``."""
-    from mysim_jax.perception.camera import Intrinsics
-
     pad = int(np.ceil(2.0 * intr.fx * radius / max(depth, 1e-3))) + 2
     wide = Intrinsics(width=intr.width + 2 * pad, height=intr.height + 2 * pad, fx=intr.fx, fy=intr.fy,
                       cx=intr.cx + pad, cy=intr.cy + pad)

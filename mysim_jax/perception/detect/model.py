@@ -63,9 +63,10 @@ import jax.numpy as jnp
 import numpy as np
 from flax import serialization
 
-from mysim_jax import rng
+from mysim_jax.core import rng
 from mysim_jax.perception.camera import PerceptionError
 from mysim_jax.perception.detect import Detection
+from mysim_jax.perception.detect.refine import Refiner, RefineSettings, normalise
 
 STRIDE = 4          # px of network input per output cell
 PYRAMID_NMS_IOU = 0.5   # boxes of pyramid levels overlapping more than this are one detection
@@ -102,11 +103,6 @@ class CenterNet(nn.Module):
                        bias_init=nn.initializers.constant(-4.0))(head)
         box = nn.Conv(4, (1, 1), name="box", kernel_init=rng.as_matrix(nn.initializers.normal(1e-3)))(head)
         return jnp.concatenate([heat, box], axis=-1)
-
-
-def normalise(images: np.ndarray | jnp.ndarray):
-    """uint8 RGB -> float32 in [-0.5, 0.5]."""
-    return jnp.asarray(images, jnp.float32) * (1.0 / 255.0) - 0.5
 
 
 # --- training targets and loss ----------------------------------------------------------------
@@ -359,8 +355,6 @@ class CNNDetector:
             raise PerceptionError(f"{path} was written for output stride {meta.get('stride')}, this code uses {STRIDE}")
         refiner = None
         if meta.get("refine") is not None:
-            from mysim_jax.perception.detect.refine import Refiner, RefineSettings
-
             settings = RefineSettings.from_dict(meta["refine"])
             try:
                 members = [blob["refine_params" if k == 0 else f"refine_params_{k}"] for k in range(settings.members)]

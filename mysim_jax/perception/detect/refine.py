@@ -48,7 +48,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mysim_jax import rng
+from mysim_jax.core import rng
+from mysim_jax.perception.camera import PerceptionError
+from mysim_jax.perception.detect import Detection
+from mysim_jax.perception.detect.metrics import iou
 
 POS_IOU = 0.25       # a candidate at least this IoU with a counted target is a positive
 IGNORE_IOU = 0.1     # below POS_IOU but above this (or above this with an ignored target): no label
@@ -77,6 +80,11 @@ class RefineNet(nn.Module):
 
 
 # --- windows ----------------------------------------------------------------------------------
+
+
+def normalise(images: np.ndarray | jnp.ndarray):
+    """uint8 RGB -> float32 in [-0.5, 0.5]."""
+    return jnp.asarray(images, jnp.float32) * (1.0 / 255.0) - 0.5
 
 
 def windows_of(boxes: np.ndarray, context: float, min_px: float) -> np.ndarray:
@@ -133,8 +141,6 @@ def apply(model: RefineNet, params, windows_u8, prior, flip: bool = False):
     """Probabilities (N,) and boxes (N, 4) in window units of ``windows_u8`` (N, S, S, 3) uint8
     whose candidates are ``prior`` (N, 4) window units. ``flip``: also run on the mirrored
     windows and average the two passes' probabilities and boxes."""
-    from mysim_jax.perception.detect.model import normalise
-
     out = model.apply({"params": params}, normalise(windows_u8))
     p = jax.nn.sigmoid(out[:, 0])
     box = prior + out[:, 1:]
@@ -158,8 +164,6 @@ def sample_labels(candidates: np.ndarray, truth: list) -> tuple[np.ndarray, np.n
     """Labels of one frame's (N, 4) candidate boxes against its ground truth [(box, ignore)]:
     (N,) label 1 / 0, (N,) weight 1 / 0 (no label), (N, 4) target box (px; the candidate's own
     where there is none). See the module doc."""
-    from mysim_jax.perception.detect.metrics import iou
-
     n = len(candidates)
     label, weight = np.zeros(n, np.float32), np.ones(n, np.float32)
     target = np.asarray(candidates, float).copy()
@@ -178,8 +182,6 @@ def sample_labels(candidates: np.ndarray, truth: list) -> tuple[np.ndarray, np.n
 
 def loss_fn(params, model: RefineNet, windows_u8, prior, label, weight, target, box_weight: float):
     """BCE of the target logit (where ``weight``) + ``box_weight`` x L1 of the edges (positives)."""
-    from mysim_jax.perception.detect.model import normalise
-
     out = model.apply({"params": params}, normalise(windows_u8))
     logit = out[:, 0]
     bce = -(label * jax.nn.log_sigmoid(logit) + (1 - label) * jax.nn.log_sigmoid(-logit))
@@ -239,8 +241,6 @@ class Refiner:
     ``settings.members`` parameter trees): ``refine(images, candidates)``."""
 
     def __init__(self, members, settings: RefineSettings = RefineSettings()):
-        from mysim_jax.perception.camera import PerceptionError
-
         if isinstance(members, Mapping) or len(members) != settings.members:
             got = "one parameter tree" if isinstance(members, Mapping) else f"{len(members)}"
             raise PerceptionError(f"the second stage has {settings.members} network(s) (settings.members), "
@@ -257,8 +257,6 @@ class Refiner:
     def refine(self, images: list[np.ndarray], candidates: list[list]) -> list[list]:
         """Per image, its candidates (Detections, best first) looked at again: Detections with
         the second stage's box and score (``settings.score``), best first, before suppression."""
-        from mysim_jax.perception.detect import Detection
-
         s = self.settings
         picked = [c[: s.max_candidates] for c in candidates]
         owner = [i for i, c in enumerate(picked) for _ in c]

@@ -23,7 +23,7 @@ frame's ground truth; the window is cut around it, at a random lower resolution 
 probability ``p_low_res`` (as if the target were up to ``low_res_max`` times farther: the
 window is cut at that many times fewer pixels and enlarged back), mirrored with probability
 0.5, and given the first stage's photometric augmentation (``train.gamma``,
-``train.photometric``, ...).
+``steps.photometric``, ...).
 """
 
 from __future__ import annotations
@@ -33,16 +33,20 @@ import json
 from pathlib import Path
 
 import cv2
+import jax
 import numpy as np
+import optax
+from tqdm.auto import tqdm
 
 from mysim_jax.perception.detect.config import DetectorConfig
 from mysim_jax.perception.detect.dataset import OCCLUDED_SCENES
+from mysim_jax.perception.detect.refine import (RefineNet, cut_windows, loss_fn, mirror_window_boxes, sample_labels,
+                                                to_window, windows_of)
+from mysim_jax.perception.detect.steps import photometric, prefetch, run_steps, truths
 
 
 def collect_candidates(detector, images, floor: float, progress: bool = True, name: str = "") -> list[list]:
     """Per frame, the first stage's candidates: [(box (4,) px, score)] scoring >= ``floor``, best first."""
-    from tqdm.auto import tqdm
-
     out = []
     for i in tqdm(range(len(images)), desc=f"candidates {name}", unit="frame", disable=not progress):
         dets = detector.detect(np.asarray(images[i]), min_score=floor)
@@ -82,9 +86,6 @@ class SamplePool:
     """The training frames' candidates sorted into positives and negatives (unjittered)."""
 
     def __init__(self, labels: list[dict], candidates: list[list]):
-        from mysim_jax.perception.detect.refine import sample_labels
-        from mysim_jax.perception.detect.train import truths
-
         self.truths = truths(labels)
         self.positives, self.negatives = [], []
         for i, (cands, truth) in enumerate(zip(candidates, self.truths)):
@@ -118,9 +119,6 @@ def _pick(everything: list, by: tuple[list, list], p_hidden: float | None, rng: 
 
 def make_sample(images, pool: SamplePool, cfg: DetectorConfig, rng: np.random.Generator):
     """One training window: (S, S, 3) uint8, prior (4,) and target (4,) window units, label, weight."""
-    from mysim_jax.perception.detect.refine import cut_windows, mirror_window_boxes, sample_labels, to_window, windows_of
-    from mysim_jax.perception.detect.train import photometric
-
     r = cfg.refine
     u = rng.random()
     if u < r.p_synthetic and pool.counted:
@@ -162,12 +160,6 @@ def batch_of(images, pool: SamplePool, cfg: DetectorConfig, rng: np.random.Gener
 def train_refiner(cfg: DetectorConfig, images, pool: SamplePool, progress: bool = True, log=None, params=None,
                   desc: str = "train refiner"):
     """Train the second stage from scratch (or from ``params``); returns (params, [(step, loss)])."""
-    import jax
-    import optax
-
-    from mysim_jax.perception.detect.refine import RefineNet, loss_fn
-    from mysim_jax.perception.detect.train import _prefetch, run_steps
-
     r = cfg.refine
     model = RefineNet(widths=tuple(r.widths), hidden=r.hidden)
     if params is None:
@@ -186,6 +178,6 @@ def train_refiner(cfg: DetectorConfig, images, pool: SamplePool, progress: bool 
         return optax.apply_updates(params, updates), opt_state, loss, parts
 
     rng = np.random.default_rng(r.seed)
-    batches = _prefetch(lambda: batch_of(images, pool, cfg, rng), r.steps)
+    batches = prefetch(lambda: batch_of(images, pool, cfg, rng), r.steps)
     return run_steps(step, params, opt_state, batches, r.steps, desc, "refine.learning_rate",
                      ("cls", "box"), progress=progress, log=log)

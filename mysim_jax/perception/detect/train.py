@@ -26,17 +26,34 @@ config's inference settings (``model.pyramid``, ``model.pyramid_band_px``, ``mod
 
 from __future__ import annotations
 
+from dataclasses import replace
 import hashlib
 import json
 import time
 from itertools import zip_longest
+import multiprocessing as mp
 from pathlib import Path
 
 import cv2
+import jax
 import numpy as np
+import optax
+from tqdm.auto import tqdm
+import yaml
+import matplotlib
 
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+from mysim_jax.perception.camera import PerceptionError
+from mysim_jax.perception.detect.classical import ColourBlobDetector
 from mysim_jax.perception.detect.config import DetectorConfig
-from mysim_jax.perception.detect.dataset import DatasetSpec, is_ignored, render_sample
+from mysim_jax.perception.detect.dataset import DatasetSpec, render_sample
+from mysim_jax.perception.detect.metrics import iou, match, pr_curve, summary
+from mysim_jax.perception.detect.model import CNNDetector, CenterNet, encode_targets, loss_fn
+from mysim_jax.perception.detect.refine import RefineSettings, Refiner, normalise
+from mysim_jax.perception.detect.refine_train import SamplePool, cached_candidates, train_refiner
+from mysim_jax.perception.detect.steps import photometric, prefetch, run_steps, truths
 
 SETS = {"train": "train", "eval_in": "train", "eval_held_out": "held_out"}
 # frame indices of the in-distribution evaluation set start here (after any training frame)
@@ -84,8 +101,6 @@ def build_set(spec: DatasetSpec, folder: Path, name: str, first: int = 0, worker
     """Render frames ``first .. first + n - 1`` of ``spec`` into ``folder/NAME.npy`` (uint8
     (n, H, W, 3)) and ``folder/NAME.json`` (labels), or read them if already there for the
     same spec. Returns the images (a read-only memory map) and the labels."""
-    from tqdm.auto import tqdm
-
     folder.mkdir(parents=True, exist_ok=True)
     key = hashlib.sha1(repr((spec, first, LABELS_VERSION)).encode()).hexdigest()[:12]
     npy, js = folder / f"{name}_{key}.npy", folder / f"{name}_{key}.json"
@@ -99,8 +114,6 @@ def build_set(spec: DatasetSpec, folder: Path, name: str, first: int = 0, worker
     jobs = [(spec, str(npy.with_suffix(".part.npy")), first, c) for c in chunks]
     bar = tqdm(total=spec.n_images, desc=f"render {name}", unit="frame", disable=not progress)
     if workers > 1:
-        import multiprocessing as mp
-
         with mp.get_context("spawn").Pool(workers) as pool:
             for indices, labs in pool.imap_unordered(_render_chunk, jobs):
                 for i, lab in zip(indices, labs):
@@ -116,21 +129,6 @@ def build_set(spec: DatasetSpec, folder: Path, name: str, first: int = 0, worker
     npy.with_suffix(".part.npy").rename(npy)
     js.write_text(json.dumps(labels))
     return np.load(npy, mmap_mode="r"), labels
-
-
-def truths(labels: list[dict], count_truncated: bool = False, cfg: DetectorConfig | None = None) -> list[list]:
-    """Ground truth per frame as the metrics take it: [(box, ignore)] or [].
-
-    ``count_truncated``: count targets however much of them the image border cuts off (the
-    share of the silhouette within the image decides, not of the whole; ``cfg.data`` gives the
-    thresholds), instead of the labels' ``ignore``."""
-    if not count_truncated:
-        return [[] if lab["box"] is None else [(np.asarray(lab["box"]), lab["ignore"])] for lab in labels]
-    d = cfg.data
-    return [[] if lab["box"] is None else
-            [(np.asarray(lab["box"]), is_ignored(lab["visible_px"], lab["visible_fraction"], 0.0, d.min_visible_px,
-                                                 d.min_visible_fraction))]
-            for lab in labels]
 
 
 # --- crops and augmentation -------------------------------------------------------------------
@@ -184,29 +182,7 @@ def make_crop(image: np.ndarray, label: dict, cfg: DetectorConfig, rng: np.rando
     return photometric(crop, t, rng), boxes
 
 
-def photometric(crop: np.ndarray, t, rng: np.random.Generator) -> np.ndarray:
-    """``crop`` (uint8 RGB) with the photometric augmentation of the train settings ``t``: a
-    random gamma, contrast (about the mean) and saturation (about each pixel's grey), a
-    brightness gain and offset and per-channel (white balance) gains."""
-    if not (t.photometric > 0 or t.colour_jitter > 0 or t.gamma > 0 or t.contrast > 0 or t.saturation > 0):
-        return crop
-    x = crop.astype(np.float32) * (1.0 / 255.0)
-    x = x ** np.float32(np.exp(rng.uniform(-t.gamma, t.gamma)))
-    if t.contrast > 0:          # about the crop's mean
-        mean = x.mean()
-        x = mean + (x - mean) * np.float32(np.exp(rng.uniform(np.log(1 - t.contrast), np.log(1 + t.contrast))))
-    if t.saturation > 0:        # about each pixel's grey (Rec. 601 luma); 0 is a grey image
-        grey = x @ np.array([0.299, 0.587, 0.114], np.float32)
-        x = grey[..., None] + (x - grey[..., None]) * np.float32(rng.uniform(1 - t.saturation, 1 + t.saturation))
-    gain = np.exp(rng.uniform(np.log(1 - t.photometric), np.log(1 + t.photometric)))
-    gain = gain * (1 + rng.uniform(-t.colour_jitter, t.colour_jitter, 3))
-    x = x * gain.astype(np.float32) + np.float32(rng.uniform(-0.05, 0.05) if t.photometric > 0 else 0.0)
-    return np.clip(x * 255.0 + 0.5, 0, 255).astype(np.uint8)
-
-
 def batch_of(images, labels, idx, cfg: DetectorConfig, rng):
-    from mysim_jax.perception.detect.model import encode_targets
-
     crops, targets = [], []
     for i in idx:
         crop, boxes = make_crop(np.asarray(images[i]), labels[i], cfg, rng)
@@ -220,11 +196,6 @@ def batch_of(images, labels, idx, cfg: DetectorConfig, rng):
 
 def make_trainer(cfg: DetectorConfig):
     """(model, optimiser, jitted step(params, opt_state, images, targets) -> (params, opt_state, loss, parts))."""
-    import jax
-    import optax
-
-    from mysim_jax.perception.detect.model import CenterNet, loss_fn
-
     t = cfg.train
     model = CenterNet(widths=tuple(cfg.model.widths))
     schedule = optax.warmup_cosine_decay_schedule(0.0, t.learning_rate, max(t.warmup_steps, 1), max(t.steps, 2),
@@ -241,10 +212,6 @@ def make_trainer(cfg: DetectorConfig):
 
 
 def init_params(cfg: DetectorConfig, seed: int | None = None):
-    import jax
-
-    from mysim_jax.perception.detect.model import CenterNet, normalise
-
     model = CenterNet(widths=tuple(cfg.model.widths))
     C = cfg.train.crop
     key = jax.random.PRNGKey(cfg.train.seed if seed is None else seed)
@@ -255,9 +222,6 @@ def init_from(cfg: DetectorConfig, path: str | Path):
     """The parameters of the weights file ``path`` to fine-tune from, checked against the
     config's network (:class:`~mysim_jax.perception.camera.PerceptionError` naming what is
     wrong: no such file, not a weights file, other ``model.widths``)."""
-    from mysim_jax.perception.camera import PerceptionError
-    from mysim_jax.perception.detect.model import CNNDetector
-
     start = CNNDetector.load(path)
     if tuple(start.widths) != tuple(cfg.model.widths):
         raise PerceptionError(f"{path}: its network has widths {list(start.widths)}, the config's model.widths "
@@ -269,9 +233,6 @@ def refine_init_from(cfg: DetectorConfig, path: str | Path) -> list | None:
     """With ``refine.fine_tune``, the second-stage networks of the weights file ``path`` to
     fine-tune from (one per ``refine.members``), checked against the config's second stage
     (:class:`~mysim_jax.perception.camera.PerceptionError` naming what is wrong); else None."""
-    from mysim_jax.perception.camera import PerceptionError
-    from mysim_jax.perception.detect.model import CNNDetector
-
     r = cfg.refine
     if r is None or not r.fine_tune:
         return None
@@ -288,67 +249,6 @@ def refine_init_from(cfg: DetectorConfig, path: str | Path) -> list | None:
     return list(ref.members)
 
 
-def _prefetch(make, n: int, depth: int = 2):
-    """The results of ``n`` calls of ``make()``, made in order by a background thread up to
-    ``depth`` ahead (the crops are cut while the network trains on the previous batch)."""
-    import queue
-    import threading
-
-    q: queue.Queue = queue.Queue(maxsize=depth)
-    stop = threading.Event()
-
-    def work():
-        try:
-            for _ in range(n):
-                item = make()
-                while not stop.is_set():
-                    try:
-                        q.put((item, None), timeout=0.1)
-                        break
-                    except queue.Full:
-                        continue
-                if stop.is_set():
-                    return
-        except BaseException as exc:      # re-raised in the consumer
-            q.put((None, exc))
-
-    thread = threading.Thread(target=work, daemon=True)
-    thread.start()
-    try:
-        for _ in range(n):
-            item, exc = q.get()
-            if exc is not None:
-                raise exc
-            yield item
-    finally:
-        stop.set()
-
-
-def run_steps(step, params, opt_state, batches, steps: int, desc: str, rate_key: str, shown: tuple[str, ...],
-              progress: bool = True, log=None):
-    """The training loop of both stages: ``params, opt_state, loss, parts = step(params,
-    opt_state, *batch)`` for each of ``steps`` batches (an iterator of tuples), a progress bar
-    showing the running loss and the ``shown`` parts, ``log(step, loss, parts)`` every 20
-    steps. A non-finite loss stops it with an error naming ``rate_key``. Returns (params,
-    [(step, loss)])."""
-    from tqdm.auto import tqdm
-
-    history, running = [], None
-    bar = tqdm(range(steps), desc=desc, unit="step", disable=not progress)
-    for k in bar:
-        params, opt_state, loss, parts = step(params, opt_state, *next(batches))
-        loss = float(loss)
-        if not np.isfinite(loss):
-            raise FloatingPointError(f"{desc}: the loss became {loss} at step {k}; lower {rate_key}")
-        running = loss if running is None else 0.95 * running + 0.05 * loss
-        history.append((k, loss))
-        if k % 20 == 0:
-            bar.set_postfix(loss=f"{running:.3f}", **{key: f"{float(parts[key]):.4f}" for key in shown})
-            if log is not None:
-                log(k, loss, {key: float(v) for key, v in parts.items()})
-    return params, history
-
-
 def train(cfg: DetectorConfig, images, labels, progress: bool = True, steps: int | None = None, log=None,
           params=None):
     """Train from scratch, or from ``params`` (fine-tuning); returns (params, loss history as a
@@ -358,15 +258,13 @@ def train(cfg: DetectorConfig, images, labels, progress: bool = True, steps: int
     rng = np.random.default_rng(cfg.train.seed)
     n = len(labels)
     steps = cfg.train.steps if steps is None else steps
-    batches = _prefetch(lambda: batch_of(images, labels, rng.integers(0, n, cfg.train.batch_size), cfg, rng), steps)
+    batches = prefetch(lambda: batch_of(images, labels, rng.integers(0, n, cfg.train.batch_size), cfg, rng), steps)
     return run_steps(step, params, opt.init(params), batches, steps, "train detector", "train.learning_rate",
                      ("focal",), progress=progress, log=log)
 
 
 def refine_settings(cfg: DetectorConfig):
     """The second stage's settings of ``cfg.refine``."""
-    from mysim_jax.perception.detect.refine import RefineSettings
-
     r = cfg.refine
     return RefineSettings(widths=tuple(r.widths), hidden=r.hidden, size=r.size, context=r.context,
                           min_window_px=r.min_window_px, candidate_min_score=r.candidate_min_score,
@@ -379,11 +277,6 @@ def train_refine_stage(cfg: DetectorConfig, first_stage, images, labels, spec, c
     """Train the second stage on ``first_stage``'s candidates in the training frames (``spec``'s;
     the candidates are cached in ``cache``), from random inits or from ``init_members`` (one
     parameter tree per network). Returns (Refiner, loss history)."""
-    import jax
-
-    from mysim_jax.perception.detect.refine import Refiner
-    from mysim_jax.perception.detect.refine_train import SamplePool, cached_candidates, train_refiner
-
     weights_bytes = b"".join(np.asarray(a, np.float32).tobytes() for a in jax.tree.leaves(first_stage.params))
     candidates = cached_candidates(first_stage, weights_bytes, images, repr((spec, LABELS_VERSION)),
                                    cfg.refine.candidate_min_score, cache, progress=progress)
@@ -409,10 +302,6 @@ def evaluate(detector, images, labels, cfg: DetectorConfig, min_score: float, pr
     """Metrics of ``detector`` on a set (detections down to score 0.01 for AP) and its speed:
     median over frames of one ``detect`` call, frames/s. Returns the metrics, the detections
     per frame and the per-target rows (:func:`target_rows`)."""
-    from tqdm.auto import tqdm
-
-    from mysim_jax.perception.detect.metrics import summary
-
     dets, times = [], []
     detector.detect(np.asarray(images[0]), min_score=0.01)     # compile / warm up
     for i in tqdm(range(len(labels)), desc=f"evaluate {name}", unit="frame", disable=not progress, leave=False):
@@ -451,8 +340,6 @@ def target_rows(dets, labels, min_score: float, iou_threshold: float) -> list[di
     overlaps it most (``best_box``, ``best_iou``, ``best_score``; None, 0, 0 if none does);
     and ``hit``: a detection scoring >= ``min_score`` overlaps it at IoU >= ``iou_threshold``
     (a true positive of :func:`~mysim_jax.perception.detect.metrics.match`)."""
-    from mysim_jax.perception.detect.metrics import iou
-
     rows = []
     for i, lab in enumerate(labels):
         if lab["box"] is None or lab["ignore"]:
@@ -539,11 +426,6 @@ def write_examples(folder: Path, images, labels, results: dict, n: int) -> None:
 
 def plot_pr(path: Path, curves: dict) -> None:
     """Precision-recall curves: ``curves`` label -> (recall, precision)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     fig, ax = plt.subplots(figsize=(5.5, 4.5))
     for label, (r, p) in curves.items():
         ax.plot(r, p, label=label, ls="-" if "held" in label else "--")
@@ -564,12 +446,6 @@ def run(cfg: DetectorConfig, out: Path, progress: bool = True, cache: Path | Non
     metrics. With ``weights`` (a detector.msgpack) nothing is trained: those weights are
     evaluated (and the training frames are not rendered). With ``init`` (a detector.msgpack of
     the same ``model.widths``) training starts from those weights instead of a random init."""
-    import yaml
-
-    from mysim_jax.perception.detect.classical import ColourBlobDetector
-    from mysim_jax.perception.detect.metrics import match, pr_curve
-    from mysim_jax.perception.detect.model import CNNDetector
-
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "config.yaml").write_text(yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False))
@@ -611,9 +487,6 @@ def run(cfg: DetectorConfig, out: Path, progress: bool = True, cache: Path | Non
         cnn = CNNDetector.load(weights)
         refiner = cnn.refiner
         if refiner is not None and cfg.refine is not None:       # inference settings: the config's
-            from dataclasses import replace
-
-            from mysim_jax.perception.detect.refine import Refiner
 
             r = cfg.refine
             refiner = Refiner(refiner.members, replace(refiner.settings, candidate_min_score=r.candidate_min_score,

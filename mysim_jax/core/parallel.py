@@ -1,7 +1,7 @@
 """The environment axis on several devices and several hosts.
 
 Every function in this package is written for one environment and batched at the top
-(``jax.vmap``, or :func:`mysim_jax.batching.vmap` for batch-last speed on CPU). Environments
+(``jax.vmap``, or :func:`mysim_jax.core.batching.vmap` for batch-last speed on CPU). Environments
 never talk to each other, so the batch splits across devices with nothing to exchange:
 each device runs the whole rollout (or policy step) for its own block of environments.
 
@@ -19,7 +19,7 @@ This module does exactly that and nothing more:
 
 Why ``shard_map`` inside :func:`sharded`, not ``jit`` with in/out shardings alone. With
 shardings alone the partitioner decides how to split every intermediate; for ``jax.vmap``
-it keeps the batch axis split, but :func:`mysim_jax.batching.vmap` moves the batch to the
+it keeps the batch axis split, but :func:`mysim_jax.core.batching.vmap` moves the batch to the
 *last* axis internally and re-emits each primitive, and a propagation choice that gathers
 along it would be a silent all-to-all inside every step. ``shard_map`` states the intent
 instead: the function is traced for a per-device block of ``B / n_devices`` environments
@@ -124,7 +124,7 @@ def sharded(fn: Callable, mesh: Mesh, in_axes: int | None | Sequence[int | None]
     is batched along its leading axis (0: split over ``"env"``) or shared (None: replicated
     on every device). Every output leaf must be batched along its leading axis (it comes
     back split over ``"env"``). ``fn`` is written for any batch size — ``jax.vmap(f)``,
-    ``mysim_jax.batching.vmap(f)``, or a rollout of either — and each device calls it on
+    ``mysim_jax.core.batching.vmap(f)``, or a rollout of either — and each device calls it on
     its own block of ``B / n_devices`` environments, with no communication between devices.
 
     A batched argument whose leading axis is not divisible by the device count is a

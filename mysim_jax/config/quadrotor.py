@@ -3,8 +3,8 @@ trajectory and cameras (the ``quadrotors:`` section of a scene file).
 
 Every default is the paper's (Table UAV_model, Table PID_controller, Table camera) unless
 its docstring says otherwise. This module only depends on pydantic so that
-:mod:`mysim_jax.config` can import it; :func:`quadrotor_problems` is the whole-scene
-check that :class:`~mysim_jax.config.SceneConfig` calls (bodies that do not exist,
+:mod:`mysim_jax.config.scene` can import it; :func:`quadrotor_problems` is the whole-scene
+check that :class:`~mysim_jax.config.scene.SceneConfig` calls (bodies that do not exist,
 name clashes, a reference outside the flyable box, ...); :func:`check_setpoint` checks
 setpoints written in a file or script against the same limits.
 
@@ -25,10 +25,13 @@ from typing import Annotated, Literal
 
 import numpy as np
 from pydantic import Field, model_validator
+from pydantic import ValidationError
 
-from mysim_jax.config_base import (ConfigError, Finite, Name, NonNegFloat, NonNegVec3, Pair, PosFloat, PosPair,
-                                   PosVec4, StrictModel, UnitQuat, Vec3, Vec4)
-from mysim_jax.npgeom import rotate
+from mysim_jax.core.config_base import (ConfigError, Finite, Name, NonNegFloat, NonNegVec3, Pair, PosFloat, PosPair,
+                                        PosVec4, StrictModel, UnitQuat, Vec3, Vec4)
+from mysim_jax.core.config_base import ConfigError, format_validation_error, read_yaml_file
+from mysim_jax.core.npgeom import rotate
+from mysim_jax.dynamics.rotor_layout import allocation_matrix_np
 
 
 # --- paper defaults ------------------------------------------------------------------
@@ -82,7 +85,6 @@ class RotorConfig(StrictModel):
     def _check(self):
         if self.omega_min >= self.omega_max:
             raise ValueError(f"omega_min ({self.omega_min:g}) must be below omega_max ({self.omega_max:g})")
-        from mysim_jax.dynamics.rotor_layout import allocation_matrix_np
 
         m = allocation_matrix_np(self.arm_length, self.angle, self.lift_coefficient,
                                  self.torque_coefficient, self.spin)
@@ -409,7 +411,7 @@ def setpoint_problems(setpoint, quadrotors, where: str = "setpoint") -> list[str
 
 
 def check_setpoint(setpoint, config, where: str = "setpoint") -> None:
-    """Raise :class:`~mysim_jax.config.ConfigError` naming every field of ``setpoint``
+    """Raise :class:`~mysim_jax.config.scene.ConfigError` naming every field of ``setpoint``
     that :func:`setpoint_problems` rejects. ``config``: a SceneConfig, or its list of
     quadrotors. (Inside the step, setpoints beyond the limits are clipped instead.)"""
     quads = config.quadrotors if hasattr(config, "quadrotors") else config
@@ -442,11 +444,7 @@ class GainsFile(StrictModel):
 
 def gain_overrides(gains_path, config_path) -> list[str]:
     """``--set``-style overrides that put the gains of ``gains_path`` into the scene file
-    ``config_path``. Raises :class:`~mysim_jax.config.ConfigError` naming the problem."""
-    from pydantic import ValidationError
-
-    from mysim_jax.config_base import ConfigError, format_validation_error, read_yaml_file
-
+    ``config_path``. Raises :class:`~mysim_jax.config.scene.ConfigError` naming the problem."""
     raw_gains = read_yaml_file(gains_path, "gains file")
     raw = read_yaml_file(config_path, "config file")
     if not isinstance(raw_gains, dict):

@@ -27,8 +27,8 @@ from typing import Annotated
 
 from pydantic import Field, field_validator, model_validator
 
-from mysim_jax.config_base import NonNegFloat, PosFloat, StrictModel
-from mysim_jax.tasks.config import BoxRange
+from mysim_jax.core.config_base import NonNegFloat, PosFloat, StrictModel
+from mysim_jax.config.capture import BoxRange
 
 # The paper's eight terms and their weights (Table rewards): seven are the terms of the
 # shaping potential, effort is a per-step cost (mysim_jax/tasks/rewards.py).

@@ -6,7 +6,7 @@ JAX code runs. Every problem is reported as a :class:`ConfigError` that names th
 (``ropes.0.EA: Input should be greater than 0``) and the file it came from.
 
 Checks done here: the file itself (UTF-8 YAML text without duplicate keys, see
-:mod:`mysim_jax.config_base`), unknown keys, wrong types or shapes, booleans where numbers
+:mod:`mysim_jax.core.config_base`), unknown keys, wrong types or shapes, booleans where numbers
 belong, numbers beyond the accepted range, non-positive masses / lengths / stiffnesses,
 duplicate names, references (rope ends, spring ends, joint markers, loads) to things that
 do not exist, contact pairs that list no pair, an output grid that does not fit the step
@@ -32,14 +32,15 @@ import numpy as np
 import yaml
 from pydantic import Field, ValidationError, field_validator, model_validator
 
-from mysim_jax.config_base import (MIN_POSITIVE, ConfigError, Finite, Name, NonNegFloat, PosFloat,
-                                   StrictModel, Tolerance, UnitQuat, Vec3, format_validation_error,
-                                   parse_yaml, read_yaml_file)
+from mysim_jax.config.capture import TargetConfig, TeamConfig
+from mysim_jax.config.env import EnvConfig, ranking_problems
+from mysim_jax.config.quadrotor import QuadrotorConfig, quadrotor_problems
 from mysim_jax.contact.config import ContactConfig, contact_problems
-from mysim_jax.control.config import QuadrotorConfig, quadrotor_problems
+from mysim_jax.core.config_base import (MIN_POSITIVE, ConfigError, Finite, Name, NonNegFloat, PosFloat,
+                                        StrictModel, Tolerance, UnitQuat, Vec3, format_validation_error,
+                                        parse_yaml, read_yaml_file)
+from mysim_jax.core.config_base import available_memory_bytes
 from mysim_jax.net.config import NetConfig, net_elements
-from mysim_jax.tasks.config import TargetConfig, TeamConfig
-from mysim_jax.tasks.env_config import EnvConfig, ranking_problems
 
 __all__ = ["ConfigError", "SceneConfig", "RunSettings", "load_config", "config_from_dict", "apply_override",
            "dump_config"]
@@ -70,8 +71,6 @@ Quat = tuple[Finite, Finite, Finite, Finite]
 def check_output_memory(config, source: str, available: int | None = None) -> None:
     """Refuse, before anything compiles, a run whose saved outputs
     (:meth:`SceneConfig.output_memory_bytes`) exceed the memory the machine has."""
-    from mysim_jax.config_base import available_memory_bytes
-
     available = available_memory_bytes() if available is None else available
     need = config.output_memory_bytes()
     if available is not None and need > available:
@@ -377,11 +376,11 @@ class SceneConfig(StrictModel):
     loads: list[LoadConfig] = []
     output: OutputConfig = OutputConfig()
     contact: ContactConfig | None = None     # see mysim_jax/contact/config.py
-    quadrotors: list[QuadrotorConfig] = []   # see mysim_jax/control/config.py
+    quadrotors: list[QuadrotorConfig] = []   # see mysim_jax/config/quadrotor.py
     net: NetConfig | None = None             # see mysim_jax/net/config.py
-    target: TargetConfig | None = None       # see mysim_jax/tasks/config.py
-    team: TeamConfig | None = None           # see mysim_jax/tasks/config.py
-    env: EnvConfig | None = None             # see mysim_jax/tasks/env_config.py
+    target: TargetConfig | None = None       # see mysim_jax/config/capture.py
+    team: TeamConfig | None = None           # see mysim_jax/config/capture.py
+    env: EnvConfig | None = None             # see mysim_jax/config/env.py
 
     @model_validator(mode="after")
     def _references(self):
@@ -772,7 +771,7 @@ def _config_at_level(raw: dict, source: str, overrides) -> SceneConfig:
 
 def load_config(path: str | Path, overrides: list[str] | tuple[str, ...] = ()) -> SceneConfig:
     """Read, override and validate a YAML scene file. Raises :class:`ConfigError` naming
-    the file and the field (:mod:`mysim_jax.config_base` lists what a file may not be)."""
+    the file and the field (:mod:`mysim_jax.core.config_base` lists what a file may not be)."""
     return config_from_dict(read_yaml_file(path, "config file"), str(path), overrides)
 
 

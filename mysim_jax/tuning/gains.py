@@ -32,14 +32,16 @@ control"):
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+from tqdm.auto import tqdm
 
 from mysim_jax.control.pid import PIDGains
-from mysim_jax.control.tracking import position_errors
+from mysim_jax.tuning.tracking import position_errors
 from mysim_jax.sim import step
 
 
@@ -136,8 +138,6 @@ def tune(scene, params, state, n_steps: int, iterations: int = 40, learning_rate
     best = (np.inf, -1, theta)
     bar = None
     if progress:
-        from tqdm.auto import tqdm
-
         bar = tqdm(total=iterations + 1, desc="tune gains", unit="it")
     for it in range(iterations + 1):
         loss, grad = value_and_grad(theta)
@@ -177,14 +177,10 @@ def horizon_study(scene, params, state, horizons_s, every: int = 10, truncate_s:
     gradient with checkpointing (``remat``) and with truncated back-propagation (windows
     of ``truncate_s``), the time of one gradient evaluation (median of ``repeats``),
     the compile time and XLA's temporary memory."""
-    import time
-
     rows = []
     theta = zeros_like_gains(params)
     bar = None
     if progress:
-        from tqdm.auto import tqdm
-
         bar = tqdm(total=len(list(horizons_s)), desc="horizon study", unit="horizon")
     for horizon in horizons_s:
         n = int(round(horizon / scene.dt / every)) * every

@@ -1,7 +1,7 @@
 """The one base of every configuration file: error type, strict model, field types, and
 safe reading of YAML files.
 
-Scene files (:mod:`mysim_jax.config`, with its ``contact:`` and ``quadrotors:`` blocks)
+Scene files (:mod:`mysim_jax.config.scene`, with its ``contact:`` and ``quadrotors:`` blocks)
 and gains files all build on this module, so every file is held to the same rules:
 
 * **Reading** (:func:`read_yaml_file`, :func:`parse_yaml`): the file must exist, be a

@@ -3,12 +3,12 @@
 * :class:`Scene` — static structure: counts, names, index arrays (as tuples), which effects
   exist, integrator settings. Frozen and hashable; changing it recompiles; never traced.
   What a run saves (its length, output interval, plots) is not here but in
-  :class:`mysim_jax.config.RunSettings`, so changing it never recompiles.
+  :class:`mysim_jax.config.scene.RunSettings`, so changing it never recompiles.
 * :class:`Params` — a pytree of float arrays: masses, inertias, marker offsets, spring
   constants, gravity, Baumgarte constants. Traced, differentiable, vmappable.
 * :class:`State` — a pytree: the multibody state :class:`PhysState`, the time, (with
   quadrotors) the controller memory and the memory of registered effects
-  (:mod:`mysim_jax.effects`; the target's PRNG key lives there).
+  (:mod:`mysim_jax.effects.registry`; the target's PRNG key lives there).
 
 Attachment points ("nodes") are numbered in one table so that springs and rope segments
 can join anything with plain index arrays::
@@ -21,16 +21,11 @@ can join anything with plain index arrays::
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 import jax.numpy as jnp
 from flax import struct
 
-from mysim_jax.contact.types import ContactParams, ContactScene
-
-if TYPE_CHECKING:  # annotations only: these modules import this one
-    from mysim_jax.control.pid import ControlParams, ControlState
-    from mysim_jax.dynamics.quadrotor import QuadrotorParams, QuadrotorScene
+from mysim_jax.core.contact_types import ContactParams, ContactScene
 
 
 @dataclass(frozen=True)
@@ -95,8 +90,8 @@ class Scene:
     # --- contact (mysim_jax/contact): None when the scene has no contact ---------------
     contact: ContactScene | None = None
     # --- quadrotors, their controller and cameras (mysim_jax/dynamics/quadrotor.py) ----
-    quadrotor: QuadrotorScene | None = None
-    # --- registered effects (mysim_jax/effects.py): ((name, static part), ...) ---------
+    quadrotor: object | None = None   # mysim_jax.dynamics.quadrotor.QuadrotorScene
+    # --- registered effects (mysim_jax/effects/registry.py): ((name, static part), ...) ---------
     effects: tuple[tuple[str, object], ...] = ()
 
     @property
@@ -153,8 +148,8 @@ class Params:
     baumgarte_alpha: jnp.ndarray     # () 1/s
     baumgarte_beta: jnp.ndarray      # () 1/s
     contact: ContactParams | None = None   # contact constants and sphere radii (None: no contact)
-    quadrotor: QuadrotorParams | None = None   # rotors, motors, aerodynamics, gimbal servos
-    controller: ControlParams | None = None    # PID gains, controller model, references
+    quadrotor: object | None = None   # mysim_jax.dynamics.quadrotor.QuadrotorParams; rotors, motors, aerodynamics, gimbal servos
+    controller: object | None = None    # mysim_jax.control.pid.ControlParams; PID gains, controller model, references
     effects: dict = field(default_factory=dict)  # registered effect name -> its params pytree
 
 
@@ -185,5 +180,5 @@ class State:
 
     phys: PhysState
     time: jnp.ndarray         # () s
-    controller: ControlState | None = None   # PID integrators, motor speeds (quadrotor scenes)
+    controller: object | None = None   # mysim_jax.control.pid.ControlState; PID integrators, motor speeds (quadrotor scenes)
     effects: dict = field(default_factory=dict)  # registered effect name -> its memory (e.g. PRNG key)

@@ -24,7 +24,7 @@ import jax.numpy as jnp
 
 def _check_partitionable() -> None:
     if not jax.config.jax_threefry_partitionable:
-        raise RuntimeError("mysim_jax.rng needs jax_threefry_partitionable=True (JAX's default): with the "
+        raise RuntimeError("mysim_jax.core.rng needs jax_threefry_partitionable=True (JAX's default): with the "
                            "older Threefry layout a short draw is not the start of a longer one")
 
 

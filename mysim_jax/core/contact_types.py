@@ -1,5 +1,5 @@
-"""Static contact structure (part of :class:`~mysim_jax.types.Scene`) and contact
-parameters (part of :class:`~mysim_jax.types.Params`).
+"""Static contact structure (part of :class:`~mysim_jax.core.types.Scene`) and contact
+parameters (part of :class:`~mysim_jax.core.types.Params`).
 
 Spheres are numbered in one table: first the spheres on point masses, then those on
 rigid bodies (each centred on the body's centre of mass). Pairs and ground contacts are

@@ -28,8 +28,8 @@ from dataclasses import dataclass
 
 from mysim_jax.contact.broad_phase import BROAD_PHASE
 from mysim_jax.net.drag import LINE_DRAG
-from mysim_jax.tasks.entanglement import ENTANGLEMENT
-from mysim_jax.tasks.target import TARGET
+from mysim_jax.effects.entanglement import ENTANGLEMENT
+from mysim_jax.effects.target import TARGET
 
 # name -> effect, in pipeline order
 EFFECTS = {effect.name: effect for effect in (BROAD_PHASE, LINE_DRAG, ENTANGLEMENT, TARGET)}
@@ -44,7 +44,7 @@ class BuildContext:
     marker_names: tuple[str, ...]
     quadrotor_bodies: tuple[int, ...]   # body index of every quadrotor
     dtype: object                       # jnp.float32 | jnp.float64
-    contact: object = None              # the scene's ContactScene (mysim_jax.contact.types), or None
+    contact: object = None              # the scene's ContactScene (mysim_jax.core.contact_types), or None
 
 
 def scene_effects(scene):

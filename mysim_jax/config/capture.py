@@ -3,7 +3,7 @@
 ``target:`` is a non-cooperative target: a rigid sphere (a body named ``name``) with
 mass, radius and quadratic air drag. ``behaviour: falling`` releases it from a spawn
 drawn from ranges and lets it fall; ``behaviour: maneuvering`` gives it its own bounded
-propulsion under an evasive behaviour the team does not know (:mod:`mysim_jax.tasks.target`).
+propulsion under an evasive behaviour the team does not know (:mod:`mysim_jax.effects.target`).
 Every random draw (spawn position and velocity, jinks) comes from a PRNG key seeded with
 ``seed`` and carried in the State, so a run is reproducible from its seed.
 
@@ -21,7 +21,7 @@ from typing import Annotated, Literal
 
 from pydantic import Field, model_validator
 
-from mysim_jax.config_base import Finite, Name, NonNegFloat, PosFloat, StrictModel, Vec3
+from mysim_jax.core.config_base import Finite, Name, NonNegFloat, PosFloat, StrictModel, Vec3
 
 
 class BoxRange(StrictModel):
@@ -59,7 +59,7 @@ class SpawnConfig(StrictModel):
     ``clearance`` (m, 0: none) keeps the spawn that far horizontally from the quadrotors'
     centroid, under which the net hangs: an evader that starts under or in the net is
     caught before the task begins. A position drawn closer is drawn again (up to
-    :data:`~mysim_jax.tasks.target.SPAWN_TRIES` draws in all, which keeps the draw uniform
+    :data:`~mysim_jax.effects.target.SPAWN_TRIES` draws in all, which keeps the draw uniform
     over the allowed part of the box unless that part is tiny; the last draw, if it is
     still too close, is pushed straight out to the clearance). The value is a traced
     parameter (``TargetParams.spawn_clearance``, sweepable), but a scene built with 0 has
@@ -117,7 +117,7 @@ class PropulsionConfig(StrictModel):
 
 
 class EntanglementConfig(StrictModel):
-    """An evading drone's rotors tangle in the net's lines (:mod:`mysim_jax.tasks.entanglement`):
+    """An evading drone's rotors tangle in the net's lines (:mod:`mysim_jax.effects.entanglement`):
     while its centre is within its radius plus ``margin`` of a line, it loses its
     propulsion at ``1 / time`` per second, for good."""
 

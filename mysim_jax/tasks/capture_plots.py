@@ -24,6 +24,8 @@ import numpy as np  # noqa: E402
 from matplotlib.animation import FuncAnimation, PillowWriter  # noqa: E402
 from matplotlib.collections import LineCollection  # noqa: E402
 
+from mysim_jax.tasks.outcome import capture_outcome, tether_tensions, thrust_fraction, uav_target_distances
+
 COLORS = plt.rcParams["axes.prop_cycle"].by_key()["color"]
 
 
@@ -150,8 +152,6 @@ def capture_report(columns, scene, params, config, out_dir, animate: bool = True
     tether tensions and lift use of a capture run, with its figures and GIF (unless
     ``animate`` is False) written into ``out_dir``; returns the summary dict (``plots``
     lists the files written)."""
-    from mysim_jax.tasks.outcome import capture_outcome, tether_tensions, thrust_fraction, uav_target_distances
-
     out_dir = Path(out_dir)
     outcome = capture_outcome(columns, config)
     tensions = tether_tensions(columns, scene, params, config)

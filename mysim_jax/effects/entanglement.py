@@ -1,5 +1,5 @@
 """Entanglement: an evading drone loses its propulsion once its rotors touch the net's
-lines (an effect, see :mod:`mysim_jax.effects`).
+lines (an effect, see :mod:`mysim_jax.effects.registry`).
 
 Net-based counter-drone systems (launched nets such as SkyWall, drone-carried nets such
 as Fortem's DroneHunter) do not need to hold a drone by its frame: lines that reach its
@@ -14,14 +14,14 @@ with its rotors):
   never decreases (a wrapped rotor stays wrapped): ``e ← min(1, e + dt / time)`` on each
   environment step (``sim.dt``) that begins touching;
 * the **propulsion** keeps the fraction ``1 − e`` of its force: the target's commanded
-  force ``m (a_cmd − g)`` (:mod:`mysim_jax.tasks.target`) becomes ``(1 − e) m (a_cmd − g)``,
+  force ``m (a_cmd − g)`` (:mod:`mysim_jax.effects.target`) becomes ``(1 − e) m (a_cmd − g)``,
   so a fully entangled drone neither hovers nor manoeuvres and drops into the net.
 
 The linear loss with contact time is this project's choice (a single time constant, no
 rotor-by-rotor state), not a published law; ``time`` sets how long a line must stay on
 the rotors, ``time: 0`` is not allowed (use a small value for an instant loss).
 
-Configured by ``target.entanglement`` (:class:`mysim_jax.tasks.config.EntanglementConfig`);
+Configured by ``target.entanglement`` (:class:`mysim_jax.config.capture.EntanglementConfig`);
 a scene without it has no entanglement memory, update or cost.
 """
 

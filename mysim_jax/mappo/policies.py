@@ -32,6 +32,13 @@ import importlib.util
 import sys
 from pathlib import Path
 
+import jax
+import jax.numpy as jnp
+
+from mysim_jax.mappo.checkpoint import is_policy_folder, load_policy
+from mysim_jax.mappo.trainer import Actor, deterministic_policy
+from mysim_jax.tasks.evaluate import random_policy, scripted_policy
+
 BUILTIN = ("scripted", "random")
 
 
@@ -52,8 +59,6 @@ def check_policy_spec(spec: str, flag: str = "--policy") -> None:
     if not path.exists():
         raise PolicyError(f"{flag} {spec}: not a built-in policy and no such file ({_usage()})")
     if path.is_dir():
-        from mysim_jax.mappo.checkpoint import is_policy_folder
-
         if is_policy_folder(path):
             return
         raise PolicyError(f"{flag} {spec}: is a folder without policy.json and policy.msgpack (a trained policy "
@@ -66,8 +71,6 @@ def policy_maker(spec: str, flag: str = "--policy"):
     """``make_policy(env, params) -> policy`` for a spec (module docstring)."""
     check_policy_spec(spec, flag)
     if spec in BUILTIN:
-        from mysim_jax.tasks.evaluate import random_policy, scripted_policy
-
         factory = scripted_policy if spec == "scripted" else random_policy
         return lambda env, params: factory(env)
     path = Path(spec)
@@ -93,8 +96,6 @@ def policy_maker(spec: str, flag: str = "--policy"):
 def _trained_policy_maker(path: Path, flag: str):
     """``make_policy`` of a saved MAPPO policy; it checks that the environment's
     observation and action shapes are those the policy was trained on."""
-    from mysim_jax.mappo.checkpoint import load_policy
-
     try:
         meta, arrays = load_policy(path)
     except Exception as exc:    # a damaged file is an input error
@@ -103,8 +104,6 @@ def _trained_policy_maker(path: Path, flag: str):
         raise PolicyError(f"{flag} {path}: policy.json kind {meta.get('kind')!r}, expected 'mappo'")
 
     def make_policy(env, params):
-        from mysim_jax.mappo.trainer import Actor, deterministic_policy
-
         if int(meta["obs_size"]) != env.obs_size or tuple(meta["action_shape"]) != tuple(env.action_shape):
             raise PolicyError(f"{flag} {path}: trained on observations of size {meta['obs_size']} and actions "
                               f"{tuple(meta['action_shape'])}; this environment has {env.obs_size} and "
@@ -119,9 +118,6 @@ def _trained_policy_maker(path: Path, flag: str):
 def check_policy(env, params, policy, spec: str = "policy", flag: str = "--policy") -> None:
     """Trace ``policy`` on the shapes of a reset (``jax.eval_shape``: nothing is compiled
     or run) and check that it returns a float array of shape ``env.action_shape``."""
-    import jax
-    import jax.numpy as jnp
-
     if not callable(policy):
         raise PolicyError(f"{flag} {spec}: make_policy returned {type(policy).__name__}, not a function")
     key = jax.random.PRNGKey(0)

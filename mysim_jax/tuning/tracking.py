@@ -13,6 +13,7 @@ import numpy as np
 
 from mysim_jax.control.pid import control_time
 from mysim_jax.control.reference import reference
+from mysim_jax.sim import output_times, rollout, steps_per_output
 
 
 def reference_along(params, times):
@@ -75,8 +76,6 @@ def tracking_metrics(scene, columns) -> dict[str, dict]:
 
 
 def _grid_rollout(scene, params, state, n_out: int, every: int):
-    from mysim_jax.sim import rollout
-
     _, states = rollout(scene, params, state, n_out * every, every)
     first = jax.tree.map(lambda a: a[None], state)
     return jax.tree.map(lambda a, b: jnp.concatenate([a, b], axis=0), first, states)
@@ -87,10 +86,8 @@ _grid_rollout_jit = jax.jit(_grid_rollout, static_argnums=(0, 3, 4))
 
 def evaluate_tracking(scene, params, state, run) -> dict[str, dict]:
     """Run the scene to ``run.t_end`` and return :func:`tracking_metrics` on the output grid
-    of ``run`` (:class:`~mysim_jax.config.RunSettings`; the numbers ``scripts/simulate.py``
+    of ``run`` (:class:`~mysim_jax.config.scene.RunSettings`; the numbers ``scripts/simulate.py``
     writes). Compiled once per scene: calls with other Params (gains) reuse it."""
-    from mysim_jax.sim import output_times, steps_per_output
-
     times = output_times(run)
     every = steps_per_output(scene, run)
     states = _grid_rollout_jit(scene, params, state, len(times) - 1, every)

@@ -1,12 +1,12 @@
 """The non-cooperative target: a rigid sphere with air drag, falling or evading (an effect,
-see :mod:`mysim_jax.effects`).
+see :mod:`mysim_jax.effects.registry`).
 
 Forces on the target body (world frame, at its centre of mass):
 
 * **air drag** ``F = −½ ρ C_d π r² |v| v`` (quadratic drag of a sphere, still air);
 * **propulsion** (``behaviour: maneuvering``): ``F = m (a_cmd − g)``: the propulsion
   cancels gravity and adds the commanded acceleration ``a_cmd``, held over each
-  environment step; with entanglement (:mod:`mysim_jax.tasks.entanglement`) only the
+  environment step; with entanglement (:mod:`mysim_jax.effects.entanglement`) only the
   share ``1 − e`` of it is left.
 
 Evasive behaviour (computed once per environment step; the team does not know it):
@@ -36,9 +36,9 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from mysim_jax import rng, vecmath
+from mysim_jax.core import rng, vecmath
 from mysim_jax.dynamics.forces import Loads
-from mysim_jax.tasks.entanglement import propulsion_share
+from mysim_jax.effects.entanglement import propulsion_share
 
 SPEED_LIMIT_TIME_CONSTANT = 0.25   # s, braking back to max_speed
 SPAWN_TRIES = 8                    # spawn positions drawn when the spawn keeps a clearance
@@ -163,7 +163,7 @@ def _on_target(scene, phys, body, force) -> Loads:
 
 
 class _Target:
-    """The target effect (see :mod:`mysim_jax.effects` for the protocol)."""
+    """The target effect (see :mod:`mysim_jax.effects.registry` for the protocol)."""
 
     name = "target"
 

@@ -1,0 +1,62 @@
+"""The package's structure: its layers and cycles (import-linter, ``[tool.importlinter]`` in
+pyproject.toml) and where imports may sit."""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGE = ROOT / "mysim_jax"
+
+# Imports that stay inside functions, each for the reason its line's comment (or its helper's
+# docstring) gives: optional extras, and modules that keep a light module light.
+LAZY_IMPORTS = {
+    ("io/blender_import.py", "bpy"), ("io/blender_import.py", "bmesh"), ("io/blender_import.py", "mathutils"),
+    ("io/blender_import.py", "bpy_extras"),
+    ("perception/vio.py", "gtsam"),
+    ("perception/detect/__init__.py", "mysim_jax.perception.detect.model"),
+    ("perception/detect/__init__.py", "mysim_jax.perception.detect.classical"),
+}
+
+
+def test_the_layers_and_the_cycle_contract_hold():
+    """Every module imports only from its layer or the layers below, and no package's modules
+    import each other in a cycle (import-linter reads the contracts from pyproject.toml)."""
+    res = subprocess.run([sys.executable, "-c", "import sys; from importlinter.cli import lint_imports; "
+                          "sys.exit(lint_imports(no_cache=True, no_logo=True))"],
+                         cwd=ROOT, capture_output=True, text=True)
+    assert res.returncode == 0, res.stdout[-4000:] + res.stderr[-2000:]
+    assert "2 kept, 0 broken" in res.stdout, res.stdout[-2000:]
+
+
+def _function_level_imports():
+    for path in sorted(PACKAGE.rglob("*.py")):
+        tree = ast.parse(path.read_text())
+        for fn in ast.walk(tree):
+            if isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                for node in ast.walk(fn):
+                    if isinstance(node, ast.Import):
+                        yield path, node, node.names[0].name
+                    elif isinstance(node, ast.ImportFrom):
+                        yield path, node, node.module
+
+
+def test_imports_sit_at_module_level_except_the_listed_lazy_ones():
+    """An import inside a function hides a dependency from the layer check and from a reader;
+    the few that stay (optional extras, keeping a NumPy-only module free of JAX) are listed
+    above and say why on their line or in their helper's docstring."""
+    unexpected, unexplained = [], []
+    for path, node, module in _function_level_imports():
+        rel = path.relative_to(PACKAGE).as_posix()
+        if (rel, module) not in LAZY_IMPORTS and (rel, module.split(".")[0]) not in LAZY_IMPORTS:
+            unexpected.append(f"{rel}:{node.lineno} {module}")
+            continue
+        lines = path.read_text().splitlines()
+        around = "\n".join(lines[max(node.lineno - 6, 0):node.lineno])
+        if "#" not in around and '"""' not in around:
+            unexplained.append(f"{rel}:{node.lineno} {module}")
+    assert not unexpected, "imports inside functions (move them to the top of the module): " + ", ".join(unexpected)
+    assert not unexplained, "lazy imports without a comment saying why: " + ", ".join(unexplained)
