@@ -6,12 +6,21 @@ import pytest
 import yaml
 
 from mysim_jax.config.scene import ConfigError, config_from_dict, dump_config, load_config
-from mysim_jax.net.config import net_mass
 
 from conftest import CONFIGS
 
 SCENE = CONFIGS / "capture_env_falling.yaml"
 
+
+
+def net_mass(net) -> float:
+    """Total mass [kg] of a net and its tethers from the ``net:`` block, re-derived here:
+    2 G (G - 1) lines of one mesh spacing, G^2 knots, every tether's line."""
+    g = net.knots
+    total = 2 * g * (g - 1) * net.line.mass_per_length * net.spacing + g * g * net.knot_mass
+    if net.tethers is not None:
+        total += len(net.tethers.uavs) * net.tethers.line.mass_per_length * net.tethers.length
+    return total
 
 def test_a_level_applies_its_values_and_later_overrides_win():
     full = load_config(SCENE)

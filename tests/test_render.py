@@ -17,7 +17,8 @@ import pytest
 import yaml
 
 from mysim_jax.config.scene import config_from_dict, dump_config
-from mysim_jax.perception.camera import Intrinsics, PerceptionError, intrinsics, project, quat_to_matrix
+from mysim_jax.core.npgeom import quat_to_matrix
+from mysim_jax.perception.camera import Intrinsics, PerceptionError, intrinsics, project
 from mysim_jax.perception.render import Renderer, load_run, look_at, write_images, write_video
 
 from conftest import CONFIGS, sphere_extent

@@ -6,7 +6,7 @@ import pytest
 
 from mysim_jax.config.scene import load_config
 from mysim_jax.perception.camera import PerceptionError, intrinsics
-from mysim_jax.perception.track import (Detection, GimbalGeometry, GimbalTracker, OracleDetector, TrackerConfig,
+from mysim_jax.perception.track import (Detection, GimbalGeometry, GimbalTracker, OracleDetector, GimbalTrackerConfig,
                                         check_tracking_scene, image_detector, run_tracking, tracking_metrics)
 
 SCENE = """
@@ -56,7 +56,7 @@ def test_gimbal_aim_inverts_the_kinematics(small_config):
     np.testing.assert_allclose(flipped, [0.3 - np.pi, np.pi - 2.0], atol=1e-9)     # pan turned half round
 
 
-def _kinematic_loop(geom, intr, target_fn, n, cfg=TrackerConfig(), drop=()):
+def _kinematic_loop(geom, intr, target_fn, n, cfg=GimbalTrackerConfig(), drop=()):
     """A tracker against a perfect servo (angles = last command) on a level UAV at the origin,
     with detections projected from the target's world position."""
     from mysim_jax.perception.camera import R_BODY_CV
@@ -87,7 +87,7 @@ def test_tracker_modes_kinematic(small_config):
     assert all(m == "track" for m in modes[first:])
     assert max(e for _, e, _ in out[first + 2:]) < 1.0       # a static target is centred to a pixel
     # a moving target lost for 20 frames: hold, then predict, then search; found again after it
-    cfg = TrackerConfig(predict_s=0.3)
+    cfg = GimbalTrackerConfig(predict_s=0.3)
     drop = set(range(20, 40))
     out = _kinematic_loop(geom, intr, lambda t: np.array([3.0, 0.5 * t, 0.5]), 150, cfg, drop)
     modes = [m for m, _, _ in out]
@@ -146,7 +146,7 @@ def test_bad_input(small_config, tmp_path):
     with pytest.raises(PerceptionError, match="detect"):
         image_detector(object())
     with pytest.raises(PerceptionError, match="max_rate"):
-        TrackerConfig(max_rate=0.0)
+        GimbalTrackerConfig(max_rate=0.0)
     with pytest.raises(PerceptionError, match="whole number of simulator steps"):
         run_tracking(small_config, frame_rate=33.0, progress=False)
     # the script: a one-line error and exit code 2
@@ -240,4 +240,4 @@ def test_association_drops_a_false_detection_and_the_consensus_ignores_one_bad_c
     assert associate([false[0]], frames[0], point, 5.0, intr) == []
     assert _consensus_point(frames[:1], dets[:1], intr) is None      # one ray fixes no point
     with pytest.raises(PerceptionError, match="gate_deg"):
-        TrackerConfig(gate_deg=0.0)
+        GimbalTrackerConfig(gate_deg=0.0)

@@ -11,12 +11,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mysim_jax.perception.camera import R_BODY_CV, intrinsics, project, quat_to_matrix
+from mysim_jax.core.npgeom import matrix_to_quat, quat_to_matrix
+from mysim_jax.perception.camera import R_BODY_CV, intrinsics, project
 from mysim_jax.perception.features import FeatureTracker, relative_rotation
 from mysim_jax.perception.ground import GroundTexture, view_ground
 from mysim_jax.perception.metrics import PoseTrack, read_tum, trajectory_errors, write_tum
 from mysim_jax.perception.vio import (CameraModel, ImuNoise, ImuSamples, NavState, VioConfig,
-                                      dead_reckoning, matrix_to_quat, run_vio)
+                                      dead_reckoning, run_vio)
 
 # The paper's fixed camera (Table camera offset), pitched 50 deg down as in
 # configs/uav_vio_flight.yaml: quat = rotation about the body y axis, camera -> body.

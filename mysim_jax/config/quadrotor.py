@@ -28,8 +28,8 @@ from pydantic import Field, model_validator
 from pydantic import ValidationError
 
 from mysim_jax.core.config_base import (ConfigError, Finite, Name, NonNegFloat, NonNegVec3, Pair, PosFloat, PosPair,
-                                        PosVec4, StrictModel, UnitQuat, Vec3, Vec4)
-from mysim_jax.core.config_base import ConfigError, format_validation_error, read_yaml_file
+                                        PosVec4, StrictModel, UnitQuat, Vec3, Vec4, format_validation_error,
+                                        read_yaml_file)
 from mysim_jax.core.npgeom import rotate
 from mysim_jax.dynamics.rotor_layout import allocation_matrix_np
 

@@ -36,10 +36,9 @@ from mysim_jax.config.capture import TargetConfig, TeamConfig
 from mysim_jax.config.env import EnvConfig, ranking_problems
 from mysim_jax.config.quadrotor import QuadrotorConfig, quadrotor_problems
 from mysim_jax.contact.config import ContactConfig, contact_problems
-from mysim_jax.core.config_base import (MIN_POSITIVE, ConfigError, Finite, Name, NonNegFloat, PosFloat,
-                                        StrictModel, Tolerance, UnitQuat, Vec3, format_validation_error,
+from mysim_jax.core.config_base import (ConfigError, Finite, MIN_POSITIVE, Name, NonNegFloat, PosFloat, StrictModel,
+                                        Tolerance, UnitQuat, Vec3, available_memory_bytes, format_validation_error,
                                         parse_yaml, read_yaml_file)
-from mysim_jax.core.config_base import available_memory_bytes
 from mysim_jax.net.config import NetConfig, net_elements
 
 __all__ = ["ConfigError", "SceneConfig", "RunSettings", "load_config", "config_from_dict", "apply_override",

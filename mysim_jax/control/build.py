@@ -19,42 +19,16 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
-from mysim_jax.config.scene import BodyConfig, JointConfig, MarkerConfig, SceneConfig
-from mysim_jax.config.scene import ConfigError, FIXED_STEP_INTEGRATORS
+from mysim_jax.config.scene import FIXED_STEP_INTEGRATORS, BodyConfig, ConfigError, JointConfig, MarkerConfig, SceneConfig
 from mysim_jax.control.pid import ControlParams, ControlState, PIDGains
 from mysim_jax.control.reference import ReferenceParams
+from mysim_jax.core.npgeom import matrix_to_quat, quat_to_matrix
 from mysim_jax.dynamics.quadrotor import QuadrotorParams, QuadrotorScene
 from mysim_jax.dynamics.rotor_layout import allocation_matrix_np, rotor_positions_np
 from mysim_jax.dynamics.stability import stable_step
 
 NO_LAG_TIME_CONSTANT = 1e-9   # s: exp(-dt/τ) underflows to 0, the motor follows its command
 R_Y_90 = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
-
-
-# --- small NumPy rotation helpers -----------------------------------------------------
-
-
-def quat_to_matrix_np(q) -> np.ndarray:
-    w, x, y, z = np.asarray(q, float) / np.linalg.norm(q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
-
-
-def matrix_to_quat_np(m) -> np.ndarray:
-    m = np.asarray(m, float)
-    tr = np.trace(m)
-    cands = np.array([
-        [1 + tr, m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]],
-        [m[2, 1] - m[1, 2], 1 + m[0, 0] - m[1, 1] - m[2, 2], m[0, 1] + m[1, 0], m[0, 2] + m[2, 0]],
-        [m[0, 2] - m[2, 0], m[0, 1] + m[1, 0], 1 - m[0, 0] + m[1, 1] - m[2, 2], m[1, 2] + m[2, 1]],
-        [m[1, 0] - m[0, 1], m[0, 2] + m[2, 0], m[1, 2] + m[2, 1], 1 - m[0, 0] - m[1, 1] + m[2, 2]],
-    ])
-    q = cands[np.argmax(np.diag(cands))]
-    q = q / np.linalg.norm(q)
-    return q if q[0] >= 0 else -q
 
 
 def _inertia_matrix(inertia) -> np.ndarray:
@@ -70,7 +44,7 @@ def rot_z_np(a) -> np.ndarray:
 
 def gimbal_marker_frames(cam) -> tuple[np.ndarray, np.ndarray]:
     """``(R_I in the UAV frame, R_J in the camera frame)`` of a gimbal camera."""
-    r_nom = quat_to_matrix_np(cam.quat)
+    r_nom = quat_to_matrix(cam.quat)
     z_i = np.asarray(cam.outer_axis, float)
     z_i /= np.linalg.norm(z_i)
     x_i = r_nom @ (np.asarray(cam.inner_axis, float) / np.linalg.norm(cam.inner_axis))
@@ -82,7 +56,7 @@ def gimbal_marker_frames(cam) -> tuple[np.ndarray, np.ndarray]:
 
 def camera_in_uav(cam) -> np.ndarray:
     """Camera orientation in the UAV frame at the start (gimbal: commanded start angles)."""
-    r_nom = quat_to_matrix_np(cam.quat)
+    r_nom = quat_to_matrix(cam.quat)
     if cam.mount == "fixed":
         return r_nom
     r_i, r_j = gimbal_marker_frames(cam)
@@ -103,7 +77,7 @@ def expand_cameras(config: SceneConfig) -> SceneConfig:
         if not q.cameras:
             continue
         uav = bodies[q.body]
-        r_uav = quat_to_matrix_np(uav.quat)
+        r_uav = quat_to_matrix(uav.quat)
         w_uav = np.asarray(uav.angvel, float)
         mounts = list(uav.markers)
         for cam in q.cameras:
@@ -113,12 +87,12 @@ def expand_cameras(config: SceneConfig) -> SceneConfig:
                 q_i, q_j = np.asarray(cam.quat, float), np.array([1.0, 0.0, 0.0, 0.0])
             else:
                 r_i, r_j = gimbal_marker_frames(cam)
-                q_i, q_j = matrix_to_quat_np(r_i), matrix_to_quat_np(r_j)
+                q_i, q_j = matrix_to_quat(r_i), matrix_to_quat(r_j)
             mounts.append(MarkerConfig(name=f"{cam.name}_mount", pos=tuple(offset), quat=tuple(q_i)))
             new_bodies.append(BodyConfig(
                 name=cam.name, mass=cam.mass, inertia=tuple(cam.inertia),
                 pos=tuple(np.asarray(uav.pos, float) + r_uav @ offset),
-                quat=tuple(matrix_to_quat_np(r_uav @ r_rel)),
+                quat=tuple(matrix_to_quat(r_uav @ r_rel)),
                 vel=tuple(np.asarray(uav.vel, float) + r_uav @ np.cross(w_uav, offset)),
                 angvel=tuple(r_rel.T @ w_uav),
                 markers=[MarkerConfig(name="mount", quat=tuple(q_j))],

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from mysim_jax.core import vecmath
-from mysim_jax.dynamics.quaternion import quat_mul, quat_rotate, quat_rotate_inv
+from mysim_jax.dynamics.quaternion import quat_rotate, quat_rotate_inv
 from mysim_jax.core.types import Params, PhysState, Scene
 
 
@@ -28,13 +28,6 @@ def marker_kinematics(scene: Scene, params: Params, phys: PhysState):
     pos = phys.body_pos[body] + r_world
     vel = phys.body_vel[body] + quat_rotate(q, vecmath.cross(phys.body_angvel[body], params.marker_pos))
     return pos, vel
-
-
-def marker_frames(scene: Scene, params: Params, phys: PhysState):
-    """World position ``(n_markers, 3)`` and orientation quaternion ``(n_markers, 4)``."""
-    body = np.asarray(scene.marker_body, dtype=np.int32)
-    q = phys.body_quat[body]
-    return phys.body_pos[body] + quat_rotate(q, params.marker_pos), quat_mul(q, params.marker_quat)
 
 
 def node_states(scene: Scene, params: Params, phys: PhysState):

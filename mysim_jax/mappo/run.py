@@ -50,14 +50,13 @@ from mysim_jax.core.config_base import ConfigError
 from mysim_jax.io.output import check_output_dir
 from mysim_jax.mappo import bc
 from mysim_jax.mappo.checkpoint import Checkpoints, save_policy
-from mysim_jax.mappo.config import (TrainConfig, load_eval_scene, load_scene, load_train_config,
-                                    train_config_from_dict)
-from mysim_jax.mappo.config import check_memory, check_memory_needs, describe
+from mysim_jax.mappo.config import (TrainConfig, check_memory, check_memory_needs, describe, load_eval_scene,
+                                    load_scene, load_train_config, train_config_from_dict)
 from mysim_jax.mappo.curriculum import Curriculum
 from mysim_jax.mappo.toy import ReachEnv
 from mysim_jax.mappo.trainer import Trainer, deterministic_policy, deterministic_policy_fn
 from mysim_jax.tasks.capture import make_env, scaled_target_ranges
-from mysim_jax.tasks.evaluate import Evaluator, scripted_policy
+from mysim_jax.tasks.evaluate import Evaluator
 from mysim_jax.tasks.report import comparison_line, summary_line, write_comparison, write_evaluation
 from mysim_jax.tasks.sweep import wilson_interval
 

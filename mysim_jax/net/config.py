@@ -253,11 +253,3 @@ def net_elements(net: NetConfig, bodies: dict, quadrotor_bodies: set[str]) -> Ne
     return out
 
 
-def net_mass(net: NetConfig) -> float:
-    """Total mass [kg] of the net and its tethers (all lines and knots)."""
-    g = net.knots
-    edges = 2 * g * (g - 1)
-    total = edges * net.line.mass_per_length * net.spacing + g * g * net.knot_mass
-    if net.tethers is not None:
-        total += len(net.tethers.uavs) * net.tethers.line.mass_per_length * net.tethers.length
-    return total

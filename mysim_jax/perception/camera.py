@@ -34,6 +34,7 @@ from typing import Annotated
 from pydantic import Field
 
 from mysim_jax.core.config_base import PosFloat, StrictModel
+from mysim_jax.core.npgeom import quat_to_matrix
 
 Pixels = Annotated[int, Field(gt=0, le=16384)]
 
@@ -100,18 +101,6 @@ def intrinsics(config: PinholeConfig | None = None, width: int | None = None, he
     return Intrinsics(width=int(w), height=int(h), fx=fx, fy=fx, cx=w / 2.0, cy=h / 2.0)
 
 
-def quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """(..., 4) scalar-first unit quaternions -> (..., 3, 3) rotation matrices (body -> world)."""
-    q = np.asarray(q, dtype=float)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    w, x, y, z = np.moveaxis(q, -1, 0)
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-    ], -2)
-
-
 @dataclass(frozen=True)
 class CameraPoses:
     """World poses of a camera's OpenCV frame over a run: X_world = R @ X_c + p."""
@@ -155,17 +144,6 @@ def project(intr: Intrinsics, R: np.ndarray, p: np.ndarray, points: np.ndarray) 
     safe = np.where(np.abs(z) > 1e-12, z, 1e-12)
     uv = np.stack([intr.fx * Xc[..., 0] / safe + intr.cx, intr.fy * Xc[..., 1] / safe + intr.cy], -1)
     return uv, z
-
-
-def pixel_rays(intr: Intrinsics, dtype=np.float32) -> np.ndarray:
-    """(H, W, 3) rays K^-1 (u, v, 1) through every pixel centre, in the camera frame (z = 1)."""
-    u = (np.arange(intr.width, dtype=dtype) - dtype(intr.cx)) / dtype(intr.fx)
-    v = (np.arange(intr.height, dtype=dtype) - dtype(intr.cy)) / dtype(intr.fy)
-    rays = np.empty((intr.height, intr.width, 3), dtype=dtype)
-    rays[..., 0] = u[None, :]
-    rays[..., 1] = v[:, None]
-    rays[..., 2] = 1.0
-    return rays
 
 
 def corner_rays(intr: Intrinsics) -> np.ndarray:

@@ -35,7 +35,7 @@ from mysim_jax.perception.camera import Intrinsics, PerceptionError
 
 
 @dataclass(frozen=True)
-class TrackerConfig:
+class FeatureTrackerConfig:
     """Settings of the KLT front end (pixels of the tracked image)."""
 
     max_features: int = 200              # features kept per image
@@ -58,7 +58,7 @@ class TrackerConfig:
                   "ransac_confidence": 0 < self.ransac_confidence < 1, "border_px": self.border_px >= 0}
         bad = [k for k, ok in checks.items() if not ok]
         if bad:
-            raise PerceptionError(f"TrackerConfig: invalid {', '.join(bad)} (max_features >= 8, window odd >= 5, "
+            raise PerceptionError(f"FeatureTrackerConfig: invalid {', '.join(bad)} (max_features >= 8, window odd >= 5, "
                                   f"thresholds positive, confidence in (0, 1))")
 
 
@@ -76,7 +76,7 @@ class FrameFeatures:
 class FeatureTracker:
     """Tracks corners through a sequence of grayscale images of one camera (see the module doc)."""
 
-    def __init__(self, intr: Intrinsics, config: TrackerConfig = TrackerConfig()):
+    def __init__(self, intr: Intrinsics, config: FeatureTrackerConfig = FeatureTrackerConfig()):
         self.intr = intr
         self.config = config
         self._prev: np.ndarray | None = None

@@ -58,9 +58,10 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from mysim_jax.config.scene import ConfigError, load_config
+from mysim_jax.core.npgeom import quat_to_matrix
 from mysim_jax.io.trajectory import read_trajectory_csv
 from mysim_jax.perception.camera import (R_BODY_CV, CameraPoses, Intrinsics, PerceptionError, check_sees_ground,
-                                         intrinsics as make_intrinsics, quat_to_matrix)
+                                         intrinsics as make_intrinsics)
 from mysim_jax.perception.ground import GroundTexture, view_ground
 from mysim_jax.perception.render_raster import (Capsules, Ellipsoids, Fragments, Lights, capsule_fragments,
                                                 composite, ellipsoid_fragments)

@@ -44,7 +44,7 @@ of view. So before a camera's detections reach its tracker, each is checked agai
 the target should be: the point where the other cameras' detection rays meet best (the
 closest-meeting pair, :func:`_consensus_point`) when at least two of them see something,
 else (before this camera has first seen the target) the start cue. Detections whose bearing
-is farther from that point's than ``TrackerConfig.gate_deg`` plus the target's angular
+is farther from that point's than ``GimbalTrackerConfig.gate_deg`` plus the target's angular
 radius there (the box of a partly hidden target is off its centre) are dropped, and the
 rest are ordered nearest first. With no reference point the detector's
 order stands. A camera whose detections are all dropped recovers as above, steered by the
@@ -63,7 +63,8 @@ from tqdm.auto import tqdm
 
 from mysim_jax.build import build
 from mysim_jax.control.build import R_Y_90, gimbal_marker_frames
-from mysim_jax.perception.camera import Intrinsics, PerceptionError, intrinsics as make_intrinsics, quat_to_matrix
+from mysim_jax.core.npgeom import quat_to_matrix
+from mysim_jax.perception.camera import Intrinsics, PerceptionError, intrinsics as make_intrinsics
 from mysim_jax.perception.detect import Detection   # noqa: F401  (the detections this module handles)
 from mysim_jax.perception.localize import box_size_px, box_touches_border, fuse, pixel_bearings, sphere_range
 from mysim_jax.perception.render import Frame, Renderer
@@ -202,7 +203,7 @@ class GimbalGeometry:
 
 
 @dataclass(frozen=True)
-class TrackerConfig:
+class GimbalTrackerConfig:
     """Gains, limits and recovery timing of :class:`GimbalTracker` (angles rad, times s).
 
     The integral gain is off by default: with ``kp = 1`` the loop points the camera in one
@@ -227,14 +228,15 @@ class TrackerConfig:
     def __post_init__(self):
         for name in ("kp", "max_rate", "search_pan_rate", "search_rows"):
             if not getattr(self, name) > 0:
-                raise PerceptionError(f"TrackerConfig.{name} must be positive, got {getattr(self, name)}")
+                raise PerceptionError(f"GimbalTrackerConfig.{name} must be positive, got {getattr(self, name)}")
         for name in ("ki", "integral_limit", "predict_s"):
             if not getattr(self, name) >= 0:
-                raise PerceptionError(f"TrackerConfig.{name} must be >= 0, got {getattr(self, name)}")
+                raise PerceptionError(f"GimbalTrackerConfig.{name} must be >= 0, got {getattr(self, name)}")
         if self.gate_deg is not None and not 0 < self.gate_deg <= 180:
-            raise PerceptionError(f"TrackerConfig.gate_deg must be in (0, 180] deg or None, got {self.gate_deg}")
+            raise PerceptionError(f"GimbalTrackerConfig.gate_deg must be in (0, 180] deg or None, got {self.gate_deg}")
         if self.tilt_limits is not None and not self.tilt_limits[0] < self.tilt_limits[1]:
-            raise PerceptionError(f"TrackerConfig.tilt_limits must be (low, high) with low < high, got {self.tilt_limits}")
+            raise PerceptionError(f"GimbalTrackerConfig.tilt_limits must be (low, high) with low < high, "
+                                  f"got {self.tilt_limits}")
 
 
 TRACK, HOLD, PREDICT, SEARCH = "track", "hold", "predict", "search"
@@ -248,7 +250,7 @@ class GimbalTracker:
     """
 
     def __init__(self, geometry: GimbalGeometry, intr: Intrinsics, frame_dt: float,
-                 config: TrackerConfig = TrackerConfig(), initial_command=(0.0, 0.0)):
+                 config: GimbalTrackerConfig = GimbalTrackerConfig(), initial_command=(0.0, 0.0)):
         if not frame_dt > 0:
             raise PerceptionError(f"frame_dt must be positive, got {frame_dt}")
         self.geometry, self.intr, self.dt, self.config = geometry, intr, float(frame_dt), config
@@ -527,7 +529,7 @@ def _state_columns(scene, state) -> dict[str, np.ndarray]:
 
 
 def run_tracking(config, detector: FrameDetector | None = None, intr: Intrinsics | None = None,
-                 frame_rate: float = 25.0, tracker_config: TrackerConfig = TrackerConfig(),
+                 frame_rate: float = 25.0, tracker_config: GimbalTrackerConfig = GimbalTrackerConfig(),
                  t_end: float | None = None, initial_cue: bool = True, cooperative_cue: bool = True,
                  force_loss: tuple[float, float] | None = None, target_style: str = "auto",
                  progress: bool = True) -> TrackingRecord:

@@ -89,12 +89,12 @@ from tqdm import tqdm
 
 from mysim_jax.config.scene import load_config
 from mysim_jax.core.config_base import ConfigError
+from mysim_jax.core.npgeom import matrix_to_quat, quat_to_matrix
 from mysim_jax.io.trajectory import read_trajectory_csv
-from mysim_jax.perception.camera import Intrinsics, PerceptionError
-from mysim_jax.perception.camera import (CameraPoses, R_BODY_CV, body_pose_columns, camera_poses, check_sees_ground,
-                                         intrinsics, quat_to_matrix)
-from mysim_jax.perception.features import FeatureTracker, TrackerConfig
-from mysim_jax.perception.ground import GroundTexture, view_ground
+from mysim_jax.perception.camera import (CameraPoses, Intrinsics, PerceptionError, R_BODY_CV, body_pose_columns,
+                                         camera_poses, check_sees_ground, intrinsics)
+from mysim_jax.perception.features import FeatureTracker, FeatureTrackerConfig
+from mysim_jax.perception.ground import GroundTexture
 from mysim_jax.perception.imu import ImuConfig, ImuError, simulate_imu
 from mysim_jax.perception.metrics import PoseTrack, gauss_markov_fit, plot_estimates, trajectory_errors, write_tum
 from mysim_jax.perception.render import Renderer
@@ -166,7 +166,7 @@ class VioConfig:
     more than the sensor's does, a ratio of a few hundred, which it solves reliably.
     """
 
-    tracker: TrackerConfig = TrackerConfig()
+    tracker: FeatureTrackerConfig = FeatureTrackerConfig()
     pixel_sigma: float = 1.0                  # px, standard deviation of a feature position
     huber_k: float = 1.5                      # Huber threshold, in units of pixel_sigma
     keyframe_parallax_px: float = 10.0        # px, mean feature motion since the last keyframe
@@ -257,30 +257,6 @@ def _gtsam():
     import gtsam
 
     return gtsam
-
-
-def matrix_to_quat(R: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) rotation matrices -> (..., 4) scalar-first unit quaternions with w >= 0."""
-    R = np.asarray(R, dtype=float)
-    flat = R.reshape(-1, 3, 3)
-    out = np.empty((len(flat), 4))
-    for i, m in enumerate(flat):
-        tr = np.trace(m)
-        if tr > 0:
-            s = 2.0 * np.sqrt(1.0 + tr)
-            q = [0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s]
-        elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
-            s = 2.0 * np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
-            q = [(m[2, 1] - m[1, 2]) / s, 0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s]
-        elif m[1, 1] > m[2, 2]:
-            s = 2.0 * np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
-            q = [(m[0, 2] - m[2, 0]) / s, (m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s]
-        else:
-            s = 2.0 * np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
-            q = [(m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s]
-        q = np.asarray(q)
-        out[i] = q / np.linalg.norm(q) * (1.0 if q[0] >= 0 else -1.0)
-    return out.reshape(R.shape[:-2] + (4,))
 
 
 def _so3_exp(w: np.ndarray) -> np.ndarray:
@@ -952,21 +928,6 @@ def initial_state(columns: dict, body: str, row: int = 0) -> NavState:
     pos, quat = body_pose_columns(columns, body)
     v = np.array([columns[f"{body}_v{k}"][row] for k in "xyz"], dtype=float)
     return NavState(t=float(columns["time"][row]), R=quat_to_matrix(quat[row]), p=pos[row], v=v)
-
-
-def render_ground_images(job: PerceptionJob, texture=None, noise_sigma: float = 1.0,
-                         seed: int = 0) -> Iterator[tuple[float, np.ndarray]]:
-    """(t s, (H, W) uint8 image) of the job's camera at its image rows: the textured ground
-    (:func:`mysim_jax.perception.ground.view_ground`) in grey levels 0-255, plus white
-    pixel noise of ``noise_sigma`` grey levels (seeded)."""
-    texture = texture or GroundTexture(seed=seed)
-    poses = camera_poses(job.columns, job.camera)
-    rng = np.random.default_rng(seed)
-    intr = job.camera_model.intr
-    for row in job.rows:
-        albedo = view_ground(intr, poses.R[row], poses.p[row], texture).albedo
-        grey = albedo * 255.0 + rng.normal(0.0, noise_sigma, albedo.shape)
-        yield float(poses.t[row]), np.clip(np.rint(grey), 0, 255).astype(np.uint8)
 
 
 def render_scene_images(job: PerceptionJob, noise_sigma: float = 1.0,

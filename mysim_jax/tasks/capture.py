@@ -78,7 +78,7 @@ from flax import struct
 
 from mysim_jax.build import build
 from mysim_jax.config.capture import TeamConfig
-from mysim_jax.config.env import (COST_TERMS, CRASHES, FAILURES, MISSES, OUTCOME_TERMS, REWARD_TERMS,
+from mysim_jax.config.env import (COST_TERMS, CRASHES, MISSES, OUTCOME_TERMS, REWARD_TERMS,
                                   SHAPING_TERMS, NoiseConfig)
 from mysim_jax.control.setpoint import setpoint_from_action
 from mysim_jax.core import rng
@@ -88,7 +88,7 @@ from mysim_jax.effects.target import spawn_target
 from mysim_jax.sim import step as sim_step
 from mysim_jax.tasks.intercept import CatchPoint, predict_catch
 from mysim_jax.tasks.outcome import border_knots
-from mysim_jax.tasks.rewards import Snapshot, checks, cost_terms, outcome_terms, potential_terms
+from mysim_jax.tasks.rewards import Snapshot, checks, cost_terms, hold_reached, outcome_terms, potential_terms
 from mysim_jax.tasks.scripted import team_policy
 
 
@@ -228,7 +228,7 @@ class CaptureEnv:
             # measured as capture_outcome measures it: from the first held sample, so a
             # hold of k consecutive held steps lasts (k - 1) policy periods
             held_time = jnp.where(flags.held & state.held, state.held_time + self.policy_dt, 0.0).astype(dtype)
-            succeeded = flags.held & (held_time >= self.success.hold_time - 1e-6)
+            succeeded = flags.held & hold_reached(held_time, self.success.hold_time)
             # a step that succeeds is not a failure (the flags are exclusive in info)
             failures = {k: v & ~succeeded for k, v in flags.failures.items()}
             crashed = jnp.any(jnp.stack([failures[k] for k in CRASHES]))

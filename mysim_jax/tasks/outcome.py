@@ -1,11 +1,11 @@
-"""Did the net catch the target? Host-side checks of a saved capture run (NumPy).
+"""Did the net catch the target? The verdict on a saved capture run.
 
 The target is **held** at an output time when all of these hold:
 
 * *inside the net's outline*: its horizontal position is inside the polygon of the
   net's border knots (at that time);
-* *above the net*: its centre is higher than the mean height of the ``NET_SURFACE_KNOTS``
-  knots nearest to it horizontally (it lies in the net, not under it);
+* *above the net*: its centre is higher than the mean height of the
+  :data:`~mysim_jax.tasks.rewards.NET_SURFACE_KNOTS` knots nearest to it horizontally (it lies in the net, not under it);
 * *below the tether attachments*: its centre is lower than every tethered UAV's
   attachment marker;
 * *slow relative to the net*: its speed relative to the mean velocity of the knots is
@@ -15,21 +15,27 @@ The target is **held** at an output time when all of these hold:
   (the trajectory's ``TARGET_entanglement`` column) is at least ``min_entanglement``.
 
 A run **catches** the target when it is held over the last ``hold_time`` seconds of the
-run. The same quantities feed the plots (UAV–target distances, tether tensions).
+run. The conditions and the hold rule are the environment's own
+(:func:`~mysim_jax.tasks.rewards.held_flags`, :func:`~mysim_jax.tasks.rewards.hold_reached`),
+evaluated here at every output sample of the run's trajectory columns (in float64). The
+same columns feed the plots (UAV–target distances, tether tensions).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
+from types import SimpleNamespace
 
+import jax
+import jax.numpy as jnp
 import numpy as np
-from matplotlib.path import Path as PolygonPath
 
-from mysim_jax.dynamics.forces import spring_tension
 from mysim_jax.core.npgeom import rotate
+from mysim_jax.dynamics.forces import spring_tension
+from mysim_jax.tasks.rewards import held_flags, hold_reached
 
 MAX_RELATIVE_SPEED = 0.5   # m/s
-NET_SURFACE_KNOTS = 3      # knots whose mean height is the net under the target (rewards.above_net)
 GROUND_CLEARANCE = 0.05    # m
 HOLD_TIME = 0.5            # s
 MIN_ENTANGLEMENT = 1.0     # share of the propulsion lost (evading targets with entanglement)
@@ -104,30 +110,28 @@ def capture_outcome(columns, config, max_relative_speed=None, ground_clearance=N
     min_entanglement = pick(min_entanglement, "min_entanglement", MIN_ENTANGLEMENT)
     net, target = config.net, config.target
     time = np.asarray(columns["time"])
-    p = _xyz(columns, target.name)
-    v = _xyz(columns, target.name, "v")
-    ring = border_knots(net)
-    border = np.stack([_xyz(columns, k) for k in ring], axis=1)          # (n_out, n_border, 3)
-    inside = np.array([PolygonPath(border[i, :, :2]).contains_point(p[i, :2]) for i in range(len(time))])
-    if net.tethers is not None:
-        below = p[:, 2] < _attachments(columns, config)[..., 2].min(axis=1)
-    else:
-        below = np.ones(len(time), bool)
     knots = [net.knot_name(i, j) for i in range(net.knots) for j in range(net.knots)]
-    knot_pos = np.stack([_xyz(columns, k) for k in knots], axis=1)      # (n_out, n_knots, 3)
-    d2 = np.sum((knot_pos[..., :2] - p[:, None, :2]) ** 2, axis=-1)
-    nearest = np.argsort(d2, axis=1, kind="stable")[:, :NET_SURFACE_KNOTS]
-    over_net = p[:, 2] > np.take_along_axis(knot_pos[..., 2], nearest, axis=1).mean(axis=1)
-    v_net = np.mean(np.stack([_xyz(columns, k, "v") for k in knots], axis=1), axis=1)
-    slow = np.linalg.norm(v - v_net, axis=-1) < max_relative_speed
-    above = p[:, 2] - target.radius > ground_clearance
-    entangled = None
+    entanglement = None
     if target.entanglement is not None:
         column = f"{target.name}_entanglement"
         if column not in columns:
             raise ValueError(f"the target has entanglement (target.entanglement) but the trajectory has no "
                              f"'{column}' column: it comes from a stepped run (scripts/simulate.py writes it)")
-        entangled = np.asarray(columns[column]) >= min_entanglement - 1e-6
+        entanglement = np.asarray(columns[column], np.float64)
+    thresholds = SimpleNamespace(max_relative_speed=max_relative_speed, ground_clearance=ground_clearance,
+                                 min_entanglement=min_entanglement)
+    # the environment's own conditions (rewards.held_flags), over the output samples, in float64
+    with jax.enable_x64(True):
+        samples = (_xyz(columns, target.name), _xyz(columns, target.name, "v"),
+                   np.stack([_xyz(columns, k) for k in border_knots(net)], axis=1),
+                   np.stack([_xyz(columns, k) for k in knots], axis=1),
+                   np.stack([_xyz(columns, k, "v") for k in knots], axis=1),
+                   _attachments(columns, config) if net.tethers is not None else None, entanglement)
+        flags = jax.vmap(partial(held_flags, target_radius=target.radius, success=thresholds))(
+            *[None if a is None else jnp.asarray(a, jnp.float64) for a in samples])
+        flags = {k: np.broadcast_to(np.asarray(v), time.shape) for k, v in flags.items()}
+    inside, over_net, below, slow, above = (flags[k] for k in ("inside", "above_net", "below", "slow", "above_ground"))
+    entangled = flags["entangled"] if entanglement is not None else None
     held = inside & over_net & below & slow & above
     if entangled is not None:
         held = held & entangled
@@ -136,7 +140,7 @@ def capture_outcome(columns, config, max_relative_speed=None, ground_clearance=N
         not_held = np.flatnonzero(~held)
         start = 0 if not_held.size == 0 else not_held[-1] + 1
         first = float(time[start])
-    caught = first is not None and time[-1] - first >= hold_time - 1e-9
+    caught = first is not None and bool(hold_reached(time[-1] - first, hold_time))
     return CaptureOutcome(time=time, inside=inside, above_net=over_net, below=below, slow=slow, above_ground=above,
                           caught=bool(caught), first_held=first, entangled=entangled)
 

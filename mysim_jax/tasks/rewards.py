@@ -54,7 +54,6 @@ outcome: it pays nothing (a learner bootstraps the value there).
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 from flax import struct
 
@@ -127,8 +126,7 @@ def segment_distance(p, a, b):
     return vecmath.safe_norm(a + t[:, None] * ab - p)
 
 
-# knots around the target whose mean height is "the net under it" (NumPy twin:
-# mysim_jax.tasks.outcome.NET_SURFACE_KNOTS)
+# knots around the target whose mean height is "the net under it"
 NET_SURFACE_KNOTS = 3
 
 
@@ -154,18 +152,49 @@ def tilt_cosine(quat):
     return quat_rotate(quat, z)[..., 2]
 
 
+# s: a hold of ``hold_time`` counts although its duration was summed in float32 steps
+HOLD_TOLERANCE = 1e-6
+
+
+def hold_reached(held_time, hold_time):
+    """Has the target been held long enough? ``held_time`` (s) from its first held sample
+    (NumPy or JAX values): the one rule of the environment and of
+    :func:`mysim_jax.tasks.outcome.capture_outcome`."""
+    return held_time >= hold_time - HOLD_TOLERANCE
+
+
+def held_flags(target_pos, target_vel, border, knot_pos, knot_vel, attach, entanglement, *, target_radius,
+               success) -> dict:
+    """The conditions of "held" at one instant (module docstring of
+    :mod:`mysim_jax.tasks.outcome`), ``name -> () bool``: ``inside``, ``above_net``,
+    ``below``, ``slow``, ``above_ground``, ``entangled``. ``target_pos``/``target_vel`` (3,);
+    ``border`` (n_border, 3) the border knots in order around the net; ``knot_pos``/
+    ``knot_vel`` (n_knots, 3); ``attach`` (n_tethers, 3) the tether attachment markers, or
+    None (no tethers: always below); ``entanglement`` () in [0, 1] or None (no entanglement:
+    always entangled). ``success``: the thresholds ``max_relative_speed``,
+    ``ground_clearance``, ``min_entanglement`` (static floats). The environment's step and
+    the saved-run verdict both call this."""
+    below = jnp.asarray(True) if attach is None else target_pos[2] < jnp.min(attach[:, 2])
+    v_rel = vecmath.safe_norm(target_vel - jnp.mean(knot_vel, axis=0))
+    return {
+        "inside": inside_polygon(target_pos[:2], border[:, :2]),
+        "above_net": above_net(target_pos, knot_pos),
+        "below": below,
+        "slow": v_rel < success.max_relative_speed,
+        "above_ground": target_pos[2] - target_radius > success.ground_clearance,
+        "entangled": (jnp.asarray(True) if entanglement is None
+                      else entanglement >= success.min_entanglement - 1e-6),
+    }
+
+
 def checks(snap: Snapshot, *, target_radius, line_radius, contact_margin, success, failure) -> Checks:
     """Flags of one snapshot. ``success`` / ``failure``: the SuccessConfig / FailureConfig
     thresholds (static floats)."""
     p_t = snap.target_pos
     gap = jnp.min(segment_distance(p_t, snap.line_a, snap.line_b)) - target_radius - line_radius
     touching = gap <= contact_margin
-    inside = inside_polygon(p_t[:2], snap.border[:, :2])
-    over_net = above_net(p_t, snap.knot_pos)
-    below = p_t[2] < jnp.min(snap.attach[:, 2])
-    v_rel = vecmath.safe_norm(snap.target_vel - jnp.mean(snap.knot_vel, axis=0))
-    slow = v_rel < success.max_relative_speed
-    above = p_t[2] - target_radius > success.ground_clearance
+    held = held_flags(p_t, snap.target_vel, snap.border, snap.knot_pos, snap.knot_vel, snap.attach,
+                      snap.entanglement, target_radius=target_radius, success=success)
 
     z = snap.uav_pos[:, 2]
     n = snap.uav_pos.shape[0]
@@ -186,11 +215,7 @@ def checks(snap: Snapshot, *, target_radius, line_radius, contact_margin, succes
     }
     # a non-finite state makes every comparison False; report it alone
     failures = {k: (v & finite) if k != "non_finite" else v for k, v in failures.items()}
-    entangled = (jnp.asarray(True) if snap.entanglement is None
-                 else snap.entanglement >= success.min_entanglement - 1e-6)
-    return Checks(touching=touching & finite, inside=inside & finite, above_net=over_net & finite,
-                  below=below & finite, slow=slow & finite, above_ground=above & finite, failures=failures,
-                  entangled=entangled & finite)
+    return Checks(touching=touching & finite, failures=failures, **{k: v & finite for k, v in held.items()})
 
 
 def potential_terms(snap: Snapshot, flags: Checks, *, catch_point, slots, scales, touched) -> dict:

@@ -60,7 +60,7 @@ class ModelConfig(StrictModel):
         return self
 
 
-class TrainConfig(StrictModel):
+class DetectorTrainConfig(StrictModel):
     steps: Annotated[int, Field(ge=0)] = 5000   # 0: the first stage is not trained (its weights: --init)
     batch_size: PosInt = 16
     crop: Annotated[int, Field(ge=64, le=4096, multiple_of=32)] = 160   # px, square training crops
@@ -148,7 +148,7 @@ class DetectorConfig(StrictModel):
     name: str = "detector"
     data: DataConfig = DataConfig()
     model: ModelConfig = ModelConfig()
-    train: TrainConfig = TrainConfig()
+    train: DetectorTrainConfig = DetectorTrainConfig()
     refine: RefineConfig | None = None   # the second stage; none: the first stage alone
     eval: EvalConfig = EvalConfig()
 

@@ -55,7 +55,6 @@ import copy
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 import yaml
@@ -487,7 +486,3 @@ def render_sample(spec: DatasetSpec, index: int) -> Sample:
                   visible_px=int(visible_px), truncation=float(truncation), meta=meta)
 
 
-def iterate(spec: DatasetSpec, start: int = 0) -> Iterator[Sample]:
-    """Samples ``start, start + 1, ..., spec.n_images - 1`` of ``spec``."""
-    for i in range(start, spec.n_images):
-        yield render_sample(spec, i)

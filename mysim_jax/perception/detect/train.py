@@ -48,7 +48,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 from mysim_jax.perception.camera import PerceptionError
 from mysim_jax.perception.detect.classical import ColourBlobDetector
 from mysim_jax.perception.detect.config import DetectorConfig
-from mysim_jax.perception.detect.dataset import DatasetSpec, render_sample
+from mysim_jax.perception.detect.dataset import DatasetSpec, is_ignored, render_sample
 from mysim_jax.perception.detect.metrics import iou, match, pr_curve, summary
 from mysim_jax.perception.detect.model import CNNDetector, CenterNet, encode_targets, loss_fn
 from mysim_jax.perception.detect.refine import RefineSettings, Refiner, normalise
