@@ -53,27 +53,6 @@ import json
 import sys
 
 
-def _perception_block(path: str) -> dict:
-    """The mapping in ``path`` (ConfigError if the file is missing or not a YAML mapping)."""
-    from pathlib import Path
-
-    import yaml
-
-    from mysim_jax.config.scene import ConfigError
-
-    file = Path(path)
-    if not file.is_file():
-        raise ConfigError(f"--perception {path}: no such file")
-    try:
-        block = yaml.safe_load(file.read_text())
-    except yaml.YAMLError as err:
-        raise ConfigError(f"--perception {path}: not valid YAML: {err}") from None
-    if not isinstance(block, dict):
-        raise ConfigError(f"--perception {path}: expected a mapping of uav_position, uav_velocity, target_position, "
-                          "target_velocity to {sigma, correlation_time}")
-    return block
-
-
 def _error(message: str) -> int:
     print(f"error: {message}", file=sys.stderr)
     return 2
@@ -109,11 +88,12 @@ def main(argv=None) -> int:
     from mysim_jax.config.scene import ConfigError, load_config
     from mysim_jax.io.output import OutputError, check_output_dir
     from mysim_jax.mappo.policies import PolicyError, check_policy_spec
+    from mysim_jax.tasks.perception_gap import read_perception_block
 
     try:
         perception = None
         if args.perception is not None:
-            perception = _perception_block(args.perception)
+            perception = read_perception_block(args.perception)
             args.overrides = [*args.overrides, "env.perception=" + json.dumps(perception)]
         config = load_config(args.config, args.overrides)
         missing = [b for b, v in (("net", config.net), ("target", config.target), ("quadrotors", config.quadrotors))

@@ -33,22 +33,6 @@ def _error(message: str) -> int:
     return 2
 
 
-def _load_model(path: str, key: str = "error_model") -> dict:
-    from mysim_jax.tasks.perception_gap import GapError
-
-    file = Path(path)
-    if not file.is_file():
-        raise GapError(f"{path}: no such file")
-    try:
-        data = json.loads(file.read_text())
-    except json.JSONDecodeError as err:
-        raise GapError(f"{path}: not JSON: {err}") from None
-    model = data.get(key) if isinstance(data, dict) else None
-    if not isinstance(model, dict):
-        raise GapError(f"{path}: no '{key}' block (write it with scripts/perceive.py)")
-    return model
-
-
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -62,7 +46,8 @@ def main(argv=None) -> int:
     cmp_.add_argument("--out", help="also write the result as JSON here")
     args = parser.parse_args(argv)
 
-    from mysim_jax.tasks.perception_gap import GapError, compare_evaluations, perception_block
+    from mysim_jax.core.config_base import ConfigError
+    from mysim_jax.tasks.perception_gap import GapError, compare_evaluations, perception_block, read_error_model
 
     try:
         if args.command == "fit":
@@ -70,7 +55,7 @@ def main(argv=None) -> int:
 
             from mysim_jax.config.env import PerceptionConfig
 
-            block = perception_block([_load_model(p) for p in args.uav], _load_model(args.target))
+            block = perception_block([read_error_model(p) for p in args.uav], read_error_model(args.target))
             PerceptionConfig(**block)                      # the block evaluate.py will read
             text = ("# env.perception: measured estimation errors as Gauss-Markov processes "
                     "(scripts/perception_gap.py fit)\n"
@@ -80,7 +65,7 @@ def main(argv=None) -> int:
             print(text, end="")
             return 0
         result = compare_evaluations(args.true_dir, args.perceived_dir)
-    except GapError as err:
+    except (GapError, ConfigError) as err:
         return _error(str(err))
     t, p, g = result["true_states"], result["perceived_states"], result["gap"]
     print(f"{result['scene']}, {result['policy']}, {result['episodes']} episodes (seed {result['seed']}):\n"

@@ -40,17 +40,24 @@ class BoxRange(StrictModel):
         return self
 
 
-class IntervalRange(StrictModel):
-    """A scalar range ``low <= v <= high`` [s]."""
+class Range(StrictModel):
+    """A scalar range ``low <= v <= high``, drawn uniformly (``low == high`` fixes it)."""
 
-    low: PosFloat
-    high: PosFloat
+    low: NonNegFloat
+    high: NonNegFloat
 
     @model_validator(mode="after")
     def _ordered(self):
         if self.low > self.high:
             raise ValueError(f"empty range: low ({self.low:g}) > high ({self.high:g})")
         return self
+
+
+class IntervalRange(Range):
+    """A range of time intervals ``0 < low <= v <= high`` [s]."""
+
+    low: PosFloat
+    high: PosFloat
 
 
 class SpawnConfig(StrictModel):

@@ -25,10 +25,10 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from pydantic import Field, field_validator, model_validator
+from pydantic import Field, field_validator
 
+from mysim_jax.config.capture import BoxRange, Range
 from mysim_jax.core.config_base import NonNegFloat, PosFloat, StrictModel
-from mysim_jax.config.capture import BoxRange
 
 # The paper's eight terms and their weights (Table rewards): seven are the terms of the
 # shaping potential, effort is a per-step cost (mysim_jax/tasks/rewards.py).
@@ -97,19 +97,6 @@ def ranking_problems(weights: dict[str, float], n_agents: int, max_steps: int, d
                         f"{weights['miss'] + spread:.4g} (the largest spread of an episode's shaping and costs), or "
                         "a crashed episode could return more than a missed one: raise it or lower the shaping weights")
     return problems
-
-
-class Range(StrictModel):
-    """A scalar range ``low <= v <= high``, drawn uniformly (``low == high`` fixes it)."""
-
-    low: NonNegFloat
-    high: NonNegFloat
-
-    @model_validator(mode="after")
-    def _ordered(self):
-        if self.low > self.high:
-            raise ValueError(f"empty range: low ({self.low:g}) > high ({self.high:g})")
-        return self
 
 
 def fixed(value: float) -> Range:

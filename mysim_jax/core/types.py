@@ -1,4 +1,4 @@
-"""The three kinds of data a simulation is made of (see DESIGN.md, "Data flow").
+"""The three kinds of data a simulation is made of: what is fixed, what is tuned, what evolves.
 
 * :class:`Scene` — static structure: counts, names, index arrays (as tuples), which effects
   exist, integrator settings. Frozen and hashable; changing it recompiles; never traced.

@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mysim_jax.core.config_base import ConfigError, read_text_file, read_yaml_file
 from mysim_jax.tasks.sweep import paired_difference_interval, wilson_interval
 
 _FIELDS = {"position_m": "position", "velocity_m_s": "velocity"}
@@ -35,6 +36,33 @@ _FIELDS = {"position_m": "position", "velocity_m_s": "velocity"}
 
 class GapError(ValueError):
     """The inputs cannot be compared or combined; the message says why and how to fix it."""
+
+
+def read_error_model(path, key: str = "error_model") -> dict:
+    """The ``key`` block of a ``scripts/perceive.py`` ``metrics.json``. Raises
+    :class:`~mysim_jax.core.config_base.ConfigError` naming the file when it cannot be read,
+    :class:`GapError` when it is not JSON or has no such block."""
+    text = read_text_file(path, "file (a perceive.py metrics.json)")
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as err:
+        raise GapError(f"{path}: not JSON: {err}") from None
+    model = data.get(key) if isinstance(data, dict) else None
+    if not isinstance(model, dict):
+        raise GapError(f"{path}: no '{key}' block (write it with scripts/perceive.py)")
+    return model
+
+
+def read_perception_block(path) -> dict:
+    """The ``env.perception`` mapping in the YAML file ``path`` (``scripts/perception_gap.py
+    fit`` writes one), for ``scripts/evaluate.py --perception``. Raises
+    :class:`~mysim_jax.core.config_base.ConfigError` naming the file; the block's fields are
+    checked where the scene takes it (:class:`mysim_jax.config.env.PerceptionConfig`)."""
+    block = read_yaml_file(path, "file (--perception)")
+    if not isinstance(block, dict):
+        raise ConfigError(f"--perception {path}: expected a mapping of uav_position, uav_velocity, target_position, "
+                          "target_velocity to {sigma, correlation_time}")
+    return block
 
 
 def _combine(fits: list[dict], what: str) -> dict:
