@@ -36,7 +36,7 @@ from mysim_jax.core.types import JointBucket, Params, PhysState, Scene, State
 AUTO_SUBSTEP_SAFETY = 0.5
 
 # ``substeps: auto`` with ``implicit_euler``: sub-steps of at most this multiple of the
-# accepted explicit step of its implicit springs (README, "Stiff ropes at large steps":
+# accepted explicit step of its implicit springs (docs/scenes.md, "Stiff ropes at large steps":
 # stable in randomised runs at this multiple with the default CG iterations). It is not a
 # stability limit and explicit steps above it are accepted; beyond it the fixed number of
 # CG iterations resolves less of the solve and the step is far less accurate.

@@ -28,7 +28,7 @@ import pytest
 # XLA's CPU code generator for the tests: its older LLVM emitters
 # (``--xla_cpu_use_fusion_emitters=false``), not the MLIR fusion emitters XLA uses by
 # default. The suite's time is mostly XLA compiling, and the older emitters compile the
-# same programs faster (README, "Run the tests"); the programs compute the same values to
+# same programs faster (docs/testing.md); the programs compute the same values to
 # float round-off (the suite passes under both; ``scripts/bench.py --only j`` compares
 # their speed). The library itself keeps XLA's default, whose code runs faster.
 # ``MYSIM_TEST_XLA_EMITTERS=default`` runs the suite with XLA's default. Set before any

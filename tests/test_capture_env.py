@@ -462,7 +462,7 @@ def test_an_env_needs_a_net_and_a_target():
 @pytest.mark.slow
 def test_random_team_does_not_catch():
     """Two episodes on configs/capture_env_falling.yaml at its cheap level ``train`` (the
-    1000-episode rates on ``full`` are in README, "The capture environment"): the random
+    1000-episode rates on ``full`` are in docs/capture.md, "The capture environment"): the random
     team fails. That the scripted team holds the target is asserted by the recorded
     episode of the next test."""
     from mysim_jax.tasks.evaluate import random_policy, run_episodes

@@ -194,7 +194,7 @@ def test_mappo_with_environments_split_over_two_devices_equals_one_device(tmp_pa
 
 
 def test_train_script_on_two_devices_and_on_two_processes(tmp_path):
-    """The README's commands for several devices and hosts, on the reach task (32
+    """The commands for several devices and hosts in docs/training.md, on the reach task (32
     environments, 4 iterations, checkpoints every 2): train.py in one process with two
     forced host devices splits the environments over both (summary: 2 devices); two
     processes joined by jax.distributed on 127.0.0.1, one device each, train the same run

@@ -51,7 +51,7 @@ ADAPTIVE_INTEGRATORS = ("tsit5", "kvaerno5")
 # Conjugate-gradient iterations per step of ``implicit_euler`` (sim.implicit_iterations):
 # the default and the largest accepted. 20 keeps randomised nets stable up to 20x the
 # explicit step (twice what ``substeps: auto`` takes; with 10 iterations a 44-mass net
-# blows up at 20x) and solves the capture nets to ~1e-13 at their own step (README,
+# blows up at 20x) and solves the capture nets to ~1e-13 at their own step (docs/scenes.md,
 # "Stiff ropes at large steps").
 IMPLICIT_ITERATIONS = 20
 MAX_IMPLICIT_ITERATIONS = 10_000

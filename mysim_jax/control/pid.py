@@ -53,7 +53,7 @@ from its jerk and snap (:func:`flat_body_rates`). ``acceleration``: ``m a_s`` on
 (``ω_s = α_s = 0``, ``τ_ff = 0``). ``none``: plain PID. A setpoint without feed-forward
 terms (``None``) feeds zeros. The paper's gains are soft (position loop
 ω_n ≈ 1.2 rad/s, ζ = 0.2–0.4; attitude ω_n ≈ 7 rad/s), so along a reference the
-feed-forward carries the tracking and the PID corrects (README "Quadrotor & control"
+feed-forward carries the tracking and the PID corrects (docs/physics.md, "Quadrotor & control"
 has the numbers for all three).
 
 **Units of the paper's attitude gains** (``attitude_gain_units``; ``s`` above). Read as

@@ -9,7 +9,7 @@ Positive parametrisation: ``gain = gain₀ · exp(θ)`` per entry (θ starts at 
 gains stay positive and a step in θ is a relative change; entries that start at zero
 (the paper's roll/pitch attitude integrators) stay zero.
 
-Long horizons (measured by ``scripts/tune_pid.py --horizon-study``, README "Quadrotor &
+Long horizons (measured by ``scripts/tune_pid.py --horizon-study``, docs/physics.md, "Quadrotor &
 control"):
 
 * gradient size: the closed loop is stable, so |∇L| grows with the horizon only about
