@@ -45,14 +45,113 @@ IMPLICIT_AUTO_FACTOR = 10.0
 
 @dataclass
 class _Tables:
-    point_names: list
-    point_mass: list
-    point_pos: list
-    point_vel: list
-    marker_names: list
-    marker_body: list
-    marker_pos: list
-    marker_quat: list
+    """The scene's point and marker tables while they are assembled, and the lookups of
+    names to indices that the later stages share."""
+
+    config: SceneConfig
+    body_index: dict
+    anchor_index: dict
+    point_names: list = dataclasses.field(default_factory=list)
+    point_mass: list = dataclasses.field(default_factory=list)
+    point_pos: list = dataclasses.field(default_factory=list)
+    point_vel: list = dataclasses.field(default_factory=list)
+    marker_names: list = dataclasses.field(default_factory=list)
+    marker_body: list = dataclasses.field(default_factory=list)
+    marker_pos: list = dataclasses.field(default_factory=list)
+    marker_quat: list = dataclasses.field(default_factory=list)
+    n_points: int = 0            # set by resolve_nodes: node numbers are final from then on
+    n_markers: int = 0
+
+    @classmethod
+    def of(cls, config: SceneConfig) -> "_Tables":
+        """The config's own points and its bodies' markers."""
+        t = cls(config, {b.name: i for i, b in enumerate(config.bodies)},
+                {a.name: i for i, a in enumerate(config.anchors)})
+        for p in config.points:
+            t.add_point(p.name, p.mass, np.asarray(p.pos, float), np.asarray(p.vel, float))
+        for bi, b in enumerate(config.bodies):
+            for m in b.markers:
+                t.add_marker(f"{b.name}.{m.name}", bi, np.asarray(m.pos, float), np.asarray(m.quat, float))
+        return t
+
+    def add_point(self, name, mass, pos, vel):
+        self.point_names.append(name)
+        self.point_mass.append(mass)
+        self.point_pos.append(pos)
+        self.point_vel.append(vel)
+
+    def add_marker(self, name, body, pos, quat):
+        self.marker_names.append(name)
+        self.marker_body.append(body)
+        self.marker_pos.append(pos)
+        self.marker_quat.append(quat)
+
+    def marker_for(self, ref: str) -> int:
+        """Index of marker ``body.marker``, or of an implicit centre marker for ``body``."""
+        if ref not in self.marker_names:
+            self.add_marker(ref, self.body_index[ref], np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0]))
+        return self.marker_names.index(ref)
+
+    def world_pos(self, ref: str):
+        """Initial world position of an attachment, or None if not placed yet."""
+        if ref in self.anchor_index:
+            return np.asarray(self.config.anchors[self.anchor_index[ref]].pos, float)
+        if ref in self.point_names:
+            return self.point_pos[self.point_names.index(ref)]
+        body_name, _, marker_name = ref.partition(".")
+        if body_name in self.body_index:
+            b = self.config.bodies[self.body_index[body_name]]
+            offset = np.zeros(3)
+            if marker_name:
+                offset = np.asarray(next(m.pos for m in b.markers if m.name == marker_name), float)
+            return np.asarray(b.pos, float) + rotate(b.quat, offset)
+        return None
+
+    def resolve_nodes(self) -> None:
+        """Give every referenced body (or body marker) its marker; node numbers are final
+        after this: points, then markers, then anchors."""
+        c = self.config
+        refs = [r.start for r in c.ropes] + [r.end for r in c.ropes]
+        refs += [s.start for s in c.springs] + [s.end for s in c.springs]
+        refs += [ld.at for ld in c.loads]
+        for ref in refs:
+            if ref not in self.point_names and ref not in self.anchor_index:
+                self.marker_for(ref)
+        self.n_points, self.n_markers = len(self.point_names), len(self.marker_names)
+
+    @property
+    def n_nodes(self) -> int:
+        return self.n_points + self.n_markers + len(self.config.anchors)
+
+    def node(self, ref: str) -> int:
+        if ref in self.point_names:
+            return self.point_names.index(ref)
+        if ref in self.anchor_index:
+            return self.n_points + self.n_markers + self.anchor_index[ref]
+        return self.n_points + self.marker_names.index(ref)
+
+
+@dataclass
+class _Springs:
+    """Every spring of the scene, the ropes' segments first: names, end nodes, law, constants."""
+
+    names: list = dataclasses.field(default_factory=list)
+    node_a: list = dataclasses.field(default_factory=list)
+    node_b: list = dataclasses.field(default_factory=list)
+    tension_only: list = dataclasses.field(default_factory=list)
+    stiffness: list = dataclasses.field(default_factory=list)
+    damping: list = dataclasses.field(default_factory=list)
+    rest: list = dataclasses.field(default_factory=list)
+    rope_point_index: list = dataclasses.field(default_factory=list)   # per rope, its masses' point indices
+
+    def add(self, name, a, b, tension_only, stiffness, damping, rest):
+        self.names.append(name)
+        self.node_a.append(a)
+        self.node_b.append(b)
+        self.tension_only.append(tension_only)
+        self.stiffness.append(stiffness)
+        self.damping.append(damping)
+        self.rest.append(rest)
 
 
 def _inertia_matrix(inertia) -> np.ndarray:
@@ -61,18 +160,16 @@ def _inertia_matrix(inertia) -> np.ndarray:
     return np.asarray(inertia, dtype=float)
 
 
-def build(config: SceneConfig):
-    """Assemble the scene. Returns ``(scene, params, state)``; what a run saves comes from
-    ``config.run_settings()`` (:class:`~mysim_jax.config.scene.RunSettings`)."""
+def _expanded(config: SceneConfig) -> SceneConfig:
+    """The config with its net as knots, ropes and tether markers, its target as a body and
+    its quadrotors' cameras as bodies, markers and joints (a new config; the input is not
+    touched)."""
     if config.sim.precision == "float64" and not jax.config.jax_enable_x64:
         raise ConfigError(
             f"sim.precision: float64 requested by scene '{config.name}' but JAX runs in 32-bit "
             "mode; enable it first with jax.config.update('jax_enable_x64', True) or "
             "`with jax.enable_x64(True):` (scripts/simulate.py does this for you)"
         )
-    # the net becomes knots, ropes and tether markers, the target a body, quadrotor cameras
-    # bodies, markers and joints (new configs; the input is not touched)
-    effect_config = config
     config, problems = expand_capture(config)
     if problems:      # the config validator has reported these already; defensive only
         raise ConfigError("; ".join(problems))
@@ -80,148 +177,81 @@ def build(config: SceneConfig):
     problems = joint_problems(config)
     if problems:
         raise ConfigError("; ".join(problems))
-    body_index = {b.name: i for i, b in enumerate(config.bodies)}
-    anchor_index = {a.name: i for i, a in enumerate(config.anchors)}
+    return config
 
-    t = _Tables([], [], [], [], [], [], [], [])
-    for p in config.points:
-        t.point_names.append(p.name)
-        t.point_mass.append(p.mass)
-        t.point_pos.append(np.asarray(p.pos, float))
-        t.point_vel.append(np.asarray(p.vel, float))
-    for bi, b in enumerate(config.bodies):
-        for m in b.markers:
-            t.marker_names.append(f"{b.name}.{m.name}")
-            t.marker_body.append(bi)
-            t.marker_pos.append(np.asarray(m.pos, float))
-            t.marker_quat.append(np.asarray(m.quat, float))
 
-    def marker_for(ref: str) -> int:
-        """Index of marker ``body.marker``, or of an implicit centre marker for ``body``."""
-        if ref not in t.marker_names:
-            t.marker_names.append(ref)
-            t.marker_body.append(body_index[ref])
-            t.marker_pos.append(np.zeros(3))
-            t.marker_quat.append(np.array([1.0, 0.0, 0.0, 0.0]))
-        return t.marker_names.index(ref)
-
-    def world_pos(ref: str):
-        """Initial world position of an attachment, or None if not placed yet."""
-        if ref in anchor_index:
-            return np.asarray(config.anchors[anchor_index[ref]].pos, float)
-        if ref in t.point_names:
-            return t.point_pos[t.point_names.index(ref)]
-        body_name, _, marker_name = ref.partition(".")
-        if body_name in body_index:
-            b = config.bodies[body_index[body_name]]
-            offset = np.zeros(3)
-            if marker_name:
-                offset = np.asarray(next(m.pos for m in b.markers if m.name == marker_name), float)
-            return np.asarray(b.pos, float) + rotate(b.quat, offset)
-        return None
-
-    # --- ropes: place masses (a rope may hang off another rope's mass) ----------------
+def _place_ropes(t: _Tables) -> dict:
+    """Add every rope's masses to the point table, a rope whose end hangs off another
+    rope's mass after that rope. Returns ``{rope index: (first point index, rope segments)}``."""
+    ropes = t.config.ropes
     placed: dict[int, object] = {}
-    pending = list(range(len(config.ropes)))
+    pending = list(range(len(ropes)))
     while pending:
         progress = False
         for ri in list(pending):
-            r = config.ropes[ri]
-            a, b = world_pos(r.start), world_pos(r.end)
+            r = ropes[ri]
+            a, b = t.world_pos(r.start), t.world_pos(r.end)
             if a is None or b is None:
                 continue
             seg = build_rope(r.length, r.n_masses, r.mass, r.EA, r.damping, a, b)
             placed[ri] = (len(t.point_names), seg)
             for j in range(r.n_masses):
-                t.point_names.append(f"{r.name}_{j}")
-                t.point_mass.append(seg.point_mass[j])
-                t.point_pos.append(seg.point_pos[j])
-                t.point_vel.append(np.zeros(3))
+                t.add_point(f"{r.name}_{j}", seg.point_mass[j], seg.point_pos[j], np.zeros(3))
             pending.remove(ri)
             progress = True
         if not progress:
-            names = ", ".join(f"ropes.{i} ({config.ropes[i].name})" for i in pending)
+            names = ", ".join(f"ropes.{i} ({ropes[i].name})" for i in pending)
             raise ConfigError(f"{names}: rope ends form a cycle; attach at least one end to a point, body or anchor")
+    return placed
 
-    # --- node resolution ----------------------------------------------------------------
-    # markers must be final before node numbers are handed out: first collect references
-    refs = [r.start for r in config.ropes] + [r.end for r in config.ropes]
-    refs += [s.start for s in config.springs] + [s.end for s in config.springs]
-    refs += [ld.at for ld in config.loads]
-    for ref in refs:
-        if ref not in t.point_names and ref not in anchor_index:
-            marker_for(ref)
-    n_points, n_markers = len(t.point_names), len(t.marker_names)
 
-    def node(ref: str) -> int:
-        if ref in t.point_names:
-            return t.point_names.index(ref)
-        if ref in anchor_index:
-            return n_points + n_markers + anchor_index[ref]
-        return n_points + t.marker_names.index(ref)
-
-    spring_names, node_a, node_b, tension_only = [], [], [], []
-    stiffness, damping, rest = [], [], []
-    rope_point_index = []
-    for ri, r in enumerate(config.ropes):
+def _spring_table(t: _Tables, placed: dict) -> _Springs:
+    """The ropes' segments (in rope order), then the config's springs."""
+    sp = _Springs()
+    for ri, r in enumerate(t.config.ropes):
         first, seg = placed[ri]
-        chain = [node(r.start)] + list(range(first, first + r.n_masses)) + [node(r.end)]
-        rope_point_index.append(tuple(range(first, first + r.n_masses)))
+        chain = [t.node(r.start)] + list(range(first, first + r.n_masses)) + [t.node(r.end)]
+        sp.rope_point_index.append(tuple(range(first, first + r.n_masses)))
         for j in range(r.n_masses + 1):
-            spring_names.append(f"{r.name}[{j}]")
-            node_a.append(chain[j])
-            node_b.append(chain[j + 1])
-            tension_only.append(r.model == "tension_only")
-            stiffness.append(seg.stiffness[j])
-            damping.append(seg.damping[j])
-            rest.append(seg.rest_length[j])
-    for s in config.springs:
-        spring_names.append(s.name)
-        node_a.append(node(s.start))
-        node_b.append(node(s.end))
-        tension_only.append(s.model == "tension_only")
-        stiffness.append(s.stiffness)
-        damping.append(s.damping)
-        if s.rest_length is None:
-            rest.append(float(np.linalg.norm(world_pos(s.end) - world_pos(s.start))))
-        else:
-            rest.append(s.rest_length)
+            sp.add(f"{r.name}[{j}]", chain[j], chain[j + 1], r.model == "tension_only", seg.stiffness[j],
+                   seg.damping[j], seg.rest_length[j])
+    for s in t.config.springs:
+        rest = (float(np.linalg.norm(t.world_pos(s.end) - t.world_pos(s.start))) if s.rest_length is None
+                else s.rest_length)
+        sp.add(s.name, t.node(s.start), t.node(s.end), s.model == "tension_only", s.stiffness, s.damping, rest)
+    return sp
 
-    # --- loads ----------------------------------------------------------------------------
-    n_nodes = n_points + n_markers + len(config.anchors)
-    load_force = np.zeros((n_nodes, 3))
-    load_torque = np.zeros((len(config.bodies), 3))
-    for ld in config.loads:
-        load_force[node(ld.at)] += ld.force
-        if ld.at in body_index:
-            load_torque[body_index[ld.at]] += ld.torque
 
-    buckets = _joint_buckets(config, body_index, anchor_index, t.marker_names)
-    contact_scene = contact_params = None
-    if config.contact is not None:
-        contact_scene, contact_params = build_contact(
-            config.contact, t.point_names, [b.name for b in config.bodies],
-            jnp.float64 if config.sim.precision == "float64" else jnp.float32,
-            segments=segment_table(config.ropes, config.springs))
-    quad_scene, quad_params, control_params, control_state = build_quadrotors(
-        config, [b.name for b in config.bodies], t.marker_names,
-        jnp.float64 if config.sim.precision == "float64" else jnp.float32)
+def _loads(t: _Tables) -> tuple[np.ndarray, np.ndarray]:
+    """Constant loads: force per node ``(n_nodes, 3)``, torque per body ``(n_bodies, 3)``."""
+    load_force = np.zeros((t.n_nodes, 3))
+    load_torque = np.zeros((len(t.config.bodies), 3))
+    for ld in t.config.loads:
+        load_force[t.node(ld.at)] += ld.force
+        if ld.at in t.body_index:
+            load_torque[t.body_index[ld.at]] += ld.torque
+    return load_force, load_torque
 
-    scene = Scene(
+
+def _scene(t: _Tables, sp: _Springs, loads, contact_scene, quad_scene) -> Scene:
+    """The static Scene (its effects and sub-steps are filled in later)."""
+    config = t.config
+    load_force, load_torque = loads
+    return Scene(
         point_names=tuple(t.point_names),
         body_names=tuple(b.name for b in config.bodies),
         marker_names=tuple(t.marker_names),
         marker_body=tuple(t.marker_body),
         anchor_names=tuple(a.name for a in config.anchors),
         rope_names=tuple(r.name for r in config.ropes),
-        rope_point_index=tuple(rope_point_index),
-        spring_names=tuple(spring_names),
-        spring_node_a=tuple(node_a),
-        spring_node_b=tuple(node_b),
-        spring_tension_only=tuple(tension_only),
+        rope_point_index=tuple(sp.rope_point_index),
+        spring_names=tuple(sp.names),
+        spring_node_a=tuple(sp.node_a),
+        spring_node_b=tuple(sp.node_b),
+        spring_tension_only=tuple(sp.tension_only),
         has_gravity=any(g != 0.0 for g in config.gravity),
         has_loads=bool(np.any(load_force) or np.any(load_torque)),
-        joint_buckets=buckets,
+        joint_buckets=_joint_buckets(config, t.body_index, t.anchor_index, t.marker_names),
         integrator=config.sim.integrator,
         dt=config.sim.dt,
         substeps=1 if config.sim.substeps == "auto" else config.sim.substeps,
@@ -237,10 +267,16 @@ def build(config: SceneConfig):
         contact=contact_scene,
         quadrotor=quad_scene,
     )
+
+
+def _build_effects(effect_config: SceneConfig, scene: Scene) -> tuple[Scene, dict, dict]:
+    """Ask every registered effect to build itself for this scene (from the config as the
+    user wrote it). Returns the scene with its effects, their params and their memory."""
+    quad_scene = scene.quadrotor
     ctx = BuildContext(body_names=scene.body_names, point_names=scene.point_names,
                        marker_names=scene.marker_names,
                        quadrotor_bodies=() if quad_scene is None else quad_scene.body, dtype=scene.dtype,
-                       contact=contact_scene)
+                       contact=scene.contact)
     effect_static, effect_params, effect_memory = [], {}, {}
     for name, effect in EFFECTS.items():
         try:
@@ -250,19 +286,39 @@ def build(config: SceneConfig):
         if parts is not None:
             effect_static.append((name, parts[0]))
             effect_params[name], effect_memory[name] = parts[1], parts[2]
-    scene = dataclasses.replace(scene, effects=tuple(effect_static))
+    return dataclasses.replace(scene, effects=tuple(effect_static)), effect_params, effect_memory
+
+
+def build(config: SceneConfig):
+    """Assemble the scene. Returns ``(scene, params, state)``; what a run saves comes from
+    ``config.run_settings()`` (:class:`~mysim_jax.config.scene.RunSettings`)."""
+    effect_config = config
+    config = _expanded(config)
+    t = _Tables.of(config)
+    placed = _place_ropes(t)
+    t.resolve_nodes()           # markers are final before node numbers are handed out
+    sp = _spring_table(t, placed)
+    load_force, load_torque = _loads(t)
+    dtype = jnp.float64 if config.sim.precision == "float64" else jnp.float32
+    contact_scene = contact_params = None
+    if config.contact is not None:
+        contact_scene, contact_params = build_contact(
+            config.contact, t.point_names, [b.name for b in config.bodies], dtype,
+            segments=segment_table(config.ropes, config.springs))
+    quad_scene, quad_params, control_params, control_state = build_quadrotors(
+        config, [b.name for b in config.bodies], t.marker_names, dtype)
+    scene = _scene(t, sp, (load_force, load_torque), contact_scene, quad_scene)
+    scene, effect_params, effect_memory = _build_effects(effect_config, scene)
 
     point_mass = np.asarray(t.point_mass, float).reshape(-1)
     body_mass = np.asarray([b.mass for b in config.bodies], float).reshape(-1)
     inertia = np.asarray([_inertia_matrix(b.inertia) for b in config.bodies], float).reshape(-1, 3, 3)
     substeps = _check_stability(config, scene, point_mass, body_mass, inertia, t.marker_pos,
-                                np.asarray(stiffness, float), np.asarray(damping, float))
+                                np.asarray(sp.stiffness, float), np.asarray(sp.damping, float))
     scene = dataclasses.replace(scene, substeps=substeps)
 
-    dtype = scene.dtype
-
     def arr(x, shape):
-        return jnp.asarray(np.asarray(x, dtype=float).reshape(shape), dtype=dtype)
+        return jnp.asarray(np.asarray(x, dtype=float).reshape(shape), dtype=scene.dtype)
 
     params = Params(
         point_mass=arr(point_mass, (-1,)),
@@ -272,14 +328,14 @@ def build(config: SceneConfig):
         marker_quat=arr(t.marker_quat, (-1, 4)),
         anchor_pos=arr([a.pos for a in config.anchors], (-1, 3)),
         anchor_quat=arr([a.quat for a in config.anchors], (-1, 4)),
-        spring_stiffness=arr(stiffness, (-1,)),
-        spring_damping=arr(damping, (-1,)),
-        spring_rest_length=arr(rest, (-1,)),
+        spring_stiffness=arr(sp.stiffness, (-1,)),
+        spring_damping=arr(sp.damping, (-1,)),
+        spring_rest_length=arr(sp.rest, (-1,)),
         gravity=arr(config.gravity, (3,)),
-        load_node_force=arr(load_force, (n_nodes, 3)),
+        load_node_force=arr(load_force, (t.n_nodes, 3)),
         load_body_torque=arr(load_torque, (-1, 3)),
-        baumgarte_alpha=jnp.asarray(config.baumgarte.alpha, dtype=dtype),
-        baumgarte_beta=jnp.asarray(config.baumgarte.beta, dtype=dtype),
+        baumgarte_alpha=jnp.asarray(config.baumgarte.alpha, dtype=scene.dtype),
+        baumgarte_beta=jnp.asarray(config.baumgarte.beta, dtype=scene.dtype),
         contact=contact_params,
         quadrotor=quad_params,
         controller=control_params,
@@ -293,7 +349,7 @@ def build(config: SceneConfig):
         body_vel=arr([b.vel for b in config.bodies], (-1, 3)),
         body_angvel=arr([b.angvel for b in config.bodies], (-1, 3)),
     )
-    state = State(phys=phys, time=jnp.zeros((), dtype=dtype), controller=control_state, effects=effect_memory)
+    state = State(phys=phys, time=jnp.zeros((), dtype=scene.dtype), controller=control_state, effects=effect_memory)
     for effect, _ in scene_effects(scene):
         state = effect.init(scene, params, state)
     return scene, params, state
