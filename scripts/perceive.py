@@ -167,7 +167,7 @@ def _track(args) -> int:
             detector = OracleDetector(noise_px=args.det_noise, miss_rate=args.miss_rate, seed=args.seed)
         else:
             try:
-                from mysim_jax.perception.detect import load_detector
+                from mysim_jax.perception.detect.model import load_detector
             except ImportError as err:
                 raise PerceptionError(f"the learned detector is not available ({err}); use --detector oracle") from None
             detector = image_detector(load_detector(args.weights))

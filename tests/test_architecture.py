@@ -12,13 +12,11 @@ ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "mysim_jax"
 
 # Imports that stay inside functions, each for the reason its line's comment (or its helper's
-# docstring) gives: optional extras, and modules that keep a light module light.
+# docstring) gives: optional extras (bpy and the modules that ship with it, gtsam).
 LAZY_IMPORTS = {
     ("io/blender_import.py", "bpy"), ("io/blender_import.py", "bmesh"), ("io/blender_import.py", "mathutils"),
     ("io/blender_import.py", "bpy_extras"),
     ("perception/vio.py", "gtsam"),
-    ("perception/detect/__init__.py", "mysim_jax.perception.detect.model"),
-    ("perception/detect/__init__.py", "mysim_jax.perception.detect.classical"),
 }
 
 
@@ -46,8 +44,8 @@ def _function_level_imports():
 
 def test_imports_sit_at_module_level_except_the_listed_lazy_ones():
     """An import inside a function hides a dependency from the layer check and from a reader;
-    the few that stay (optional extras, keeping a NumPy-only module free of JAX) are listed
-    above and say why on their line or in their helper's docstring."""
+    the few that stay (optional extras) are listed above and say why on their line or in
+    their helper's docstring."""
     unexpected, unexplained = [], []
     for path, node, module in _function_level_imports():
         rel = path.relative_to(PACKAGE).as_posix()

@@ -9,7 +9,8 @@ import pytest
 
 from mysim_jax.core.config_base import ConfigError
 from mysim_jax.perception.camera import PerceptionError, intrinsics
-from mysim_jax.perception.detect import Detection, default_weights_path, load_detector
+from mysim_jax.perception.detect import Detection, default_weights_path
+from mysim_jax.perception.detect.model import load_detector
 from mysim_jax.perception.detect.config import config_from_dict
 from mysim_jax.perception.detect.dataset import DatasetSpec, render_sample
 from mysim_jax.perception.detect.metrics import average_precision, iou, match, summary

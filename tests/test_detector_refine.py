@@ -261,7 +261,7 @@ def test_script_trains_and_evaluates_both_stages_on_a_tiny_config(tmp_path, caps
 
     import jax
 
-    from mysim_jax.perception.detect import load_detector
+    from mysim_jax.perception.detect.model import load_detector
     from test_detector import _train_script
 
     module = _train_script()

@@ -3,7 +3,8 @@ CNN in flax) and a classical OpenCV baseline, with one interface.
 
 Interface (what trackers code against)::
 
-    from mysim_jax.perception.detect import Detection, load_detector, ColourBlobDetector
+    from mysim_jax.perception.detect.classical import ColourBlobDetector
+    from mysim_jax.perception.detect.model import load_detector
 
     detector = load_detector()               # the committed trained CNN (docs/detector/)
     dets = detector.detect(image)            # image: (H, W, 3) uint8 RGB, any size
@@ -17,7 +18,8 @@ encloses whole pixels (``u_min`` is the left edge of its leftmost pixel). A dete
 resizes internally, so it works at any image size; its boxes are always in the pixels of
 the image passed in.
 
-This module imports NumPy only; JAX/flax load when a learned detector is built.
+This module (the interface) imports NumPy only; the learned detector's module
+(``detect.model``) imports JAX and flax, the baseline's (``detect.classical``) OpenCV.
 """
 
 from __future__ import annotations
@@ -49,28 +51,3 @@ class Detector(Protocol):
 def default_weights_path() -> Path:
     """The committed trained weights: ``docs/detector/detector.msgpack`` in the repository."""
     return Path(__file__).resolve().parents[3] / "docs" / "detector" / "detector.msgpack"
-
-
-def load_detector(path: str | Path | None = None):
-    """The learned detector with weights from ``path`` (default: the committed ones,
-    :func:`default_weights_path`). Returns a :class:`~mysim_jax.perception.detect.model.CNNDetector`."""
-    # imported here: the model imports JAX and flax, this module NumPy only (and the model
-    # imports Detection from here)
-    from mysim_jax.perception.detect.model import CNNDetector
-
-    return CNNDetector.load(default_weights_path() if path is None else path)
-
-
-def __getattr__(name):
-    # the baseline imports OpenCV, the CNN imports JAX: both only when asked for (and both
-    # import Detection from here)
-    if name == "ColourBlobDetector":
-        from mysim_jax.perception.detect.classical import ColourBlobDetector
-        return ColourBlobDetector
-    if name == "CNNDetector":
-        from mysim_jax.perception.detect.model import CNNDetector
-        return CNNDetector
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
-__all__ = ["Detection", "Detector", "load_detector", "default_weights_path", "ColourBlobDetector", "CNNDetector"]

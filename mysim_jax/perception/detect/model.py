@@ -65,7 +65,7 @@ from flax import serialization
 
 from mysim_jax.core import rng
 from mysim_jax.perception.camera import PerceptionError
-from mysim_jax.perception.detect import Detection
+from mysim_jax.perception.detect import Detection, default_weights_path
 from mysim_jax.perception.detect.refine import Refiner, RefineSettings, normalise
 
 STRIDE = 4          # px of network input per output cell
@@ -366,3 +366,9 @@ class CNNDetector:
                    pyramid=tuple(meta.get("pyramid", (1.0,))),
                    pyramid_band_px=tuple(meta.get("pyramid_band_px", (24.0, 96.0))),
                    flip_test=bool(meta.get("flip_test", False)))
+
+
+def load_detector(path: str | Path | None = None) -> CNNDetector:
+    """The learned detector with weights from ``path`` (default: the committed ones,
+    :func:`~mysim_jax.perception.detect.default_weights_path`)."""
+    return CNNDetector.load(default_weights_path() if path is None else path)
