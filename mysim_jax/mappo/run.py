@@ -31,6 +31,7 @@ import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import jax
 from jax.experimental import multihost_utils
@@ -350,20 +351,60 @@ def _selection_row(stats) -> dict:
     return {"select_success": float(stats.success.mean()), "select_return": float(stats.returns.mean())}
 
 
-def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=print) -> dict:
-    """Train (or resume) the run ``p`` to its end, evaluate, write everything. Returns
-    ``summary.json``'s dict."""
+@dataclass
+class _Session:
+    """What the stages of one training run share (:func:`train_run`)."""
+
+    p: Prepared
+    log: Callable
+    progress: bool
+    lead: bool                 # this process writes the run folder, logs and evaluates
+    many: bool                 # several processes (jax.distributed) train the run together
+    env: object
+    env_params: object
+    trainer: Trainer
+    ckpt: Checkpoints
+    eval_env: object = None    # the evaluation scene's environment (capture scenes, when evaluating)
+    eval_params: object = None
+    curriculum: Curriculum | None = None
+    evaluator: Evaluator | None = None    # model selection on fixed episodes
+    select_key: object = None
+
+    @property
+    def c(self) -> TrainConfig:
+        return self.p.config
+
+    @property
+    def selection(self):
+        return self.c.run.selection if self.p.scene is not None else None
+
+    def select(self, state):
+        """Fly the selection episodes with the current policy; keep it if it is the best."""
+        arrays = self.trainer.policy_arrays(state)
+        if self.many:                 # on this process's device: the networks as host arrays
+            arrays = jax.device_get(arrays)
+        stats = self.evaluator(self.select_key, self.selection.episodes, arrays)
+        state = self.trainer.keep_if_best(state, int(stats.success.sum()), float(stats.returns.mean()))
+        return state, stats
+
+    def say(self, bar, msg: str) -> None:
+        if bar is not None:
+            bar.write(msg)
+        else:
+            self.log(msg)
+
+
+def _open_session(p: Prepared, progress: bool, evaluate: bool, log) -> _Session:
+    """Everything that can refuse the run, checked before the run folder is written and
+    before anything compiles: the environments, the devices, the memory."""
     c = p.config
-    # several processes (jax.distributed): every one computes, the first writes the run
-    # folder, the logs and the evaluation, and decides when to stop
     lead = jax.process_index() == 0
     many = jax.process_count() > 1
     if not lead:
         log = _silent
         progress = False
-    # everything that can refuse the run is checked before the run folder is written and
-    # before anything compiles
     env, env_params = make_environment(p)
+    eval_env = eval_params = None
     if evaluate and p.scene is not None:
         eval_env, eval_params = make_eval_environment(p, env, env_params)
         if c.run.eval_batch > c.run.eval_episodes:
@@ -373,82 +414,116 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
     check_memory_needs(trainer.memory_needs(), p.source)
     if not p.resume and lead:
         _write_run_files(p)
-    ckpt = Checkpoints(p.out / "checkpoints", keep=c.run.keep_checkpoints)
-    key = jax.random.PRNGKey(c.run.seed)
-    k_init, k_bc = jax.random.split(key)
-    t_compile = time.perf_counter()
-    state = trainer.init(k_init)
-    start_iteration = 0
-    previous_wall = 0.0
-    restored = False
-    if p.resume:
+    return _Session(p=p, log=log, progress=progress, lead=lead, many=many, env=env, env_params=env_params,
+                    trainer=trainer, ckpt=Checkpoints(p.out / "checkpoints", keep=c.run.keep_checkpoints),
+                    eval_env=eval_env, eval_params=eval_params)
+
+
+def _restore(s: _Session, state) -> tuple[object, int, bool, list[dict]]:
+    """The state to start from (the newest intact checkpoint when resuming), its iteration,
+    whether it was restored, and the metrics rows up to it."""
+    start_iteration, restored = 0, False
+    if s.p.resume:
         try:
-            last, state = ckpt.restore_newest(state, log=log)
+            last, state = s.ckpt.restore_newest(state, log=s.log)
         except Exception:
-            ckpt.close()               # orbax's threads end before the error reaches the script
+            s.ckpt.close()               # orbax's threads end before the error reaches the script
             raise
         if last is not None:
-            start_iteration = int(state.iteration)
-            restored = True
-    rows = _read_rows(p.out / "metrics.csv", start_iteration)
-    if rows:
-        previous_wall = float(rows[-1]["wall_s"])
-    if p.resume:
-        log(f"resuming {p.out} at iteration {start_iteration} of {c.algo.num_iterations}")
-    curriculum = None
-    if p.scene is not None and c.env.curriculum is not None:
-        curriculum = Curriculum.resumed(c.env.curriculum, rows)
-        trainer.set_episode_ranges(scaled_target_ranges(env_params.ranges, curriculum.fraction))
-        log(f"curriculum: stage {curriculum.stage + 1} of {len(c.env.curriculum.stages)} (the target's speed, jink "
-            f"and flee ranges x {curriculum.fraction:g})")
+            start_iteration, restored = int(state.iteration), True
+    rows = _read_rows(s.p.out / "metrics.csv", start_iteration)
+    if s.p.resume:
+        s.log(f"resuming {s.p.out} at iteration {start_iteration} of {s.c.algo.num_iterations}")
+    return state, start_iteration, restored, rows
 
+
+def _start_curriculum_and_selection(s: _Session, rows: list[dict]) -> None:
+    """The curriculum's stage (from the rows of a resumed run) and the selection evaluator."""
+    c = s.c
+    if s.p.scene is not None and c.env.curriculum is not None:
+        s.curriculum = Curriculum.resumed(c.env.curriculum, rows)
+        s.trainer.set_episode_ranges(scaled_target_ranges(s.env_params.ranges, s.curriculum.fraction))
+        s.log(f"curriculum: stage {s.curriculum.stage + 1} of {len(c.env.curriculum.stages)} (the target's speed, "
+              f"jink and flee ranges x {s.curriculum.fraction:g})")
     # model selection on fixed episodes (capture environments; the builtin task has its own evaluation)
-    selection = c.run.selection if p.scene is not None else None
-    evaluator = None
-    if selection is not None:
-        evaluator = Evaluator(env, env_params, trainer.policy_fn(), batch=min(selection.episodes, c.run.eval_batch))
-        select_key = jax.random.PRNGKey(selection.seed)
+    if s.selection is not None:
+        s.evaluator = Evaluator(s.env, s.env_params, s.trainer.policy_fn(),
+                                batch=min(s.selection.episodes, c.run.eval_batch))
+        s.select_key = jax.random.PRNGKey(s.selection.seed)
 
-    def select(state):
-        arrays = trainer.policy_arrays(state)
-        if many:                 # on this process's device: the networks as host arrays
-            arrays = jax.device_get(arrays)
-        stats = evaluator(select_key, selection.episodes, arrays)
-        state = trainer.keep_if_best(state, int(stats.success.sum()), float(stats.returns.mean()))
-        return state, stats
 
-    t_start = time.perf_counter()
-    bc_path = p.out / "bc.json"
-    if not restored:
-        if c.algo.init == "bc":
-            log(f"behaviour cloning the scripted team: {c.algo.bc.num_envs} environments x {c.algo.bc.steps} steps")
-            state, report = bc.clone(trainer, state, k_bc)
-            if lead:
-                bc_path.write_text(json.dumps(report, indent=2))
-            log(f"cloned in {report['collect_s'] + report['fit_s']:.0f} s: {report['pairs']:,} pairs, held-out RMSE "
-                f"{report['rmse_holdout']:.3f}, R2 {', '.join(f'{v:.3f}' for v in report['r2_holdout'])}")
-        if evaluator is not None:
-            state, stats = select(state)
-            row0 = {"iteration": 0, "env_steps": 0, "wall_s": round(time.perf_counter() - t_start, 3),
-                    **_selection_row(stats)}
-            rows = [row0]
-            log(f"selection episodes before training: success {stats.success.mean():.1%}")
-        if c.algo.init == "bc" or evaluator is not None:
-            if lead:
-                _write_rows(p.out / "metrics.csv", rows)
-            ckpt.save(0, trainer.place(state))
+def _warm_start(s: _Session, state, k_bc, t_start: float, rows: list[dict]):
+    """A new run: clone the scripted team (``algo.init: bc``), fly the selection episodes
+    once before training, and checkpoint iteration 0. Returns ``(state, rows)``."""
+    c = s.c
+    if c.algo.init == "bc":
+        s.log(f"behaviour cloning the scripted team: {c.algo.bc.num_envs} environments x {c.algo.bc.steps} steps")
+        state, report = bc.clone(s.trainer, state, k_bc)
+        if s.lead:
+            (s.p.out / "bc.json").write_text(json.dumps(report, indent=2))
+        s.log(f"cloned in {report['collect_s'] + report['fit_s']:.0f} s: {report['pairs']:,} pairs, held-out RMSE "
+              f"{report['rmse_holdout']:.3f}, R2 {', '.join(f'{v:.3f}' for v in report['r2_holdout'])}")
+    if s.evaluator is not None:
+        state, stats = s.select(state)
+        rows = [{"iteration": 0, "env_steps": 0, "wall_s": round(time.perf_counter() - t_start, 3),
+                 **_selection_row(stats)}]
+        s.log(f"selection episodes before training: success {stats.success.mean():.1%}")
+    if c.algo.init == "bc" or s.evaluator is not None:
+        if s.lead:
+            _write_rows(s.p.out / "metrics.csv", rows)
+        s.ckpt.save(0, s.trainer.place(state))
+    return state, rows
 
-    writer = SummaryWriter(str(p.out / "tb"), purge_step=start_iteration + 1) if lead else None
+
+def _iteration_row(s: _Session, iteration: int, dt: float, m: dict, bar) -> dict:
+    """One iteration's metrics row; advances the curriculum on its success."""
+    row = {"iteration": iteration, "env_steps": iteration * s.c.algo.batch_size,
+           "iteration_s": round(dt, 4), "lr": s.trainer.learning_rate(iteration - 1),
+           **{k: m[k] for k in CSV_FIELDS if k in m}}
+    cur = s.curriculum
+    if cur is not None:
+        row.update(curriculum_stage=cur.stage, curriculum_fraction=cur.fraction)
+        if cur.update(m["success_rate"]):
+            s.trainer.set_episode_ranges(scaled_target_ranges(s.env_params.ranges, cur.fraction))
+            s.say(bar, f"curriculum: stage {cur.stage + 1} of {len(s.c.env.curriculum.stages)} from "
+                       f"iteration {iteration + 1} (ranges x {cur.fraction:g})")
+    return row
+
+
+def _show_progress(s: _Session, bar, row: dict, m: dict, dt: float) -> None:
+    if bar is None:
+        return
+    bar.update(1)
+    sel = f", selection {row['select_success']:.0%}" if "select_success" in row else ""
+    if s.curriculum is not None:
+        sel += f", stage {s.curriculum.stage + 1}"
+    bar.set_postfix_str(f"return {m['mean_return']:.2f}, success {m['success_rate']:.0%}{sel}, "
+                        f"{s.c.algo.batch_size / dt:,.0f} env-steps/s")
+
+
+@dataclass
+class _Trained:
+    state: object
+    rows: list
+    iteration: int
+    iteration_times: list
+    stopped_early: bool
+
+
+def _train_loop(s: _Session, state, rows: list[dict], start_iteration: int, previous_wall: float,
+                t_start: float) -> _Trained:
+    """PPO iterations until the planned number or the time limit; rows, TensorBoard,
+    selection and checkpoints as configured."""
+    c = s.c
+    writer = SummaryWriter(str(s.p.out / "tb"), purge_step=start_iteration + 1) if s.lead else None
     bar = None
-    if progress:
+    if s.progress:
         bar = tqdm(total=c.algo.num_iterations, initial=start_iteration, desc=f"training {c.name}", unit="it")
     limit_s = None if c.run.time_limit_min is None else 60.0 * c.run.time_limit_min
-    iteration_times = []
-    stopped_early = False
-    iteration = start_iteration
+    iteration_times, stopped_early, iteration = [], False, start_iteration
     while iteration < c.algo.num_iterations:
         t0 = time.perf_counter()
-        state, m = trainer.iteration(state)
+        state, m = s.trainer.iteration(state)
         m = {k: float(v) for k, v in jax.device_get(m).items()}
         dt = time.perf_counter() - t0
         iteration += 1
@@ -456,76 +531,44 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
             iteration_times.append(dt)
         last_iteration = iteration == c.algo.num_iterations
         over_time = limit_s is not None and previous_wall + time.perf_counter() - t_start > limit_s
-        if many and limit_s is not None:      # the first process's clock decides for all
-
+        if s.many and limit_s is not None:      # the first process's clock decides for all
             over_time = bool(multihost_utils.broadcast_one_to_all(np.bool_(over_time)))
-        row = {"iteration": iteration, "env_steps": iteration * c.algo.batch_size,
-               "iteration_s": round(dt, 4), "lr": trainer.learning_rate(iteration - 1),
-               **{k: m[k] for k in CSV_FIELDS if k in m}}
-        if curriculum is not None:
-            row.update(curriculum_stage=curriculum.stage, curriculum_fraction=curriculum.fraction)
-            if curriculum.update(m["success_rate"]):
-                trainer.set_episode_ranges(scaled_target_ranges(env_params.ranges, curriculum.fraction))
-                msg = (f"curriculum: stage {curriculum.stage + 1} of {len(c.env.curriculum.stages)} from "
-                       f"iteration {iteration + 1} (ranges x {curriculum.fraction:g})")
-                if bar is not None:
-                    bar.write(msg)
-                else:
-                    log(msg)
-        if evaluator is not None and (iteration % selection.every == 0 or last_iteration or over_time):
-            state, stats = select(state)
+        row = _iteration_row(s, iteration, dt, m, bar)
+        if s.evaluator is not None and (iteration % s.selection.every == 0 or last_iteration or over_time):
+            state, stats = s.select(state)
             row.update(_selection_row(stats))
         row["wall_s"] = round(previous_wall + time.perf_counter() - t_start, 3)
         rows.append(row)
         for k, v in row.items():
             if k != "iteration" and writer is not None:
                 writer.add_scalar(f"train/{k}", float(v), iteration)
-        if bar is not None:
-            bar.update(1)
-            sel = f", selection {row['select_success']:.0%}" if "select_success" in row else ""
-            if curriculum is not None:
-                sel += f", stage {curriculum.stage + 1}"
-            bar.set_postfix_str(f"return {m['mean_return']:.2f}, success {m['success_rate']:.0%}{sel}, "
-                                f"{c.algo.batch_size / dt:,.0f} env-steps/s")
+        _show_progress(s, bar, row, m, dt)
         if iteration % c.run.checkpoint_every == 0 or last_iteration or over_time:
-            if lead:
-                _write_rows(p.out / "metrics.csv", rows)
+            if s.lead:
+                _write_rows(s.p.out / "metrics.csv", rows)
                 writer.flush()
-            ckpt.save(iteration, trainer.place(state))
+            s.ckpt.save(iteration, s.trainer.place(state))
         if over_time and not last_iteration:
             stopped_early = True
-            log(f"time limit of {c.run.time_limit_min:g} min reached after iteration {iteration}")
+            s.log(f"time limit of {c.run.time_limit_min:g} min reached after iteration {iteration}")
             break
     if bar is not None:
         bar.close()
-    ckpt.close()
-    train_wall = time.perf_counter() - t_compile
-    n_agents, act = env.action_shape
-    arrays = jax.device_get(trainer.run_policy(state)) if many else trainer.run_policy(state)
-    best_iteration = int(state.best_iteration)
-    if not lead:
-        # the others end here; the first process writes and evaluates, then all leave together
+    if writer is not None:
+        writer.close()
+    s.ckpt.close()
+    return _Trained(state, rows, iteration, iteration_times, stopped_early)
 
-        multihost_utils.sync_global_devices("mysim_jax run written")
-        return {}
-    writer.close()
-    _write_rows(p.out / "metrics.csv", rows)
-    plot_curves(rows, p.out / "curves.png", c.name, best_iteration if best_iteration >= 0 else None)
 
-    meta = {"kind": "mappo", "obs_size": int(env.obs_size), "action_shape": [n_agents, act],
-            "hidden": list(c.algo.hidden), "activation": c.algo.activation, "normalize_obs": c.algo.normalize_obs,
-            "residual": c.algo.residual,
-            "env": "builtin:" + c.env.builtin if c.env.builtin else SCENE_FILE, "iteration": iteration,
-            "selected_iteration": best_iteration if best_iteration >= 0 else iteration, "train": c.name}
-    save_policy(p.out / "policy", arrays, meta)
-    base = env.scripted_actions if c.algo.residual else None
-    policy = deterministic_policy(trainer.actor, arrays, c.algo.normalize_obs, base)   # on the training scene
-
+def _summary(s: _Session, run: _Trained, train_wall: float) -> dict:
+    """``summary.json`` before the final evaluation."""
+    c, rows, iteration = s.c, run.rows, run.iteration
+    n_agents, _ = s.env.action_shape
     # None (JSON null) when no iteration after the first ran in this process (it compiles)
-    per_iteration = float(np.median(iteration_times)) if iteration_times else None
+    per_iteration = float(np.median(run.iteration_times)) if run.iteration_times else None
     summary = {
-        "name": c.name, "config": p.source, "iterations": iteration, "planned_iterations": c.algo.num_iterations,
-        "stopped_by_time_limit": stopped_early, "env_steps": iteration * c.algo.batch_size,
+        "name": c.name, "config": s.p.source, "iterations": iteration, "planned_iterations": c.algo.num_iterations,
+        "stopped_by_time_limit": run.stopped_early, "env_steps": iteration * c.algo.batch_size,
         "agent_steps": iteration * c.algo.batch_size * n_agents,
         "training_wall_s_this_process": round(train_wall, 1),
         "training_wall_s_total": float(rows[-1]["wall_s"]) if rows else 0.0,
@@ -533,68 +576,118 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
         "env_steps_per_s_with_update": c.algo.batch_size / per_iteration if per_iteration else None,
         "final_train_success_rate": float(rows[-1]["success_rate"]) if rows and "success_rate" in rows[-1] else None,
         "init": c.algo.init,
-        "devices": 1 if trainer.mesh is None else trainer.mesh.size,
+        "devices": 1 if s.trainer.mesh is None else s.trainer.mesh.size,
         "processes": jax.process_count(),
     }
+    bc_path = s.p.out / "bc.json"
     if bc_path.exists():
         summary["behaviour_cloning"] = json.loads(bc_path.read_text())
-    if curriculum is not None:
+    if s.curriculum is not None:
         # the first iteration drawn from the full ranges (None: never reached), from the rows
         # so that a resumed run reports it too
         full = [int(float(r["iteration"])) for r in rows
                 if r.get("curriculum_stage") not in ("", None)
                 and int(float(r["curriculum_stage"])) == len(c.env.curriculum.stages) - 1]
-        summary["curriculum"] = {"stages": list(c.env.curriculum.stages), "final_stage": curriculum.stage,
+        summary["curriculum"] = {"stages": list(c.env.curriculum.stages), "final_stage": s.curriculum.stage,
                                  "full_range_from_iteration": full[0] if full else None}
-    if selection is not None:
-        score = [float(x) for x in jax.device_get(state.best_score)]
-        summary["selection"] = {"episodes": selection.episodes, "seed": selection.seed, "every": selection.every,
-                                "selected_iteration": best_iteration, "successes": int(score[0]),
-                                "mean_return": score[1]}
+    if s.selection is not None:
+        score = [float(x) for x in jax.device_get(run.state.best_score)]
+        summary["selection"] = {"episodes": s.selection.episodes, "seed": s.selection.seed,
+                                "every": s.selection.every, "selected_iteration": int(run.state.best_iteration),
+                                "successes": int(score[0]), "mean_return": score[1]}
+    return summary
+
+
+def _save_policy(s: _Session, run: _Trained, arrays) -> None:
+    c = s.c
+    n_agents, act = s.env.action_shape
+    best_iteration = int(run.state.best_iteration)
+    meta = {"kind": "mappo", "obs_size": int(s.env.obs_size), "action_shape": [n_agents, act],
+            "hidden": list(c.algo.hidden), "activation": c.algo.activation, "normalize_obs": c.algo.normalize_obs,
+            "residual": c.algo.residual,
+            "env": "builtin:" + c.env.builtin if c.env.builtin else SCENE_FILE, "iteration": run.iteration,
+            "selected_iteration": best_iteration if best_iteration >= 0 else run.iteration, "train": c.name}
+    save_policy(s.p.out / "policy", arrays, meta)
+
+
+def _evaluate_capture(s: _Session, arrays, summary: dict) -> None:
+    """The policy (and, with ``run.eval_baseline``, the scripted team) on the same fresh
+    episodes of the evaluation scene; ``eval/`` and the summary's evaluation entries."""
+    c, p, eval_env = s.c, s.p, s.eval_env
+    # on the evaluation scene (env.eval_level): the policy's residual base, if any, is that
+    # scene's scripted team
+    eval_base = eval_env.scripted_actions if c.algo.residual else None
+    net = deterministic_policy_fn(s.trainer.actor, c.algo.normalize_obs, eval_base)
+    eval_policy = deterministic_policy(s.trainer.actor, arrays, c.algo.normalize_obs, eval_base)
+
+    # one compiled program flies both teams: the argument says whose actions are used
+    def either(key, obs, state, params, args):
+        arrays, scripted = args
+        return jnp.where(scripted, eval_env.scripted_actions(state, params), net(key, obs, state, params, arrays))
+
+    final = Evaluator(eval_env, s.eval_params, either, batch=c.run.eval_batch)
+    eval_key = jax.random.PRNGKey(c.run.eval_seed)
+    stats = final(eval_key, c.run.eval_episodes, (arrays, jnp.bool_(False)), progress=s.progress,
+                  desc="evaluation")
+    eval_scene = p.eval_scene if p.evaluates_elsewhere else p.scene
+    eval_file = EVAL_SCENE_FILE if p.evaluates_elsewhere else SCENE_FILE
+    metrics = write_evaluation(p.out / "eval", eval_scene, eval_env, s.eval_params, eval_policy,
+                               policy_name=str(p.out / "policy"), episodes=c.run.eval_episodes,
+                               batch=c.run.eval_batch, seed=c.run.eval_seed,
+                               config_path=str(p.out / eval_file), progress=s.progress, animate=False, stats=stats)
+    s.log(summary_line(p.scene.name, f"trained (MAPPO), evaluated at level {eval_scene.level}"
+                       if p.evaluates_elsewhere else "trained (MAPPO)", metrics, p.out / "eval"))
+    summary["evaluation"] = {k: metrics[k] for k in ("episodes", "success", "failures", "timeout",
+                                                     "mean_return", "mean_length_steps", "wall_s")}
+    summary["evaluation"]["level"] = eval_scene.level
+    summary["evaluation"]["scene"] = eval_file
+    summary["training_level"] = p.scene.level
+    if c.run.eval_baseline:
+        base_stats = final(eval_key, c.run.eval_episodes, (arrays, jnp.bool_(True)), progress=s.progress,
+                           desc="scripted team")
+        comparison = write_comparison(p.out / "eval", stats, base_stats, names=("trained", "scripted"),
+                                      seed=c.run.eval_seed)
+        s.log(comparison_line(comparison))
+        summary["baseline"] = comparison
+
+
+def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=print) -> dict:
+    """Train (or resume) the run ``p`` to its end, evaluate, write everything. Returns
+    ``summary.json``'s dict. With several processes (jax.distributed) every one computes;
+    the first writes the run folder, the logs and the evaluation, and decides when to stop."""
+    s = _open_session(p, progress, evaluate, log)
+    c = s.c
+    k_init, k_bc = jax.random.split(jax.random.PRNGKey(c.run.seed))
+    t_compile = time.perf_counter()
+    state, start_iteration, restored, rows = _restore(s, s.trainer.init(k_init))
+    previous_wall = float(rows[-1]["wall_s"]) if rows else 0.0
+    _start_curriculum_and_selection(s, rows)
+    t_start = time.perf_counter()
+    if not restored:
+        state, rows = _warm_start(s, state, k_bc, t_start, rows)
+    run = _train_loop(s, state, rows, start_iteration, previous_wall, t_start)
+    train_wall = time.perf_counter() - t_compile
+    arrays = jax.device_get(s.trainer.run_policy(run.state)) if s.many else s.trainer.run_policy(run.state)
+    if not s.lead:
+        # the others end here; the first process writes and evaluates, then all leave together
+        multihost_utils.sync_global_devices("mysim_jax run written")
+        return {}
+    _write_rows(p.out / "metrics.csv", run.rows)
+    best_iteration = int(run.state.best_iteration)
+    plot_curves(run.rows, p.out / "curves.png", c.name, best_iteration if best_iteration >= 0 else None)
+    _save_policy(s, run, arrays)
+    summary = _summary(s, run, train_wall)
     if evaluate:
         t_eval = time.perf_counter()
         if p.scene is None:
-            summary["evaluation"] = evaluate_builtin(env, env_params, policy, c.run.eval_episodes, c.run.eval_seed)
+            base = s.env.scripted_actions if c.algo.residual else None
+            policy = deterministic_policy(s.trainer.actor, arrays, c.algo.normalize_obs, base)
+            summary["evaluation"] = evaluate_builtin(s.env, s.env_params, policy, c.run.eval_episodes,
+                                                     c.run.eval_seed)
         else:
-            # on the evaluation scene (env.eval_level): the policy's residual base, if any,
-            # is that scene's scripted team
-            eval_base = eval_env.scripted_actions if c.algo.residual else None
-            net = deterministic_policy_fn(trainer.actor, c.algo.normalize_obs, eval_base)
-            eval_policy = deterministic_policy(trainer.actor, arrays, c.algo.normalize_obs, eval_base)
-
-            # one compiled program flies both teams: the argument says whose actions are used
-            def either(key, obs, state, params, args):
-                arrays, scripted = args
-                return jnp.where(scripted, eval_env.scripted_actions(state, params),
-                                 net(key, obs, state, params, arrays))
-
-            final = Evaluator(eval_env, eval_params, either, batch=c.run.eval_batch)
-            eval_key = jax.random.PRNGKey(c.run.eval_seed)
-            stats = final(eval_key, c.run.eval_episodes, (arrays, jnp.bool_(False)), progress=progress,
-                          desc="evaluation")
-            eval_scene = p.eval_scene if p.evaluates_elsewhere else p.scene
-            eval_file = EVAL_SCENE_FILE if p.evaluates_elsewhere else SCENE_FILE
-            metrics = write_evaluation(p.out / "eval", eval_scene, eval_env, eval_params, eval_policy,
-                                       policy_name=str(p.out / "policy"), episodes=c.run.eval_episodes,
-                                       batch=c.run.eval_batch, seed=c.run.eval_seed,
-                                       config_path=str(p.out / eval_file), progress=progress, animate=False,
-                                       stats=stats)
-            log(summary_line(p.scene.name, f"trained (MAPPO), evaluated at level {eval_scene.level}"
-                             if p.evaluates_elsewhere else "trained (MAPPO)", metrics, p.out / "eval"))
-            summary["evaluation"] = {k: metrics[k] for k in ("episodes", "success", "failures", "timeout",
-                                                             "mean_return", "mean_length_steps", "wall_s")}
-            summary["evaluation"]["level"] = eval_scene.level
-            summary["evaluation"]["scene"] = eval_file
-            summary["training_level"] = p.scene.level
-            if c.run.eval_baseline:
-                base_stats = final(eval_key, c.run.eval_episodes, (arrays, jnp.bool_(True)), progress=progress,
-                                   desc="scripted team")
-                comparison = write_comparison(p.out / "eval", stats, base_stats, names=("trained", "scripted"),
-                                              seed=c.run.eval_seed)
-                log(comparison_line(comparison))
-                summary["baseline"] = comparison
+            _evaluate_capture(s, arrays, summary)
         summary["evaluation_wall_s"] = round(time.perf_counter() - t_eval, 1)
     (p.out / "summary.json").write_text(json.dumps(summary, indent=2))
-    if many:
+    if s.many:
         multihost_utils.sync_global_devices("mysim_jax run written")
     return summary
