@@ -383,12 +383,12 @@ def test_a_solve_that_gives_up_on_its_first_interval_keeps_the_initial_row(tmp_p
 def test_a_failed_run_leaves_nothing_half_written(tmp_path, monkeypatch):
     """Outputs go to a hidden temporary folder first: if writing fails half-way (here:
     the plot step raises), OUT does not appear and no temporary folder is left."""
-    import mysim_jax.io.plots as plots
+    import mysim_jax.tasks.run_scene as run_scene
 
     def broken(*args, **kwargs):
         raise OSError("disk full (simulated)")
 
-    monkeypatch.setattr(plots, "plot_kinematics", broken)
+    monkeypatch.setattr(run_scene, "plot_kinematics", broken)
     with pytest.raises(OSError, match="disk full"):
         _main(ROPE, "--out", tmp_path / "run", "--set", "sim.t_end=0.01", "--set", "sim.precision=float32",
               "--no-progress")
