@@ -22,9 +22,7 @@ updates skipped). Writes into OUT:
 from __future__ import annotations
 
 import argparse
-import json
 import sys
-import time
 
 
 def main(argv=None) -> int:
@@ -52,8 +50,8 @@ def main(argv=None) -> int:
         print("error: --iterations >= 0, --lr > 0, --clip > 0, --every >= 1", file=sys.stderr)
         return 2
 
-    from mysim_jax.config.scene import ConfigError, dump_config, load_config
-    from mysim_jax.io.output import OutputError, check_output_dir, staged_output
+    from mysim_jax.config.scene import ConfigError, load_config
+    from mysim_jax.io.output import OutputError, check_output_dir
 
     try:
         config = load_config(args.config, args.overrides)
@@ -75,134 +73,18 @@ def main(argv=None) -> int:
     if any(c.sim.precision == "float64" for c in [config] + heldout):
         jax.config.update("jax_enable_x64", True)
 
-    import numpy as np
-    import yaml
+    from mysim_jax.tuning.run import TuneSettings, tune_scene
 
-    from mysim_jax.build import build
-    from mysim_jax.tuning.tracking import evaluate_tracking
-    from mysim_jax.tuning.gains import gains_to_dict, horizon_study, tune, with_gains
-
+    horizons = tuple(float(h) for h in args.study_horizons.split(",") if h.strip()) if args.horizon_study else ()
+    settings = TuneSettings(iterations=args.iterations, lr=args.lr, clip=args.clip, horizon=args.horizon,
+                            every=args.every, checkpoint=args.checkpoint, study_horizons=horizons,
+                            progress=not args.no_progress)
     try:
-        scene, params, state = build(config)
-        held = [build(c) for c in heldout]
+        tune_scene(config, list(zip(args.heldout, heldout)), out_dir, settings, args.config)
     except ConfigError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    for (hs, hp, _), path in zip(held, args.heldout):
-        if hs.quadrotor.n_quads != scene.quadrotor.n_quads:
-            print(f"error: {path}: has {hs.quadrotor.n_quads} quadrotors, {args.config} has "
-                  f"{scene.quadrotor.n_quads}", file=sys.stderr)
-            return 2
-
-    horizon = config.sim.t_end if args.horizon is None else args.horizon
-    n_steps = max(1, int(round(horizon / scene.dt / args.every))) * args.every
-
-    t0 = time.perf_counter()
-    result = tune(scene, params, state, n_steps, iterations=args.iterations, learning_rate=args.lr,
-                  clip_norm=args.clip, every=args.every, remat=args.checkpoint, progress=not args.no_progress)
-    wall = time.perf_counter() - t0
-
-    with staged_output(out_dir) as out:
-        (out / "config.yaml").write_text(dump_config(config))
-        tuned = jax.tree.map(lambda a, ref: jax.numpy.asarray(a, dtype=ref.dtype), result.gains,
-                             params.controller.gains)
-        n_quads = scene.quadrotor.n_quads
-        per_quad = [gains_to_dict(result.gains, q) for q in range(n_quads)]
-        gains_doc = {"controller": per_quad[0]} if n_quads == 1 else {"quadrotors": [{"controller": g} for g in per_quad]}
-        header = (f"# PID gains tuned by scripts/tune_pid.py on {args.config} ({horizon:g} s horizon, "
-                  f"{args.iterations} Adam steps, lr {args.lr:g}).\n# Use: python scripts/simulate.py SCENE "
-                  f"--gains {out_dir / 'gains.yaml'}\n")
-        (out / "gains.yaml").write_text(header + yaml.safe_dump(gains_doc, sort_keys=False))
-        quads = [q.model_copy(update={"controller": q.controller.model_copy(update={
-            "position": q.controller.position.model_validate(g["position"]),
-            "attitude": q.controller.attitude.model_validate(g["attitude"])})})
-            for q, g in zip(config.quadrotors, per_quad)]
-        (out / "tuned_config.yaml").write_text(dump_config(config.model_copy(update={"quadrotors": quads})))
-
-        metrics = {
-            "scene": config.name,
-            "horizon_s": n_steps * scene.dt,
-            "iterations": args.iterations,
-            "learning_rate": args.lr,
-            "clip_norm": args.clip,
-            "wall_time_s": wall,
-            "loss_initial_m2": result.initial_loss,
-            "loss_best_m2": result.best_loss,
-            "best_iteration": result.best_iteration,
-            "tuned_gains": per_quad,
-            "evaluation": {},
-        }
-
-        def evaluate(name, sc, pa, st, run):
-            before = evaluate_tracking(sc, pa, st, run)
-            after = evaluate_tracking(sc, with_gains(pa, tuned), st, run)
-            rows = {}
-            for body in before:
-                b, a = before[body]["rms_position_error_m"], after[body]["rms_position_error_m"]
-                rows[body] = {"before": before[body], "after": after[body], "rms_reduction": 1.0 - a / b}
-                print(f"{name} {body}: RMS {b:.4g} m -> {a:.4g} m ({100 * (1 - a / b):+.1f} % reduction), "
-                      f"max {before[body]['max_position_error_m']:.4g} m -> {after[body]['max_position_error_m']:.4g} m")
-            metrics["evaluation"][name] = rows
-
-        evaluate(config.name, scene, params, state, config.run_settings())
-        for cfg, (hs, hp, hst) in zip(heldout, held):
-            evaluate(cfg.name, hs, hp, hst, cfg.run_settings())
-
-        _plot_losses(result, out / "loss_curve.png", config.name)
-        if args.horizon_study:
-            horizons = [float(h) for h in args.study_horizons.split(",") if h.strip()]
-            rows = horizon_study(scene, params, state, horizons, every=args.every, progress=not args.no_progress)
-            metrics["horizon_study"] = rows
-            (out / "horizon_study.json").write_text(json.dumps(rows, indent=2))
-            (out / "horizon_study.md").write_text(_study_table(rows))
-            print(_study_table(rows))
-        (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
-    print(f"{config.name}: tuned in {wall:.1f} s (compile included); best RMS {np.sqrt(result.best_loss):.4g} m "
-          f"(from {np.sqrt(result.initial_loss):.4g} m, sampled every {args.every} steps) at iteration "
-          f"{result.best_iteration}; wrote {out_dir}/gains.yaml, tuned_config.yaml, loss_curve.png, metrics.json")
     return 0
-
-
-def _plot_losses(result, path, name):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    import numpy as np
-
-    it = np.arange(len(result.losses))
-    fig, (a, b) = plt.subplots(2, 1, figsize=(7, 6), sharex=True)
-    a.semilogy(it, np.sqrt(result.losses) * 1e3, lw=1.3)
-    a.axvline(result.best_iteration, ls="--", color="0.5", lw=0.8)
-    a.set_ylabel("RMS tracking error [mm]")
-    a.set_title(f"{name}: gradient-based PID tuning (Adam on log-gains)")
-    a.grid(alpha=0.3, which="both")
-    b.semilogy(it, result.grad_norms, lw=1.0, color="C1")
-    b.set_ylabel("|∇θ loss| (before clipping)")
-    b.set_xlabel("iteration")
-    b.grid(alpha=0.3, which="both")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-
-
-def _study_table(rows) -> str:
-    lines = [
-        "| horizon [s] | RMS [m] | ‖∇L‖ | ‖∇L‖ / L | finite | truncated (1 s windows): cosine, norm ratio "
-        "| checkpointed: max rel. diff | grad time plain / ckpt [s] | compile plain / ckpt [s] "
-        "| XLA temp plain / ckpt [MB] |",
-        "|---|---|---|---|---|---|---|---|---|---|",
-    ]
-    for r in rows:
-        lines.append(
-            f"| {r['horizon_s']:g} | {r['rms_m']:.4g} | {r['grad_norm']:.3g} | {r['grad_norm'] / r['loss_m2']:.3g} "
-            f"| {r['finite']} | {r['truncated_cosine']:.3f}, {r['truncated_norm_ratio']:.3f} "
-            f"| {r['checkpointed_max_rel_diff']:.1e} "
-            f"| {r['plain_grad_time_s']:.2f} / {r['checkpointed_grad_time_s']:.2f} "
-            f"| {r['plain_compile_s']:.1f} / {r['checkpointed_compile_s']:.1f} "
-            f"| {r['plain_temp_mb']:.1f} / {r['checkpointed_temp_mb']:.2f} |"
-        )
-    return "\n".join(lines) + "\n"
 
 
 if __name__ == "__main__":
