@@ -70,6 +70,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -154,6 +155,25 @@ class EnvState:
     perception: PerceptionErrors | None = None   # None unless the team flies on estimates
 
 
+class _Verdict(NamedTuple):
+    """One step's outcome and reward (:meth:`CaptureEnv._judge`)."""
+
+    flags: object
+    held_time: jnp.ndarray
+    succeeded: jnp.ndarray
+    failures: dict
+    crashed: jnp.ndarray
+    missed: jnp.ndarray
+    failed: jnp.ndarray
+    steps: jnp.ndarray
+    terminated: jnp.ndarray
+    timeout: jnp.ndarray
+    touched: jnp.ndarray
+    potential: jnp.ndarray
+    weighted: dict
+    reward: jnp.ndarray
+
+
 @dataclass(frozen=True)
 class CaptureEnv:
     """Static structure of the environment (hashable; see the module docstring)."""
@@ -205,6 +225,37 @@ class CaptureEnv:
         obs = self._observe(jax.random.fold_in(key, 1), state, params)
         return obs, state
 
+    def _judge(self, state: EnvState, sim, sim_params, params: EnvParams, dtype) -> "_Verdict":
+        """The step's outcome and reward from the state it reached (``sim``)."""
+        snap = self.snapshot(sim, sim_params)
+        flags = self.flags(snap)
+        # measured as capture_outcome measures it: from the first held sample, so a
+        # hold of k consecutive held steps lasts (k - 1) policy periods
+        held_time = jnp.where(flags.held & state.held, state.held_time + self.policy_dt, 0.0).astype(dtype)
+        succeeded = flags.held & hold_reached(held_time, self.success.hold_time)
+        # a step that succeeds is not a failure (the flags are exclusive in info)
+        failures = {k: v & ~succeeded for k, v in flags.failures.items()}
+        crashed = jnp.any(jnp.stack([failures[k] for k in CRASHES]))
+        missed = jnp.any(jnp.stack([failures[k] for k in MISSES])) & ~crashed
+        failed = crashed | missed
+        steps = state.steps + 1
+        terminated = succeeded | failed
+        timeout = (steps >= self.max_steps) & ~terminated
+        touched = state.touched | flags.touching
+        potential = self.potential(snap, flags, touched, sim_params, params)
+        # F = γ Φ(s') − Φ(s), with Φ = 0 in a state that ends the episode
+        shaping = params.discount.astype(dtype) * jnp.where(terminated, 0.0, potential) - state.potential
+        weighted = {k: shaping[i] for i, k in enumerate(SHAPING_TERMS)}
+        costs = cost_terms(snap)
+        outcomes = outcome_terms(self.n_agents, dtype, succeeded=succeeded, missed=missed, crashed=crashed)
+        w = self.weights(params, dtype)
+        weighted.update({k: w[k] * costs[k] for k in COST_TERMS})
+        weighted.update({k: w[k] * outcomes[k] for k in OUTCOME_TERMS})
+        weighted = {k: weighted[k] for k in REWARD_TERMS}
+        return _Verdict(flags=flags, held_time=held_time, succeeded=succeeded, failures=failures, crashed=crashed,
+                        missed=missed, failed=failed, steps=steps, terminated=terminated, timeout=timeout,
+                        touched=touched, potential=potential, weighted=weighted, reward=sum(weighted.values()))
+
     def step(self, key, state: EnvState, actions, params: EnvParams, auto_reset: bool = True):
         """``(obs, state, reward, terminated, truncated, info)`` (module docstring).
         ``auto_reset=False`` (a Python bool) returns the state after the step even when the
@@ -223,33 +274,11 @@ class CaptureEnv:
             sim = jax.lax.fori_loop(0, self.control_steps, control_period, state.sim)
 
         with jax.named_scope("rewards"):
-            snap = self.snapshot(sim, sim_params)
-            flags = self.flags(snap)
-            # measured as capture_outcome measures it: from the first held sample, so a
-            # hold of k consecutive held steps lasts (k - 1) policy periods
-            held_time = jnp.where(flags.held & state.held, state.held_time + self.policy_dt, 0.0).astype(dtype)
-            succeeded = flags.held & hold_reached(held_time, self.success.hold_time)
-            # a step that succeeds is not a failure (the flags are exclusive in info)
-            failures = {k: v & ~succeeded for k, v in flags.failures.items()}
-            crashed = jnp.any(jnp.stack([failures[k] for k in CRASHES]))
-            missed = jnp.any(jnp.stack([failures[k] for k in MISSES])) & ~crashed
-            failed = crashed | missed
-            steps = state.steps + 1
-            terminated = succeeded | failed
-            timeout = (steps >= self.max_steps) & ~terminated
-            touched = state.touched | flags.touching
-            potential = self.potential(snap, flags, touched, sim_params, params)
-            # F = γ Φ(s') − Φ(s), with Φ = 0 in a state that ends the episode
-            shaping = params.discount.astype(dtype) * jnp.where(terminated, 0.0, potential) - state.potential
-            weighted = {k: shaping[i] for i, k in enumerate(SHAPING_TERMS)}
-            costs = cost_terms(snap)
-            outcomes = outcome_terms(self.n_agents, dtype, succeeded=succeeded, missed=missed, crashed=crashed)
-            w = self.weights(params, dtype)
-            weighted.update({k: w[k] * costs[k] for k in COST_TERMS})
-            weighted.update({k: w[k] * outcomes[k] for k in OUTCOME_TERMS})
-            weighted = {k: weighted[k] for k in REWARD_TERMS}
-            reward = sum(weighted.values())
-            returns = state.returns + reward
+            v = self._judge(state, sim, sim_params, params, dtype)
+        held_time, succeeded, failures, steps = v.held_time, v.succeeded, v.failures, v.steps
+        crashed, missed, failed, terminated, timeout = v.crashed, v.missed, v.failed, v.terminated, v.timeout
+        flags, touched, potential, weighted, reward = v.flags, v.touched, v.potential, v.weighted, v.reward
+        returns = state.returns + reward
 
         done = terminated | timeout
         info = {
