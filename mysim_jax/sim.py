@@ -353,6 +353,55 @@ def single_env_scene(scene: Scene) -> Scene:
     return dataclasses.replace(scene, accumulate="segment_sum")
 
 
+def _stepped_run(scene: Scene, params: Params, state: State, run, times, progress, chunk: int, policy):
+    """Fixed steps in jitted chunks of ``chunk`` outputs, checked after each chunk. Returns
+    the saved states (host arrays, the finite rows) and ``(row, reason)`` or None."""
+    every = steps_per_output(scene, run)
+    n_out = len(times) - 1
+    if 0 < n_out < chunk:          # one chunk: the next power of two, not a whole chunk
+        chunk = 1 << (n_out - 1).bit_length()
+    pieces = [jax.tree.map(lambda a: np.asarray(a)[None], state)]
+    failure = _non_finite(scene, pieces[0], times, 0)
+    done = 0
+    bar = _progress(n_out, progress, scene, run.name)
+    while done < n_out and failure is None:
+        state, traj = _advance(scene, params, state, chunk * every, every, policy)
+        take = min(chunk, n_out - done)
+        piece = jax.tree.map(lambda a: np.asarray(a)[:take], traj)
+        failure = _non_finite(scene, piece, times, done + 1)
+        if failure is not None:
+            take = failure[0] - (done + 1)
+        pieces.append(jax.tree.map(lambda a: a[:take], piece))
+        done += take
+        if bar is not None:
+            bar.update(take)
+    if bar is not None:
+        bar.close()
+    return jax.tree.map(lambda *xs: np.concatenate(xs, axis=0), *pieces), failure
+
+
+def _adaptive_run(scene: Scene, params: Params, state: State, times, progress):
+    """One diffrax solve on the output grid. Returns the saved states and ``(row, reason)``
+    or None (also when the solver gives up)."""
+    ts = jnp.asarray(times, dtype=scene.dtype)
+    ys, result, n_steps = _solve_on_grid(scene, params, state.phys, ts, bool(progress))
+    # row 0 is the initial state itself; a solve that gives up on its first output
+    # interval leaves every saved row unfilled (inf), that one included
+    phys = jax.tree.map(lambda y, y0: np.concatenate([np.asarray(y0, np.asarray(y).dtype)[None],
+                                                      np.asarray(y)[1:]]), ys, state.phys)
+    states = State(phys=phys, time=times.astype(phys.point_pos.dtype))
+    failure = _non_finite(scene, states, times, 0)
+    if result != diffrax.RESULTS.successful:
+        row = failure[0] if failure is not None else len(times)
+        failure = (row, (
+            f"the adaptive solver ({scene.integrator}) gave up after t = {times[max(row - 1, 0)]:g} s and "
+            f"{int(n_steps):,} steps: {diffrax.RESULTS[result]} This happens when the state turns non-finite "
+            "(every step is then rejected) or when rtol / atol ask for more steps than sim.max_steps = "
+            f"{scene.max_steps:,}: raise sim.max_steps, loosen sim.rtol / sim.atol, or look for forces "
+            "that blow up. The saved states before that time are kept."))
+    return states, failure
+
+
 def simulate(scene: Scene, params: Params, state: State, run, progress: bool = True, chunk: int = 200,
              policy=None) -> Trajectory:
     """Run the scene from ``state`` to ``run.t_end``, saving every ``run.output_dt``
@@ -384,45 +433,9 @@ def simulate(scene: Scene, params: Params, state: State, run, progress: bool = T
     scene = single_env_scene(scene)
     times = output_times(run)
     if scene.integrator in FIXED_STEP or scene.quadrotor is not None or scene.effects:
-        every = steps_per_output(scene, run)
-        n_out = len(times) - 1
-        if 0 < n_out < chunk:          # one chunk: the next power of two, not a whole chunk
-            chunk = 1 << (n_out - 1).bit_length()
-        pieces = [jax.tree.map(lambda a: np.asarray(a)[None], state)]
-        failure = _non_finite(scene, pieces[0], times, 0)
-        done = 0
-        bar = _progress(n_out, progress, scene, run.name)
-        while done < n_out and failure is None:
-            state, traj = _advance(scene, params, state, chunk * every, every, policy)
-            take = min(chunk, n_out - done)
-            piece = jax.tree.map(lambda a: np.asarray(a)[:take], traj)
-            failure = _non_finite(scene, piece, times, done + 1)
-            if failure is not None:
-                take = failure[0] - (done + 1)
-            pieces.append(jax.tree.map(lambda a: a[:take], piece))
-            done += take
-            if bar is not None:
-                bar.update(take)
-        if bar is not None:
-            bar.close()
-        states = jax.tree.map(lambda *xs: np.concatenate(xs, axis=0), *pieces)
+        states, failure = _stepped_run(scene, params, state, run, times, progress, chunk, policy)
     else:
-        ts = jnp.asarray(times, dtype=scene.dtype)
-        ys, result, n_steps = _solve_on_grid(scene, params, state.phys, ts, bool(progress))
-        # row 0 is the initial state itself; a solve that gives up on its first output
-        # interval leaves every saved row unfilled (inf), that one included
-        phys = jax.tree.map(lambda y, y0: np.concatenate([np.asarray(y0, np.asarray(y).dtype)[None],
-                                                          np.asarray(y)[1:]]), ys, state.phys)
-        states = State(phys=phys, time=times.astype(phys.point_pos.dtype))
-        failure = _non_finite(scene, states, times, 0)
-        if result != diffrax.RESULTS.successful:
-            row = failure[0] if failure is not None else len(times)
-            failure = (row, (
-                f"the adaptive solver ({scene.integrator}) gave up after t = {times[max(row - 1, 0)]:g} s and "
-                f"{int(n_steps):,} steps: {diffrax.RESULTS[result]} This happens when the state turns non-finite "
-                "(every step is then rejected) or when rtol / atol ask for more steps than sim.max_steps = "
-                f"{scene.max_steps:,}: raise sim.max_steps, loosen sim.rtol / sim.atol, or look for forces "
-                "that blow up. The saved states before that time are kept."))
+        states, failure = _adaptive_run(scene, params, state, times, progress)
     n_kept = len(times) if failure is None else failure[0]
     states = jax.tree.map(lambda a: a[:n_kept], states)
     acc = jax.tree.map(np.asarray, _accelerations_on_grid(scene, params, jax.tree.map(jnp.asarray, states), policy))
