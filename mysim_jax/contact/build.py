@@ -24,25 +24,10 @@ from mysim_jax.core.contact_types import ContactParams, ContactScene
 from mysim_jax.dynamics.stability import spring_stable_steps
 
 
-def build_contact(contact: ContactConfig, point_names, body_names, dtype, segments=None):
-    """``(ContactScene, ContactParams)`` of a scene; names resolved by the config check.
-
-    ``segments``: the scene's springs as :func:`~mysim_jax.contact.config.segment_table`
-    lists them; by default the table recorded on ``contact`` when the scene config was
-    validated (:func:`~mysim_jax.contact.config.contact_problems`). Only segment groups
-    need it.
-    """
-    members, problems = resolve_members(contact, list(point_names), list(body_names))
-    capsule_groups = [g for g in contact.groups if g.is_segments]
-    capsules: dict = {}
-    if capsule_groups:
-        if segments is None:
-            raise ValueError("contact.groups: segment groups need the scene's ropes and springs: pass "
-                             "segments=segment_table(ropes, springs)")
-        capsules, more = resolve_segments(contact, tuple(segments), list(point_names) + list(body_names))
-        problems += more
-    if problems:       # the config validator has already reported these; defensive only
-        raise ValueError("; ".join(problems))
+def _used_pairs(contact: ContactConfig, members, capsules, body_names):
+    """Which spheres touch which (by name) after the pair list: ``(radius of every sphere
+    in a pair, sphere pairs, spheres on the ground, (sphere, capsule) pairs, capsule of
+    every spring in a pair as (Segment, radius))``."""
     radius_of: dict[str, float] = {}
     used_pairs: set[tuple[str, str]] = set()
     used_ground: set[str] = set()
@@ -70,6 +55,53 @@ def build_contact(contact: ContactConfig, point_names, body_names, dtype, segmen
                     continue
                 radius_of[name_a], radius_of[name_b] = ra, rb
                 used_pairs.add((name_a, name_b) if name_a < name_b else (name_b, name_a))
+    return radius_of, used_pairs, used_ground, used_capsule_pairs, capsule_of
+
+
+def _contact_params(contact: ContactConfig, radii, capsule_radii, dtype) -> ContactParams:
+    """The contact law's constants as arrays of ``dtype``."""
+    fr = contact.friction
+
+    def scalar(x):
+        return jnp.asarray(x, dtype=dtype)
+
+    return ContactParams(
+        radius=jnp.asarray(np.asarray(radii, float).reshape(-1), dtype=dtype),
+        stiffness=scalar(contact.stiffness),
+        exponent=scalar(contact.exponent),
+        damping=scalar(contact.damping),
+        damping_depth=scalar(contact.damping_depth),
+        mu_static=scalar(fr.mu_static if fr else 0.0),
+        mu_dynamic=scalar(fr.mu_dynamic if fr else 0.0),
+        v_static=scalar(fr.v_static if fr else 1.0),
+        v_dynamic=scalar(fr.v_dynamic if fr else 2.0),
+        smooth_depth=scalar(contact.smoothing.depth),
+        smooth_velocity=scalar(contact.smoothing.velocity),
+        capsule_radius=jnp.asarray(np.asarray(capsule_radii, float), dtype=dtype) if capsule_radii else None,
+    )
+
+
+def build_contact(contact: ContactConfig, point_names, body_names, dtype, segments=None):
+    """``(ContactScene, ContactParams)`` of a scene; names resolved by the config check.
+
+    ``segments``: the scene's springs as :func:`~mysim_jax.contact.config.segment_table`
+    lists them; by default the table recorded on ``contact`` when the scene config was
+    validated (:func:`~mysim_jax.contact.config.contact_problems`). Only segment groups
+    need it.
+    """
+    members, problems = resolve_members(contact, list(point_names), list(body_names))
+    capsule_groups = [g for g in contact.groups if g.is_segments]
+    capsules: dict = {}
+    if capsule_groups:
+        if segments is None:
+            raise ValueError("contact.groups: segment groups need the scene's ropes and springs: pass "
+                             "segments=segment_table(ropes, springs)")
+        capsules, more = resolve_segments(contact, tuple(segments), list(point_names) + list(body_names))
+        problems += more
+    if problems:       # the config validator has already reported these; defensive only
+        raise ValueError("; ".join(problems))
+    used = _used_pairs(contact, members, capsules, body_names)
+    radius_of, used_pairs, used_ground, used_capsule_pairs, capsule_of = used
 
     point_index = {n: i for i, n in enumerate(point_names)}
     body_index = {n: i for i, n in enumerate(body_names)}
@@ -109,27 +141,8 @@ def build_contact(contact: ContactConfig, point_names, body_names, dtype, segmen
         friction=contact.friction is not None,
         broad_phase=contact.broad_phase is not None and len(cpairs) > 0,
     )
-    fr = contact.friction
-
-    def scalar(x):
-        return jnp.asarray(x, dtype=dtype)
-
-    cparams = ContactParams(
-        radius=jnp.asarray(np.asarray([radius_of[n] for n in sphere_names], float).reshape(-1), dtype=dtype),
-        stiffness=scalar(contact.stiffness),
-        exponent=scalar(contact.exponent),
-        damping=scalar(contact.damping),
-        damping_depth=scalar(contact.damping_depth),
-        mu_static=scalar(fr.mu_static if fr else 0.0),
-        mu_dynamic=scalar(fr.mu_dynamic if fr else 0.0),
-        v_static=scalar(fr.v_static if fr else 1.0),
-        v_dynamic=scalar(fr.v_dynamic if fr else 2.0),
-        smooth_depth=scalar(contact.smoothing.depth),
-        smooth_velocity=scalar(contact.smoothing.velocity),
-        capsule_radius=(jnp.asarray(np.asarray([capsule_of[n][1] for n in capsule_names], float), dtype=dtype)
-                        if capsule_names else None),
-    )
-    return cscene, cparams
+    return cscene, _contact_params(contact, [radius_of[n] for n in sphere_names],
+                                   [capsule_of[n][1] for n in capsule_names], dtype)
 
 
 def contact_stable_step(integrator: str, contact: ContactConfig, cscene: ContactScene,
