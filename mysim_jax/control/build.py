@@ -135,24 +135,15 @@ def _check_servo_stability(config: SceneConfig, bodies) -> None:
                     )
 
 
-def build_quadrotors(config: SceneConfig, body_names, marker_names, dtype):
-    """``(QuadrotorScene, QuadrotorParams, ControlParams | None, ControlState)`` or all None.
-
-    ``config`` must already be expanded (:func:`expand_cameras`).
-    """
-    quads = config.quadrotors
-    if not quads:
-        return None, None, None, None
-    body_index = {n: i for i, n in enumerate(body_names)}
-    bodies = {b.name: b for b in config.bodies}
-    _check_servo_stability(config, bodies)
-    gravity = float(np.linalg.norm(config.gravity))
-
+def _arrays(dtype):
     def arr(x, shape):
         return jnp.asarray(np.asarray(x, dtype=float).reshape(shape), dtype=dtype)
+    return arr
 
-    gimbals = [(qi, c) for qi, q in enumerate(quads) for c in q.cameras if c.mount == "gimbal"]
-    qs = QuadrotorScene(
+
+def _quadrotor_scene(quads, body_names, marker_names, gimbals) -> QuadrotorScene:
+    body_index = {n: i for i, n in enumerate(body_names)}
+    return QuadrotorScene(
         body=tuple(body_index[q.body] for q in quads),
         controller="none" if quads[0].controller is None else quads[0].controller.type,
         feedforward=tuple(q.controller.feedforward if q.controller else "none" for q in quads),
@@ -166,8 +157,11 @@ def build_quadrotors(config: SceneConfig, body_names, marker_names, dtype):
         camera_names=tuple(c.name for q in quads for c in q.cameras),
         camera_quad=tuple(qi for qi, q in enumerate(quads) for _ in q.cameras),
     )
+
+
+def _quadrotor_params(quads, gimbals, arr) -> QuadrotorParams:
     winds = [q.wind for q in quads]
-    qp = QuadrotorParams(
+    return QuadrotorParams(
         rotor_pos=arr([rotor_positions_np(q.rotors.arm_length, q.rotors.angle) for q in quads], (-1, 4, 3)),
         lift_coefficient=arr([q.rotors.lift_coefficient for q in quads], (-1, 4)),
         torque_coefficient=arr([q.rotors.torque_coefficient for q in quads], (-1, 4)),
@@ -187,7 +181,10 @@ def build_quadrotors(config: SceneConfig, body_names, marker_names, dtype):
         gimbal_period=arr([c.command.period for _, c in gimbals], (-1, 2)),
     )
 
-    # the vehicle as the controller sees it: UAV body plus cameras, CoM shifted by them
+
+def _vehicles(quads, bodies):
+    """Each vehicle as the controller sees it, the UAV body plus its cameras: ``(masses,
+    centre-of-mass offsets, inertias about the UAV centre)``."""
     masses, com, inertias = [], [], []
     for q in quads:
         uav = bodies[q.body]
@@ -200,8 +197,11 @@ def build_quadrotors(config: SceneConfig, body_names, marker_names, dtype):
             r, d = camera_in_uav(c), np.asarray(c.offset, float)
             inertia = inertia + r @ np.diag(c.inertia) @ r.T + c.mass * (d @ d * np.eye(3) - np.outer(d, d))
         inertias.append(inertia)
+    return masses, com, inertias
 
-    # motors start at the speeds that hold the vehicle (hover allocation)
+
+def _hover_speeds(quads, masses, com, gravity: float) -> list[np.ndarray]:
+    """Motor speeds that hold each vehicle (hover allocation): the motors start there."""
     speeds = []
     for q, m, r_c in zip(quads, masses, com):
         r = q.rotors
@@ -210,17 +210,10 @@ def build_quadrotors(config: SceneConfig, body_names, marker_names, dtype):
         wrench = np.concatenate([[thrust], np.cross(r_c, [0.0, 0.0, thrust])])
         sq = np.clip(np.linalg.solve(alloc, wrench), r.omega_min ** 2, r.omega_max ** 2)
         speeds.append(np.sqrt(sq))
-    n_q = len(quads)
-    memory = ControlState(
-        position_integral=arr(np.zeros((n_q, 3)), (-1, 3)),
-        attitude_integral=arr(np.zeros((n_q, 3)), (-1, 3)),
-        motor_speed=arr(speeds, (-1, 4)),
-        motor_command=arr(speeds, (-1, 4)),
-        steps=jnp.zeros((), dtype=jnp.int32),
-    )
-    if qs.controller == "none":
-        return qs, qp, None, memory
+    return speeds
 
+
+def _control_params(quads, masses, com, inertias, arr) -> ControlParams:
     refs = [q.reference for q in quads]
     reference = None
     if refs[0] is not None:     # every quadrotor has a reference or none has (config check)
@@ -236,7 +229,7 @@ def build_quadrotors(config: SceneConfig, body_names, marker_names, dtype):
             yaw_multiple=arr([r.yaw.multiple for r in refs], (-1,)),
             yaw_phase=arr([r.yaw.phase for r in refs], (-1,)),
         )
-    cp = ControlParams(
+    return ControlParams(
         gains=PIDGains(**{
             f"{loop}_{k}": arr([getattr(getattr(q.controller, loop), k) for q in quads], (-1, 3))
             for loop in ("position", "attitude") for k in ("kp", "ki", "kd")
@@ -252,4 +245,32 @@ def build_quadrotors(config: SceneConfig, body_names, marker_names, dtype):
         max_speed=arr([q.controller.max_speed for q in quads], (-1,)),
         reference=reference,
     )
-    return qs, qp, cp, memory
+
+
+def build_quadrotors(config: SceneConfig, body_names, marker_names, dtype):
+    """``(QuadrotorScene, QuadrotorParams, ControlParams | None, ControlState)`` or all None.
+
+    ``config`` must already be expanded (:func:`expand_cameras`).
+    """
+    quads = config.quadrotors
+    if not quads:
+        return None, None, None, None
+    bodies = {b.name: b for b in config.bodies}
+    _check_servo_stability(config, bodies)
+    arr = _arrays(dtype)
+    gimbals = [(qi, c) for qi, q in enumerate(quads) for c in q.cameras if c.mount == "gimbal"]
+    qs = _quadrotor_scene(quads, body_names, marker_names, gimbals)
+    qp = _quadrotor_params(quads, gimbals, arr)
+    masses, com, inertias = _vehicles(quads, bodies)
+    speeds = _hover_speeds(quads, masses, com, float(np.linalg.norm(config.gravity)))
+    n_q = len(quads)
+    memory = ControlState(
+        position_integral=arr(np.zeros((n_q, 3)), (-1, 3)),
+        attitude_integral=arr(np.zeros((n_q, 3)), (-1, 3)),
+        motor_speed=arr(speeds, (-1, 4)),
+        motor_command=arr(speeds, (-1, 4)),
+        steps=jnp.zeros((), dtype=jnp.int32),
+    )
+    if qs.controller == "none":
+        return qs, qp, None, memory
+    return qs, qp, _control_params(quads, masses, com, inertias, arr), memory
