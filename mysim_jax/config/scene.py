@@ -481,9 +481,29 @@ class SceneConfig(StrictModel):
         return problems
 
     def _reference_problems(self) -> list[str]:
-        problems: list[str] = []
-        owners: dict[str, str] = {}
+        self._check_size()
+        problems = self._name_problems()
+        problems += self._attachment_problems()
+        problems += self._joint_problems()
+        attachable = self.attachment_names()
+        for i, ld in enumerate(self.loads):
+            if ld.at not in attachable or ld.at in self.anchor_names():
+                problems.append(f"loads.{i}.at: '{ld.at}' is not a point, body or body.marker")
+            elif any(ld.torque) and ld.at not in {b.name for b in self.bodies}:
+                problems.append(f"loads.{i}.torque: a torque needs a body, '{ld.at}' is not one")
+        plottable = self.trajectory_names()
+        for i, name in enumerate(self.output.plot):
+            if name not in plottable:
+                problems.append(f"output.plot.{i}: '{name}' is not a point or body")
+        if self.contact is not None:
+            points = [p.name for p in self.points] + [f"{r.name}_{j}" for r in self.ropes for j in range(r.n_masses)]
+            problems += contact_problems(self.contact, points, [b.name for b in self.bodies], self.anchor_names(),
+                                         ropes=self.ropes, springs=self.springs)
+        problems += quadrotor_problems(self)
+        return problems
 
+    def _check_size(self) -> None:
+        """Refuse scenes too large to build or to save (ValueError)."""
         n_cameras = sum(len(q.cameras) for q in self.quadrotors)
         n_objects = (len(self.points) + sum(r.n_masses for r in self.ropes) + len(self.bodies) + n_cameras)
         if n_objects > MAX_OBJECTS:
@@ -495,6 +515,12 @@ class SceneConfig(StrictModel):
             raise ValueError(
                 f"sim: the run would save {rows:,} rows of {columns:,} columns ({values:.3g} "
                 f"values, more than {MAX_OUTPUT_VALUES:.3g}); raise sim.output_dt or shorten sim.t_end")
+
+    def _name_problems(self) -> list[str]:
+        """Names used twice (points, bodies, anchors, ropes and their masses, springs,
+        joints share one namespace; markers are unique per body)."""
+        problems: list[str] = []
+        owners: dict[str, str] = {}
 
         def claim(name: str, where: str):
             if name in owners:
@@ -521,7 +547,11 @@ class SceneConfig(StrictModel):
             claim(s.name, f"springs.{i}")
         for i, j in enumerate(self.joints):
             claim(j.name, f"joints.{i}")
+        return problems
 
+    def _attachment_problems(self) -> list[str]:
+        """Rope and spring ends that name nothing attachable."""
+        problems: list[str] = []
         attachable = self.attachment_names()
         for i, r in enumerate(self.ropes):
             for end in ("start", "end"):
@@ -539,6 +569,10 @@ class SceneConfig(StrictModel):
                     problems.append(f"springs.{i}.{end}: '{ref}' {self._unknown(ref)}")
             if s.start == s.end:
                 problems.append(f"springs.{i}: start and end are the same ('{s.start}')")
+        return problems
+
+    def _joint_problems(self) -> list[str]:
+        problems: list[str] = []
         frames = self.frame_names()
         for i, j in enumerate(self.joints):
             for side in ("marker_i", "marker_j"):
@@ -555,20 +589,6 @@ class SceneConfig(StrictModel):
                 problems.append(f"joints.{i}: both markers are on body '{bi}'")
             if j.marker_i in self.anchor_names() and j.marker_j in self.anchor_names():
                 problems.append(f"joints.{i}: a joint between two anchors constrains nothing")
-        for i, ld in enumerate(self.loads):
-            if ld.at not in attachable or ld.at in self.anchor_names():
-                problems.append(f"loads.{i}.at: '{ld.at}' is not a point, body or body.marker")
-            elif any(ld.torque) and ld.at not in {b.name for b in self.bodies}:
-                problems.append(f"loads.{i}.torque: a torque needs a body, '{ld.at}' is not one")
-        plottable = self.trajectory_names()
-        for i, name in enumerate(self.output.plot):
-            if name not in plottable:
-                problems.append(f"output.plot.{i}: '{name}' is not a point or body")
-        if self.contact is not None:
-            points = [p.name for p in self.points] + [f"{r.name}_{j}" for r in self.ropes for j in range(r.n_masses)]
-            problems += contact_problems(self.contact, points, [b.name for b in self.bodies], self.anchor_names(),
-                                         ropes=self.ropes, springs=self.springs)
-        problems += quadrotor_problems(self)
         return problems
 
     # --- name tables -------------------------------------------------------------------
