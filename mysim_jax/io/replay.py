@@ -237,26 +237,60 @@ def _trail(xyz, time, trail, max_points=TRAIL_POINTS):
     return xyz[index]
 
 
+@dataclass
+class _Draw:
+    """What the drawing steps of :func:`_describe` share: the columns, the frames' rows,
+    the trail length, the glyph size and the scene being filled."""
+
+    columns: dict
+    rows: np.ndarray
+    trail: int
+    glyph: float
+    scene: _Scene
+
+    @property
+    def time(self):
+        return self.columns["time"][self.rows]
+
+    def pose(self, name):
+        return _xyz(self.columns, name, self.rows), _quat(self.columns, name, self.rows)
+
+    def trail_layer(self, name, xyz, color):
+        self.scene.layers.append(_Layer(f"{name} trail", _trail(xyz, self.time, self.trail),
+                                        dict(mode="lines", line=dict(color=color, width=2), opacity=0.5,
+                                             showlegend=False, hoverinfo="skip")))
+
+
 def _describe(columns, config, rows, trail) -> _Scene:
     """Everything to draw, per frame and static, from what the config contains."""
     full, _ = expand_capture(config)
     nodes = _Nodes(columns, full, rows)
-    time = columns["time"][rows]
-    scene = _Scene()
     everything = np.concatenate([nodes(n) for n in required_names(config)] + [np.zeros((0, 3))], axis=0)
     everything = everything[np.all(np.isfinite(everything), axis=1)]
     view = float(np.ptp(everything, axis=0).max()) if len(everything) else 1.0
-    glyph = GLYPH_FRACTION * view      # m: the size small glyphs are drawn at, at least
-    quad_bodies = {q.body for q in config.quadrotors}
-    camera_names = {c.name for q in config.quadrotors for c in q.cameras}
-    target = config.target.name if config.target is not None else None
+    # GLYPH_FRACTION * view m: the size small glyphs are drawn at, at least
+    d = _Draw(columns=columns, rows=rows, trail=trail, glyph=GLYPH_FRACTION * view, scene=_Scene())
+    _draw_lines(d, config, full, nodes)
+    for k, q in enumerate(config.quadrotors):
+        _draw_quadrotor(d, q, COLORS[k % len(COLORS)])
+    _draw_cameras(d, sorted({c.name for q in config.quadrotors for c in q.cameras}))
+    if config.target is not None:
+        _draw_target(d, config.target)
+    _draw_points_and_bodies(d, config, nodes)
+    if config.anchors:
+        a = np.array([x.pos for x in config.anchors], float)
+        d.scene.static.append(dict(type="scatter3d", name="anchors", x=a[:, 0].tolist(), y=a[:, 1].tolist(),
+                                   z=a[:, 2].tolist(),
+                                   mode="markers", marker=dict(size=6, symbol="cross", color="black")))
+        d.scene.extent.append(a)
+    contact_ground = config.contact is not None and any("ground" in pair for pair in config.contact.pairs)
+    d.scene.ground = bool(config.quadrotors) or config.target is not None or contact_ground
+    return d.scene
 
-    def trail_layer(name, xyz, color):
-        scene.layers.append(_Layer(f"{name} trail", _trail(xyz, time, trail),
-                                   dict(mode="lines", line=dict(color=color, width=2), opacity=0.5,
-                                        showlegend=False, hoverinfo="skip")))
 
-    # the net and every line
+def _draw_lines(d: _Draw, config, full, nodes) -> None:
+    """The net, and every other rope and spring."""
+    scene = d.scene
     if config.net is not None:
         net = _polyline_array(_net_polylines(config.net, nodes))
         scene.layers.append(_Layer("net", net, dict(mode="lines", line=dict(color=NET_COLOR, width=2))))
@@ -274,82 +308,79 @@ def _describe(columns, config, rows, trail) -> _Scene:
                                                     marker=dict(size=2, color=ROPE_COLOR))))
         scene.extent.append(xyz)
 
-    # quadrotors: rotor cross and heading
-    for k, q in enumerate(config.quadrotors):
-        color = COLORS[k % len(COLORS)]
-        pos, quat = _xyz(columns, q.body, rows), _quat(columns, q.body, rows)
-        arm = np.asarray(q.rotors.arm_length, float)
-        angle = np.asarray(q.rotors.angle, float)
-        scale = max(1.0, glyph / (2.0 * arm.max()))
-        tips = scale * np.stack([arm * np.cos(angle), arm * np.sin(angle), np.zeros(4)], axis=-1)  # (4, 3) body frame
-        nose = np.array([HEADING_FACTOR * scale * arm.max(), 0.0, 0.0])
-        local = np.array([tips[0], tips[2], [np.nan] * 3, tips[1], tips[3], [np.nan] * 3, [0.0, 0.0, 0.0], nose])
-        world = pos[:, None, :] + rotate(quat[:, None, :], local[None, :, :])
-        label = q.body if scale == 1.0 else f"{q.body} (drawn {scale:.2g}x)"
-        scene.layers.append(_Layer(label, world, dict(mode="lines+markers", line=dict(color=color, width=6),
-                                                       marker=dict(size=3, color=color))))
-        trail_layer(q.body, pos, color)
-        scene.extent.append(pos)
-        if all(f"{q.body}_ref_{a}" in columns for a in "xyz"):
-            ref = np.stack([columns[f"{q.body}_ref_{a}"] for a in "xyz"], axis=-1)
-            scene.static.append(dict(type="scatter3d", name=f"{q.body} reference", x=_typed(ref[:, 0]),
-                                     y=_typed(ref[:, 1]), z=_typed(ref[:, 2]), mode="lines",
-                                     line=dict(color=color, width=2, dash="dash"), opacity=0.6, hoverinfo="skip"))
-            scene.extent.append(ref)
 
-    # cameras: a diamond and the optical axis
-    if camera_names:
-        names = sorted(camera_names)
-        segs = []
-        for name in names:
-            pos, quat = _xyz(columns, name, rows), _quat(columns, name, rows)
-            segs.append(np.stack([pos, pos + rotate(quat, [max(CAMERA_AXIS, glyph), 0.0, 0.0])], axis=1))
-        scene.layers.append(_Layer("cameras", _polyline_array(segs),
-                                   dict(mode="lines+markers", line=dict(color="#e377c2", width=4),
-                                        marker=dict(size=3, symbol="diamond", color="#e377c2"))))
+def _draw_quadrotor(d: _Draw, q, color) -> None:
+    """A quadrotor's rotor cross and heading, its trail and its reference path."""
+    scene, columns = d.scene, d.columns
+    pos, quat = d.pose(q.body)
+    arm = np.asarray(q.rotors.arm_length, float)
+    angle = np.asarray(q.rotors.angle, float)
+    scale = max(1.0, d.glyph / (2.0 * arm.max()))
+    tips = scale * np.stack([arm * np.cos(angle), arm * np.sin(angle), np.zeros(4)], axis=-1)  # (4, 3) body frame
+    nose = np.array([HEADING_FACTOR * scale * arm.max(), 0.0, 0.0])
+    local = np.array([tips[0], tips[2], [np.nan] * 3, tips[1], tips[3], [np.nan] * 3, [0.0, 0.0, 0.0], nose])
+    world = pos[:, None, :] + rotate(quat[:, None, :], local[None, :, :])
+    label = q.body if scale == 1.0 else f"{q.body} (drawn {scale:.2g}x)"
+    scene.layers.append(_Layer(label, world, dict(mode="lines+markers", line=dict(color=color, width=6),
+                                                   marker=dict(size=3, color=color))))
+    d.trail_layer(q.body, pos, color)
+    scene.extent.append(pos)
+    if all(f"{q.body}_ref_{a}" in columns for a in "xyz"):
+        ref = np.stack([columns[f"{q.body}_ref_{a}"] for a in "xyz"], axis=-1)
+        scene.static.append(dict(type="scatter3d", name=f"{q.body} reference", x=_typed(ref[:, 0]),
+                                 y=_typed(ref[:, 1]), z=_typed(ref[:, 2]), mode="lines",
+                                 line=dict(color=color, width=2, dash="dash"), opacity=0.6, hoverinfo="skip"))
+        scene.extent.append(ref)
 
-    # the target: a sphere of its radius
-    if target is not None:
-        pos = _xyz(columns, target, rows)
-        verts, tris = _sphere(config.target.radius)
-        scene.layers.append(_Layer(target, pos[:, None, :] + verts[None], dict(color=TARGET_COLOR, opacity=1.0,
-                                                                               flatshading=True),
-                                   kind="mesh3d", mesh=(verts, tris)))
-        trail_layer(target, pos, TARGET_COLOR)
-        scene.extent.append(pos[:, None, :] + verts[None])
 
-    # free point masses and other bodies
+def _draw_cameras(d: _Draw, names) -> None:
+    """Cameras: a diamond and the optical axis."""
+    if not names:
+        return
+    segs = []
+    for name in names:
+        pos, quat = d.pose(name)
+        segs.append(np.stack([pos, pos + rotate(quat, [max(CAMERA_AXIS, d.glyph), 0.0, 0.0])], axis=1))
+    d.scene.layers.append(_Layer("cameras", _polyline_array(segs),
+                                 dict(mode="lines+markers", line=dict(color="#e377c2", width=4),
+                                      marker=dict(size=3, symbol="diamond", color="#e377c2"))))
+
+
+def _draw_target(d: _Draw, target) -> None:
+    """The target: a sphere of its radius, and its trail."""
+    pos = _xyz(d.columns, target.name, d.rows)
+    verts, tris = _sphere(target.radius)
+    d.scene.layers.append(_Layer(target.name, pos[:, None, :] + verts[None],
+                                 dict(color=TARGET_COLOR, opacity=1.0, flatshading=True),
+                                 kind="mesh3d", mesh=(verts, tris)))
+    d.trail_layer(target.name, pos, TARGET_COLOR)
+    d.scene.extent.append(pos[:, None, :] + verts[None])
+
+
+def _draw_points_and_bodies(d: _Draw, config, nodes) -> None:
+    """Free point masses, and the bodies that are not quadrotors (as axes)."""
+    scene = d.scene
     free = [p.name for p in config.points]
     if free:
         xyz = np.stack([nodes(n) for n in free], axis=1)
         scene.layers.append(_Layer("points", xyz, dict(mode="markers+text", text=free, textposition="top center",
                                                         marker=dict(size=6, color="#d62728"))))
         for n in free:
-            trail_layer(n, nodes(n), "#d62728")
+            d.trail_layer(n, nodes(n), "#d62728")
         scene.extent.append(xyz)
+    quad_bodies = {q.body for q in config.quadrotors}
     others = [b.name for b in config.bodies if b.name not in quad_bodies]
     for k, name in enumerate(others):
         color = COLORS[(len(config.quadrotors) + k) % len(COLORS)]
-        pos, quat = _xyz(columns, name, rows), _quat(columns, name, rows)
-        size = max(BODY_AXIS, glyph)
+        pos, quat = d.pose(name)
+        size = max(BODY_AXIS, d.glyph)
         local = np.array([[0, 0, 0], [size, 0, 0], [np.nan] * 3, [0, 0, 0], [0, size, 0], [np.nan] * 3,
                           [0, 0, 0], [0, 0, size]], float)
         world = pos[:, None, :] + rotate(quat[:, None, :], local[None])
         scene.layers.append(_Layer(name, world, dict(mode="lines+markers", line=dict(color=color, width=5),
                                                      marker=dict(size=3, color=color))))
-        trail_layer(name, pos, color)
+        d.trail_layer(name, pos, color)
         scene.extent.append(pos)
-
-    if config.anchors:
-        a = np.array([x.pos for x in config.anchors], float)
-        scene.static.append(dict(type="scatter3d", name="anchors", x=a[:, 0].tolist(), y=a[:, 1].tolist(),
-                                 z=a[:, 2].tolist(),
-                                 mode="markers", marker=dict(size=6, symbol="cross", color="black")))
-        scene.extent.append(a)
-
-    contact_ground = config.contact is not None and any("ground" in pair for pair in config.contact.pairs)
-    scene.ground = bool(config.quadrotors) or target is not None or contact_ground
-    return scene
 
 
 def _axis_ranges(scene: _Scene) -> np.ndarray:
