@@ -300,6 +300,92 @@ def _stack(models: list[_Model]):
             c_owner, cat("c_a", (3,)), cat("c_b", (3,)), cat("c_radius", ()), cat("c_colour", (3,)))
 
 
+def _check_settings(intr: Intrinsics, target_style, min_line_px) -> None:
+    """PerceptionError for a camera or a setting the renderer cannot draw with."""
+    for name, value in (("width", intr.width), ("height", intr.height)):
+        if not isinstance(value, (int, np.integer)) or value < 1:
+            raise PerceptionError(f"image {name} must be a positive whole number of pixels, got {value!r}; "
+                                  f"make the camera with intrinsics(width=..., height=...)")
+    if not (intr.fx > 0 and intr.fy > 0):
+        raise PerceptionError(f"focal lengths must be positive, got fx = {intr.fx}, fy = {intr.fy}")
+    if abs(intr.fx - intr.fy) > 1e-9 * intr.fx:
+        raise PerceptionError(f"the renderer needs square pixels (fx = fy), got fx = {intr.fx}, fy = {intr.fy}")
+    if target_style not in ("auto", "sphere", "drone"):
+        raise PerceptionError(f"target_style must be 'auto', 'sphere' or 'drone', got {target_style!r}")
+    if not min_line_px >= 0:
+        raise PerceptionError(f"min_line_px must be >= 0, got {min_line_px}")
+
+
+def _body_models(config, target_style):
+    """The bodies drawn, in the order of their models (the target, the quadrotors, their
+    cameras), the models, and each camera's quadrotor."""
+    bodies: list[str] = []
+    models: list[_Model] = []
+    camera_owner: dict[str, str] = {}
+    target = getattr(config, "target", None)
+    if target is not None:
+        style = target_style
+        if style == "auto":
+            style = "drone" if target.behaviour == "maneuvering" else "sphere"
+        bodies.append(target.name)
+        if style == "drone":
+            L = target.radius / 1.48
+            models.append(quadrotor_model((L,) * 4, tuple(np.pi / 4 + k * np.pi / 2 for k in range(4)),
+                                          hull=TARGET_DRONE, front=TARGET, rear=TARGET_DRONE))
+        else:
+            models.append(sphere_model(target.radius))
+    for q in config.quadrotors:
+        bodies.append(q.body)
+        models.append(quadrotor_model(q.rotors.arm_length, q.rotors.angle))
+    for q in config.quadrotors:
+        for cam in q.cameras:
+            bodies.append(cam.name)
+            models.append(camera_model())
+            camera_owner[cam.name] = q.body
+    return bodies, models, camera_owner
+
+
+def _line_segments(net, bodies, names):
+    """The net's lines and tethers as segments between trajectory points (or, at a UAV's
+    end, tether markers): ``(points, [(point a, point b, object id)], radii, colours,
+    [(body index, attach point in the body frame)])``. Appends the net's and each tether's
+    object name to ``names``."""
+    points: list[str] = []
+    segments: list[tuple[int, int, int]] = []
+    radius: list[float] = []
+    colours: list[tuple] = []
+    markers: list[tuple[int, np.ndarray]] = []
+    if net is None:
+        return points, segments, radius, colours, markers
+    index: dict[str, int] = {}
+
+    def point(n):
+        if n not in index:
+            index[n] = len(points)
+            points.append(n)
+        return index[n]
+
+    net_id = len(names)
+    names.append(net.name)
+    for chain in net.edge_chains():
+        ids = [point(n) for n in chain]
+        segments += [(a, b, net_id) for a, b in zip(ids[:-1], ids[1:])]
+        radius += [net.line.diameter / 2] * (len(ids) - 1)
+        colours += [NET] * (len(ids) - 1)
+    if net.tethers is not None:
+        t = net.tethers
+        for k, (uav, knot) in enumerate(zip(t.uavs, net.tether_knots())):
+            tether_id = len(names)
+            names.append(f"tether{k}")
+            chain = [point(net.knot_name(*knot))] + [point(f"{net.name}_t{k}_{m}") for m in range(t.n_masses)]
+            markers.append((bodies.index(uav), np.asarray(t.attach, float)))
+            chain.append(-len(markers))           # negative: a tether marker (resolved at render)
+            segments += [(a, b, tether_id) for a, b in zip(chain[:-1], chain[1:])]
+            radius += [t.line.diameter / 2] * (len(chain) - 1)
+            colours += [TETHER] * (len(chain) - 1)
+    return points, segments, radius, colours, markers
+
+
 class Renderer:
     """Renders camera images of runs of one scene (see the module doc).
 
@@ -317,18 +403,7 @@ class Renderer:
                  target_style: Literal["auto", "sphere", "drone"] = "auto", min_line_px: float = 1.0,
                  draw_own_uav: bool = False, hide: Iterable[str] = ()):
         intr = make_intrinsics() if intr is None else intr
-        for name, value in (("width", intr.width), ("height", intr.height)):
-            if not isinstance(value, (int, np.integer)) or value < 1:
-                raise PerceptionError(f"image {name} must be a positive whole number of pixels, got {value!r}; "
-                                      f"make the camera with intrinsics(width=..., height=...)")
-        if not (intr.fx > 0 and intr.fy > 0):
-            raise PerceptionError(f"focal lengths must be positive, got fx = {intr.fx}, fy = {intr.fy}")
-        if abs(intr.fx - intr.fy) > 1e-9 * intr.fx:
-            raise PerceptionError(f"the renderer needs square pixels (fx = fy), got fx = {intr.fx}, fy = {intr.fy}")
-        if target_style not in ("auto", "sphere", "drone"):
-            raise PerceptionError(f"target_style must be 'auto', 'sphere' or 'drone', got {target_style!r}")
-        if not min_line_px >= 0:
-            raise PerceptionError(f"min_line_px must be >= 0, got {min_line_px}")
+        _check_settings(intr, target_style, min_line_px)
         self.config = config
         self.intr = intr
         self.texture = GroundTexture() if texture is None else texture
@@ -339,32 +414,10 @@ class Renderer:
         self.hide = frozenset(hide)
         self._lut = _background_lut(self.lighting)
 
-        names = ["sky", "ground"]
-        bodies: list[str] = []           # bodies drawn, in the order of their models
-        models: list[_Model] = []
-        self.camera_owner: dict[str, str] = {}
         target = getattr(config, "target", None)
         self.target_name = None if target is None else target.name
-        if target is not None:
-            style = target_style
-            if style == "auto":
-                style = "drone" if target.behaviour == "maneuvering" else "sphere"
-            bodies.append(target.name)
-            if style == "drone":
-                L = target.radius / 1.48
-                models.append(quadrotor_model((L,) * 4, tuple(np.pi / 4 + k * np.pi / 2 for k in range(4)),
-                                              hull=TARGET_DRONE, front=TARGET, rear=TARGET_DRONE))
-            else:
-                models.append(sphere_model(target.radius))
-        for q in config.quadrotors:
-            bodies.append(q.body)
-            models.append(quadrotor_model(q.rotors.arm_length, q.rotors.angle))
-        for q in config.quadrotors:
-            for cam in q.cameras:
-                bodies.append(cam.name)
-                models.append(camera_model())
-                self.camera_owner[cam.name] = q.body
-        names += bodies
+        bodies, models, self.camera_owner = _body_models(config, target_style)
+        names = ["sky", "ground"] + bodies
         unknown = sorted(self.hide - set(bodies))
         if unknown:
             raise PerceptionError(f"hide: no body {', '.join(map(repr, unknown))} in the scene; bodies: {', '.join(bodies)}")
@@ -374,40 +427,7 @@ class Renderer:
         (self._e_owner, self._e_centre, self._e_axes, self._e_semi, self._e_colour,
          self._c_owner, self._c_a, self._c_b, self._c_radius, self._c_colour) = _stack(models)
 
-        # net lines and tethers: segments between points of the trajectory (or tether markers)
-        points: list[str] = []
-        segments: list[tuple[int, int, int]] = []      # (point index a, point index b, object id)
-        radius: list[float] = []
-        colours: list[tuple] = []
-        self._markers: list[tuple[int, np.ndarray]] = []   # (body index, attach point in the body frame)
-        net = getattr(config, "net", None)
-        if net is not None:
-            index: dict[str, int] = {}
-
-            def point(n):
-                if n not in index:
-                    index[n] = len(points)
-                    points.append(n)
-                return index[n]
-
-            net_id = len(names)
-            names.append(net.name)
-            for chain in net.edge_chains():
-                ids = [point(n) for n in chain]
-                segments += [(a, b, net_id) for a, b in zip(ids[:-1], ids[1:])]
-                radius += [net.line.diameter / 2] * (len(ids) - 1)
-                colours += [NET] * (len(ids) - 1)
-            if net.tethers is not None:
-                t = net.tethers
-                for k, (uav, knot) in enumerate(zip(t.uavs, net.tether_knots())):
-                    tether_id = len(names)
-                    names.append(f"tether{k}")
-                    chain = [point(net.knot_name(*knot))] + [point(f"{net.name}_t{k}_{m}") for m in range(t.n_masses)]
-                    self._markers.append((bodies.index(uav), np.asarray(t.attach, float)))
-                    chain.append(-len(self._markers))           # negative: a tether marker (resolved at render)
-                    segments += [(a, b, tether_id) for a, b in zip(chain[:-1], chain[1:])]
-                    radius += [t.line.diameter / 2] * (len(chain) - 1)
-                    colours += [TETHER] * (len(chain) - 1)
+        points, segments, radius, colours, self._markers = _line_segments(getattr(config, "net", None), bodies, names)
         self._points = points
         self._point_columns = [f"{n}_{a}" for n in points for a in "xyz"]
         seg = np.asarray(segments, dtype=int).reshape(-1, 3)
