@@ -591,7 +591,41 @@ class VioEstimator:
         for old in [j for j in self.kf_cam if not self._in_window(self.kf_t[j], t)]:
             del self.kf_cam[old]
 
-        # visual factors
+        n_obs, n_new, observed = self._visual_factors(k, t, ff, shock, R_pred, p_pred, graph, values, stamps)
+        t0 = time.perf_counter()
+        try:
+            self.smoother.update(graph, values, stamps)
+            for _ in range(c.extra_iterations):
+                self.smoother.update()
+            est = self.smoother.calculateEstimate()
+            if not np.all(np.isfinite(est.atPose3(_X(k)).translation())):
+                raise RuntimeError("non-finite estimate")
+        except RuntimeError:
+            # failure recovery (as VINS-Mono's failure detection): the window cannot be solved
+            # (e.g. iSAM2 finds it indeterminate); restart the smoother at this keyframe from
+            # the IMU's prediction from the last good estimate, with priors, and no landmarks
+            est = self._reset(k, t, pose, vel)
+            n_obs = n_new = 0
+            observed = []
+        update_s = time.perf_counter() - t0
+        pose = est.atPose3(_X(k))
+        self.nav = gtsam.NavState(pose.rotation(), pose.translation(), est.atVector(_V(k)))
+        self.bias = est.atConstantBias(_B(k))
+        self.pim = gtsam.PreintegratedImuMeasurements(self.params, self.bias)
+        for j in list(self.kf_cam):
+            if est.exists(_X(j)):
+                self.kf_cam[j] = self._camera_pose(est.atPose3(_X(j)))
+        self._drop_unexplained(k, ff, est, pose, observed)
+        self.kf_ids, self.kf_uv = ff.ids, ff.uv
+        return n_obs, n_new, update_s
+
+    def _visual_factors(self, k: int, t: float, ff, shock: bool, R_pred, p_pred, graph, values, stamps):
+        """Projection factors of keyframe ``k``'s features: on landmarks still in the window
+        (after an outlier gate at the IMU-predicted camera pose ``R_pred``, ``p_pred``), and on
+        new landmarks triangulated from tracks seen often enough. Returns ``(observations,
+        new landmarks, [(track id, landmark)])``."""
+        gtsam = _gtsam()
+        c = self.config
         n_obs = n_new = 0
         observed = []
         alive = set(ff.ids.tolist())
@@ -641,30 +675,13 @@ class VioEstimator:
             observed.append((tid, j))
             n_new += 1
             n_obs += 1
-        t0 = time.perf_counter()
-        try:
-            self.smoother.update(graph, values, stamps)
-            for _ in range(c.extra_iterations):
-                self.smoother.update()
-            est = self.smoother.calculateEstimate()
-            if not np.all(np.isfinite(est.atPose3(_X(k)).translation())):
-                raise RuntimeError("non-finite estimate")
-        except RuntimeError:
-            # failure recovery (as VINS-Mono's failure detection): the window cannot be solved
-            # (e.g. iSAM2 finds it indeterminate); restart the smoother at this keyframe from
-            # the IMU's prediction from the last good estimate, with priors, and no landmarks
-            est = self._reset(k, t, pose, vel)
-            n_obs = n_new = 0
-            observed = []
-        update_s = time.perf_counter() - t0
-        pose = est.atPose3(_X(k))
-        self.nav = gtsam.NavState(pose.rotation(), pose.translation(), est.atVector(_V(k)))
-        self.bias = est.atConstantBias(_B(k))
-        self.pim = gtsam.PreintegratedImuMeasurements(self.params, self.bias)
-        for j in list(self.kf_cam):
-            if est.exists(_X(j)):
-                self.kf_cam[j] = self._camera_pose(est.atPose3(_X(j)))
-        # stop following landmarks that the newest keyframe does not explain
+        return n_obs, n_new, observed
+
+    def _drop_unexplained(self, k: int, ff, est, pose, observed) -> None:
+        """Stop following landmarks that the newest keyframe (solved as ``est``) does not
+        explain: behind the camera or reprojected too far from their feature."""
+        gtsam = _gtsam()
+        c = self.config
         cam = gtsam.PinholeCameraCal3_S2(pose.compose(self.body_P_cam), self.K)
         by_id = dict(zip(ff.ids.tolist(), ff.uv))
         for tid, j in observed:
@@ -674,8 +691,6 @@ class VioEstimator:
             depth = (point - pc) @ Rc[:, 2]
             if depth < c.min_depth or np.linalg.norm(cam.project(point) - by_id[tid]) > c.max_reprojection_px:
                 self.tracks[tid].rejected = True
-        self.kf_ids, self.kf_uv = ff.ids, ff.uv
-        return n_obs, n_new, update_s
 
     def _reset(self, k: int, t: float, pose, vel):
         """Re-initialise the smoother at keyframe ``k`` (time ``t``) with priors on the pose
