@@ -829,6 +829,75 @@ def imu_in_body_frame(data, config) -> ImuSamples:
                       accel=np.asarray(data.accel) @ R_bi.T)
 
 
+def _pick_camera(config, camera, body, run_dir):
+    """The fixed camera VIO uses (the first on ``body`` when ``camera`` is None), its body
+    and its config; PerceptionError naming the options otherwise."""
+    cameras = _fixed_cameras(config)
+    if not cameras:
+        raise PerceptionError(f"{run_dir}: the scene has no cameras; VIO needs a quadrotor with a fixed camera "
+                              f"(a 'cameras:' entry with mount: fixed, as in configs/uav_vio_flight.yaml)")
+    quad_bodies = sorted({q.body for q in config.quadrotors})
+    if body is not None and body not in quad_bodies:
+        raise PerceptionError(f"body '{body}' is not a quadrotor of the run (quadrotor bodies: "
+                              f"{', '.join(quad_bodies)})")
+    if camera is None:
+        options = [n for n, (b, c) in cameras.items() if c.mount == "fixed" and (body is None or b == body)]
+        if not options:
+            listed = ", ".join(f"{n} ({c.mount}, on {b})" for n, (b, c) in cameras.items())
+            raise PerceptionError(f"no fixed camera on {'body ' + repr(body) if body else 'any quadrotor'} "
+                                  f"(cameras: {listed})")
+        camera = options[0]
+    if camera not in cameras:
+        raise PerceptionError(f"camera '{camera}' is not in the run (cameras: "
+                              f"{', '.join(f'{n} (on {b})' for n, (b, _) in cameras.items())})")
+    carrier, cam_cfg = cameras[camera]
+    if cam_cfg.mount != "fixed":
+        raise PerceptionError(f"camera '{camera}' is on a {cam_cfg.mount} mount; VIO needs a camera fixed to the "
+                              f"body (its pose on the body is the calibration); choose a fixed camera")
+    if body is not None and body != carrier:
+        raise PerceptionError(f"camera '{camera}' is on body '{carrier}', not '{body}'")
+    return camera, carrier, cam_cfg
+
+
+def _read_columns(run: Path, body: str, camera: str) -> dict:
+    """The run's trajectory columns, checked for what VIO reads (present, finite, at
+    increasing times)."""
+    try:
+        columns = read_trajectory_csv(run / "trajectory.csv")
+    except (OSError, ValueError) as exc:
+        raise PerceptionError(f"{run / 'trajectory.csv'}: cannot be read ({exc})") from None
+    need = _needed_columns(body, camera)
+    missing = [k for k in need if k not in columns]
+    if missing:
+        why = sorted({need[k] for k in missing})
+        raise PerceptionError(f"{run / 'trajectory.csv'} lacks the columns {', '.join(missing)} (needed for "
+                              f"{'; '.join(why)}); write the run with scripts/simulate.py")
+    t = np.asarray(columns["time"], dtype=float)
+    if len(t) < 3 or not np.all(np.diff(t) > 0):
+        raise PerceptionError(f"{run / 'trajectory.csv'}: needs at least 3 rows at increasing times")
+    bad = [k for k in need if not np.all(np.isfinite(columns[k]))]
+    if bad:
+        raise PerceptionError(f"{run / 'trajectory.csv'}: non-finite values in {', '.join(bad[:6])}; the run "
+                              f"diverged (see its metrics.json)")
+    return columns
+
+
+def _image_rows(t: np.ndarray, camera_rate: float) -> np.ndarray:
+    """The rows of the run the camera takes its images at (a whole multiple of the output
+    interval; at least 3)."""
+    output_dt = float(np.median(np.diff(t)))
+    stride = (1.0 / camera_rate) / output_dt
+    if stride < 1 - 1e-6 or abs(stride - round(stride)) > 1e-6:
+        raise PerceptionError(f"camera rate {camera_rate:g} Hz: the images are taken at rows of the run, so the "
+                              f"camera period must be a whole multiple of the run's output interval "
+                              f"{output_dt:g} s (e.g. {1.0 / output_dt / 10:g} Hz)")
+    rows = np.arange(0, len(t), int(round(stride)))
+    if len(rows) < 3:
+        raise PerceptionError(f"the run ({t[-1] - t[0]:g} s) gives only {len(rows)} images at "
+                              f"{camera_rate:g} Hz; VIO needs at least 3")
+    return rows
+
+
 def prepare_perception(run_dir: str | os.PathLike, camera: str | None = None, body: str | None = None,
                        size: tuple[int, int] = (640, 360), camera_rate: float = 20.0, seed: int = 0,
                        imu_config=None) -> PerceptionJob:
@@ -859,61 +928,12 @@ def prepare_perception(run_dir: str | os.PathLike, camera: str | None = None, bo
         config = load_config(run / "config.yaml")
     except ConfigError as err:
         raise PerceptionError(f"{run / 'config.yaml'}: {err}") from None
-    cameras = _fixed_cameras(config)
-    if not cameras:
-        raise PerceptionError(f"{run_dir}: the scene has no cameras; VIO needs a quadrotor with a fixed camera "
-                              f"(a 'cameras:' entry with mount: fixed, as in configs/uav_vio_flight.yaml)")
-    quad_bodies = sorted({q.body for q in config.quadrotors})
-    if body is not None and body not in quad_bodies:
-        raise PerceptionError(f"body '{body}' is not a quadrotor of the run (quadrotor bodies: "
-                              f"{', '.join(quad_bodies)})")
-    if camera is None:
-        options = [n for n, (b, c) in cameras.items() if c.mount == "fixed" and (body is None or b == body)]
-        if not options:
-            listed = ", ".join(f"{n} ({c.mount}, on {b})" for n, (b, c) in cameras.items())
-            raise PerceptionError(f"no fixed camera on {'body ' + repr(body) if body else 'any quadrotor'} "
-                                  f"(cameras: {listed})")
-        camera = options[0]
-    if camera not in cameras:
-        raise PerceptionError(f"camera '{camera}' is not in the run (cameras: "
-                              f"{', '.join(f'{n} (on {b})' for n, (b, _) in cameras.items())})")
-    carrier, cam_cfg = cameras[camera]
-    if cam_cfg.mount != "fixed":
-        raise PerceptionError(f"camera '{camera}' is on a {cam_cfg.mount} mount; VIO needs a camera fixed to the "
-                              f"body (its pose on the body is the calibration); choose a fixed camera")
-    if body is not None and body != carrier:
-        raise PerceptionError(f"camera '{camera}' is on body '{carrier}', not '{body}'")
-    body = carrier
+    camera, body, cam_cfg = _pick_camera(config, camera, body, run_dir)
     gravity = np.asarray(config.gravity, dtype=float)
     if abs(gravity[0]) > 0 or abs(gravity[1]) > 0 or not gravity[2] < 0:
         raise PerceptionError(f"the run's gravity {gravity.tolist()} is not along -z; the estimator assumes it is")
-    try:
-        columns = read_trajectory_csv(run / "trajectory.csv")
-    except (OSError, ValueError) as exc:
-        raise PerceptionError(f"{run / 'trajectory.csv'}: cannot be read ({exc})") from None
-    need = _needed_columns(body, camera)
-    missing = [k for k in need if k not in columns]
-    if missing:
-        why = sorted({need[k] for k in missing})
-        raise PerceptionError(f"{run / 'trajectory.csv'} lacks the columns {', '.join(missing)} (needed for "
-                              f"{'; '.join(why)}); write the run with scripts/simulate.py")
-    t = np.asarray(columns["time"], dtype=float)
-    if len(t) < 3 or not np.all(np.diff(t) > 0):
-        raise PerceptionError(f"{run / 'trajectory.csv'}: needs at least 3 rows at increasing times")
-    bad = [k for k in need if not np.all(np.isfinite(columns[k]))]
-    if bad:
-        raise PerceptionError(f"{run / 'trajectory.csv'}: non-finite values in {', '.join(bad[:6])}; the run "
-                              f"diverged (see its metrics.json)")
-    output_dt = float(np.median(np.diff(t)))
-    stride = (1.0 / camera_rate) / output_dt
-    if stride < 1 - 1e-6 or abs(stride - round(stride)) > 1e-6:
-        raise PerceptionError(f"camera rate {camera_rate:g} Hz: the images are taken at rows of the run, so the "
-                              f"camera period must be a whole multiple of the run's output interval "
-                              f"{output_dt:g} s (e.g. {1.0 / output_dt / 10:g} Hz)")
-    rows = np.arange(0, len(t), int(round(stride)))
-    if len(rows) < 3:
-        raise PerceptionError(f"the run ({t[-1] - t[0]:g} s) gives only {len(rows)} images at "
-                              f"{camera_rate:g} Hz; VIO needs at least 3")
+    columns = _read_columns(run, body, camera)
+    rows = _image_rows(np.asarray(columns["time"], dtype=float), camera_rate)
 
     poses = camera_poses(columns, camera)
     check_sees_ground(intr, CameraPoses(name=camera, t=poses.t[rows], R=poses.R[rows], p=poses.p[rows]))
@@ -976,26 +996,11 @@ def draw_features(image: np.ndarray, features, text: str = "") -> np.ndarray:
     return out
 
 
-def run_perception(job: PerceptionJob, out_dir: str | os.PathLike, config: VioConfig = VioConfig(),
-                   progress: bool = True, rpe_delta_m: float = 10.0, n_snapshots: int = 4,
-                   video: bool = True) -> dict:
-    """Render the images, run VIO and dead reckoning, write the results into ``out_dir``.
-
-    Writes ``trajectory_vio.tum``, ``trajectory_dead_reckoning.tum``, ``trajectory_true.tum``
-    (body poses at the camera's images), ``velocity_vio.csv`` (estimated and true world
-    velocity at the images, m/s), ``vio_frames.csv`` (per-image diagnostics,
-    :class:`FrameDiagnostics`), ``metrics.json``, the plots of
-    :func:`mysim_jax.perception.metrics.plot_estimates`, ``n_snapshots`` images with their
-    tracked features (``frame_<t>.png``) and, with ``video``, ``features.mp4`` (the image
-    sequence with the features drawn). Returns the metrics.
-    """
-    out = Path(out_dir)
+def _fly_images(job: PerceptionJob, est, out: Path, n_snapshots: int, video: bool, progress: bool):
+    """Render the camera's images and feed them to the estimator ``est``; draw the tracked
+    features into ``features.mp4`` (with ``video``) and ``n_snapshots`` PNGs. Returns the
+    estimates ``(t, R, p, v)`` per image, the snapshots' names and whether a video was written."""
     seed = job.seed
-    imu = job.imu
-    t0 = time.perf_counter()
-    noise = ImuNoise.from_config(job.imu_config)
-    init = initial_state(job.columns, job.body, int(job.rows[0]))
-    est = VioEstimator(job.camera_model, imu, init, noise, config, gravity=job.gravity)
     intr = job.camera_model.intr
     writer = None
     if video:
@@ -1026,23 +1031,53 @@ def run_perception(job: PerceptionJob, out_dir: str | os.PathLike, config: VioCo
                 snapshots.append(name)
     if writer is not None:
         writer.release()
+    return ts, Rs, ps, vs, snapshots, writer is not None
+
+
+def _write_estimates(out: Path, vio: PoseTrack, dr: PoseTrack, truth: PoseTrack, diag, v_vio, v_true) -> None:
+    """The TUM trajectories, the per-image diagnostics and the velocities."""
+    write_tum(out / "trajectory_vio.tum", vio)
+    write_tum(out / "trajectory_dead_reckoning.tum", dr)
+    write_tum(out / "trajectory_true.tum", truth)
+    cols = diag.as_columns()
+    np.savetxt(out / "vio_frames.csv", np.column_stack([cols[k].astype(float) for k in cols]), delimiter=",",
+               header=",".join(cols), comments="", fmt="%.6g")
+    np.savetxt(out / "velocity_vio.csv", np.column_stack([vio.t, v_vio, v_true]), delimiter=",",
+               header="t,vx,vy,vz,true_vx,true_vy,true_vz", comments="", fmt="%.9g")
+
+
+def run_perception(job: PerceptionJob, out_dir: str | os.PathLike, config: VioConfig = VioConfig(),
+                   progress: bool = True, rpe_delta_m: float = 10.0, n_snapshots: int = 4,
+                   video: bool = True) -> dict:
+    """Render the images, run VIO and dead reckoning, write the results into ``out_dir``.
+
+    Writes ``trajectory_vio.tum``, ``trajectory_dead_reckoning.tum``, ``trajectory_true.tum``
+    (body poses at the camera's images), ``velocity_vio.csv`` (estimated and true world
+    velocity at the images, m/s), ``vio_frames.csv`` (per-image diagnostics,
+    :class:`FrameDiagnostics`), ``metrics.json``, the plots of
+    :func:`mysim_jax.perception.metrics.plot_estimates`, ``n_snapshots`` images with their
+    tracked features (``frame_<t>.png``) and, with ``video``, ``features.mp4`` (the image
+    sequence with the features drawn). Returns the metrics.
+    """
+    out = Path(out_dir)
+    seed = job.seed
+    imu = job.imu
+    t0 = time.perf_counter()
+    noise = ImuNoise.from_config(job.imu_config)
+    init = initial_state(job.columns, job.body, int(job.rows[0]))
+    est = VioEstimator(job.camera_model, imu, init, noise, config, gravity=job.gravity)
+    intr = job.camera_model.intr
+    ts, Rs, ps, vs, snapshots, video_written = _fly_images(job, est, out, n_snapshots, video, progress)
     vio_wall = time.perf_counter() - t0
     vio = PoseTrack(t=np.asarray(ts), p=np.asarray(ps), q=matrix_to_quat(np.asarray(Rs)))
     t1 = time.perf_counter()
     dr = dead_reckoning(imu, init, vio.t, noise, gravity=job.gravity)
     dr_wall = time.perf_counter() - t1
     truth = true_trajectory(job.columns, job.body, job.rows)
-    write_tum(out / "trajectory_vio.tum", vio)
-    write_tum(out / "trajectory_dead_reckoning.tum", dr)
-    write_tum(out / "trajectory_true.tum", truth)
     diag = est.diagnostics()
-    cols = diag.as_columns()
-    np.savetxt(out / "vio_frames.csv", np.column_stack([cols[k].astype(float) for k in cols]), delimiter=",",
-               header=",".join(cols), comments="", fmt="%.6g")
     v_true = np.stack([np.asarray(job.columns[f"{job.body}_v{k}"], float)[job.rows] for k in "xyz"], axis=-1)
     v_vio = np.asarray(vs)
-    np.savetxt(out / "velocity_vio.csv", np.column_stack([vio.t, v_vio, v_true]), delimiter=",",
-               header="t,vx,vy,vz,true_vx,true_vy,true_vz", comments="", fmt="%.9g")
+    _write_estimates(out, vio, dr, truth, diag, v_vio, v_true)
     errors = {"vio": trajectory_errors(truth, vio, rpe_delta_m),
               "dead_reckoning": trajectory_errors(truth, dr, rpe_delta_m)}
     # what a policy flying on these estimates sees: unaligned errors, as Gauss-Markov processes
@@ -1083,7 +1118,7 @@ def run_perception(job: PerceptionJob, out_dir: str | os.PathLike, config: VioCo
         "wall_time_s": {"render_imu_vio": vio_wall, "dead_reckoning": dr_wall},
         "plots": plots,
         "snapshots": snapshots,
-        "video": "features.mp4" if writer is not None else None,
+        "video": "features.mp4" if video_written else None,
         "vio_config": {k: (v if not hasattr(v, "__dataclass_fields__") else vars(v))
                        for k, v in vars(config).items()},
     }
