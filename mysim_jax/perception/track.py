@@ -528,6 +528,98 @@ def _state_columns(scene, state) -> dict[str, np.ndarray]:
     return cols
 
 
+def _detect(renderer, detector, cams, geoms, cols, bq, bi, t, force_loss):
+    """Every gimbal camera's frame at this row, its detections (none inside ``force_loss``),
+    its gimbal angles and its UAV's attitude."""
+    frames, dets, angles, uav_Rs = [], [], [], []
+    for g, (uav, cam) in enumerate(cams):
+        frame = renderer.render(cols, cam.name, 0)
+        found = list(detector(frame))
+        if force_loss is not None and force_loss[0] <= t < force_loss[1]:
+            found = []
+        uR = quat_to_matrix(bq[bi[uav]])
+        angles.append(geoms[g].angles(uR, quat_to_matrix(bq[bi[cam.name]])))
+        frames.append(frame)
+        dets.append(found)
+        uav_Rs.append(uR)
+    return frames, dets, angles, uav_Rs
+
+
+def _associate_all(dets, frames, ref_of, gate_deg, intr, radius):
+    """Each camera's detections gated on the point the others agree on (two or more other
+    cameras), else on ``ref_of(camera)`` (the start cue before a first detection)."""
+    raw = [list(d) for d in dets]
+    out = list(dets)
+    G = len(dets)
+    for g in range(G):
+        others = [s for s in range(G) if s != g and raw[s]]
+        ref = None
+        if len(others) >= 2:
+            ref = _consensus_point([frames[s] for s in others], [raw[s][0] for s in others], intr)
+        if ref is None:
+            ref = ref_of(g)
+        out[g] = associate(raw[g], frames[g], ref, gate_deg, intr, radius)
+    return out
+
+
+def _steer(trackers, t, frames, dets, angles, uav_Rs, omegas, intr, radius, cue, cooperative_cue):
+    """Each tracker's gimbal command from its detections, or, without one, from the start
+    cue (``cue``, a world point, before its first detection) or from the point the cameras
+    that see the target locate (``cooperative_cue``)."""
+    seen = [g for g in range(len(trackers)) if dets[g]]
+    commands = []
+    for g, tracker in enumerate(trackers):
+        aim = None
+        if cue is not None and not dets[g] and tracker.last_seen_t is None:
+            aim = cue - frames[g].p
+        elif cooperative_cue and not dets[g] and any(s != g for s in seen):
+            point = _team_point([frames[s] for s in seen if s != g], [dets[s][0] for s in seen if s != g],
+                                intr, radius)
+            if point is not None:
+                aim = point - frames[g].p
+        commands.append(tracker.update(t, dets[g], angles[g], uav_Rs[g], frames[g].R, aim, uav_omega=omegas[g]))
+    return np.asarray(commands, float)
+
+
+def _record(rec: dict, t, frames, angles, commands, trackers, dets, target_pos, target_vel) -> None:
+    """Append one frame's row to the record."""
+    tv = [f.target for f in frames]
+    rec["t"].append(t)
+    rec["camera_R"].append([f.R for f in frames])
+    rec["camera_p"].append([f.p for f in frames])
+    rec["angles"].append(angles)
+    rec["command"].append(commands.copy())
+    rec["mode"].append([tr.mode for tr in trackers])
+    rec["det_box"].append([d[0].box if d else np.full(4, np.nan) for d in dets])
+    rec["true_box"].append([v.box if v.box is not None else np.full(4, np.nan) for v in tv])
+    rec["true_centre"].append([v.centre for v in tv])
+    rec["true_depth"].append([v.depth for v in tv])
+    rec["visible_fraction"].append([v.visible_fraction for v in tv])
+    rec["target_pos"].append(target_pos)
+    rec["target_vel"].append(target_vel)
+
+
+def _steps_per_frame(scene, frame_rate: float) -> int:
+    steps = int(round(1.0 / (frame_rate * scene.dt)))
+    if steps < 1 or abs(steps * scene.dt * frame_rate - 1.0) > 1e-6:
+        raise PerceptionError(f"frame_rate {frame_rate:g} Hz is not a whole number of simulator steps "
+                              f"(dt = {scene.dt:g} s); pick 1 / (k dt), e.g. "
+                              f"{1.0 / (round(1 / (frame_rate * scene.dt)) * scene.dt):g} Hz")
+    return steps
+
+
+def _start_cue(config, params, state, target_body: int):
+    """``t -> point``: the target's path predicted from its true start state (ballistic for
+    a falling target, constant velocity otherwise)."""
+    p0 = np.asarray(state.phys.body_pos[target_body], float)
+    v0 = np.asarray(state.phys.body_vel[target_body], float)
+    g_acc = np.asarray(params.gravity, float) if config.target.behaviour == "falling" else np.zeros(3)
+
+    def cue_point(t):
+        return p0 + v0 * t + 0.5 * g_acc * t * t
+    return cue_point
+
+
 def run_tracking(config, detector: FrameDetector | None = None, intr: Intrinsics | None = None,
                  frame_rate: float = 25.0, tracker_config: GimbalTrackerConfig = GimbalTrackerConfig(),
                  t_end: float | None = None, initial_cue: bool = True, cooperative_cue: bool = True,
@@ -558,10 +650,7 @@ def run_tracking(config, detector: FrameDetector | None = None, intr: Intrinsics
         config = _point_at_start(config, scene, state)
         scene, params, state = build(config)
     scene = single_env_scene(scene)
-    steps = int(round(1.0 / (frame_rate * scene.dt)))
-    if steps < 1 or abs(steps * scene.dt * frame_rate - 1.0) > 1e-6:
-        raise PerceptionError(f"frame_rate {frame_rate:g} Hz is not a whole number of simulator steps "
-                              f"(dt = {scene.dt:g} s); pick 1 / (k dt), e.g. {1.0 / (round(1 / (frame_rate * scene.dt)) * scene.dt):g} Hz")
+    steps = _steps_per_frame(scene, frame_rate)
     frame_dt = steps * scene.dt
     t_end = config.sim.t_end if t_end is None else float(t_end)
     n_frames = int(np.floor(t_end / frame_dt + 1e-9)) + 1
@@ -572,23 +661,15 @@ def run_tracking(config, detector: FrameDetector | None = None, intr: Intrinsics
     geoms = [GimbalGeometry(c) for _, c in cams]
     renderer = _SkyRenderer(config, intr, target_style=target_style)
     trackers = [GimbalTracker(g, intr, frame_dt, tracker_config, c.command.angle) for g, (_, c) in zip(geoms, cams)]
-    qp = params.quadrotor
-    params = params.replace(quadrotor=qp.replace(gimbal_amplitude=qp.gimbal_amplitude * 0.0))
+    params = params.replace(quadrotor=params.quadrotor.replace(gimbal_amplitude=0.0 * params.quadrotor.gimbal_amplitude))
     advance = jax.jit(rollout, static_argnums=(0, 3, 4, 5))
     bi = {n: i for i, n in enumerate(scene.body_names)}
     target = config.target.name
 
-    p0, v0 = np.asarray(state.phys.body_pos[bi[target]], float), np.asarray(state.phys.body_vel[bi[target]], float)
-    g_acc = np.asarray(params.gravity, float) if config.target.behaviour == "falling" else np.zeros(3)
-
-    def cue_point(t):
-        return p0 + v0 * t + 0.5 * g_acc * t * t
-
-    G = len(cams)
+    cue_point = _start_cue(config, params, state, bi[target])
     rec = {k: [] for k in ("t", "camera_R", "camera_p", "angles", "command", "mode", "det_box", "true_box",
                            "true_centre", "true_depth", "visible_fraction", "target_pos", "target_vel")}
     rows = []
-    commands = np.array([c.command.angle for _, c in cams], float)
     bar = tqdm(total=n_frames, desc="track (render, detect, steer, simulate)", unit="frame", disable=not progress)
     for k in range(n_frames):
         cols = _state_columns(scene, state)
@@ -599,53 +680,15 @@ def run_tracking(config, detector: FrameDetector | None = None, intr: Intrinsics
         if not (np.all(np.isfinite(bq)) and np.all(np.isfinite(bp))):
             raise PerceptionError(f"the simulation turned non-finite at t = {t:g} s; simulate the scene with "
                                   f"scripts/simulate.py to see where")
-        frames, dets, angles, uav_Rs = [], [], [], []
-        for g, (uav, cam) in enumerate(cams):
-            frame = renderer.render(cols, cam.name, 0)
-            found = list(detector(frame))
-            if force_loss is not None and force_loss[0] <= t < force_loss[1]:
-                found = []
-            uR = quat_to_matrix(bq[bi[uav]])
-            angles.append(geoms[g].angles(uR, quat_to_matrix(bq[bi[cam.name]])))
-            frames.append(frame)
-            dets.append(found)
-            uav_Rs.append(uR)
+        frames, dets, angles, uav_Rs = _detect(renderer, detector, cams, geoms, cols, bq, bi, t, force_loss)
         if tracker_config.gate_deg is not None:
-            raw = [list(d) for d in dets]
-            for g in range(G):
-                others = [s for s in range(G) if s != g and raw[s]]
-                ref = None
-                if len(others) >= 2:
-                    ref = _consensus_point([frames[s] for s in others], [raw[s][0] for s in others], intr)
-                if ref is None and initial_cue and trackers[g].last_seen_t is None:
-                    ref = cue_point(t)
-                dets[g] = associate(raw[g], frames[g], ref, tracker_config.gate_deg, intr, config.target.radius)
-        seen = [g for g in range(G) if dets[g]]
-        for g in range(G):
-            cue = None
-            if initial_cue and not dets[g] and trackers[g].last_seen_t is None:
-                cue = cue_point(t) - frames[g].p
-            elif cooperative_cue and not dets[g] and any(s != g for s in seen):
-                point = _team_point([frames[s] for s in seen if s != g], [dets[s][0] for s in seen if s != g],
-                                    intr, config.target.radius)
-                if point is not None:
-                    cue = point - frames[g].p
-            commands[g] = trackers[g].update(t, dets[g], angles[g], uav_Rs[g], frames[g].R, cue,
-                                             uav_omega=np.asarray(state.phys.body_angvel[bi[uavs[g]]], float))
-        tv = [f.target for f in frames]
-        rec["t"].append(t)
-        rec["camera_R"].append([f.R for f in frames])
-        rec["camera_p"].append([f.p for f in frames])
-        rec["angles"].append(angles)
-        rec["command"].append(commands.copy())
-        rec["mode"].append([tr.mode for tr in trackers])
-        rec["det_box"].append([d[0].box if d else np.full(4, np.nan) for d in dets])
-        rec["true_box"].append([v.box if v.box is not None else np.full(4, np.nan) for v in tv])
-        rec["true_centre"].append([v.centre for v in tv])
-        rec["true_depth"].append([v.depth for v in tv])
-        rec["visible_fraction"].append([v.visible_fraction for v in tv])
-        rec["target_pos"].append(bp[bi[target]])
-        rec["target_vel"].append(np.asarray(state.phys.body_vel[bi[target]], float))
+            ref_of = lambda g: cue_point(t) if initial_cue and trackers[g].last_seen_t is None else None  # noqa: E731
+            dets = _associate_all(dets, frames, ref_of, tracker_config.gate_deg, intr, config.target.radius)
+        omegas = [np.asarray(state.phys.body_angvel[bi[u]], float) for u in uavs]
+        commands = _steer(trackers, t, frames, dets, angles, uav_Rs, omegas, intr, config.target.radius,
+                          cue_point(t) if initial_cue else None, cooperative_cue)
+        _record(rec, t, frames, angles, commands, trackers, dets, bp[bi[target]],
+                np.asarray(state.phys.body_vel[bi[target]], float))
         bar.update(1)
         if k == n_frames - 1:
             break
