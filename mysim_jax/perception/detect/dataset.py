@@ -366,16 +366,8 @@ def _touches_border(box, intr) -> bool:
     return bool(box[0] <= -0.5 or box[1] <= -0.5 or box[2] >= intr.width - 0.5 or box[3] >= intr.height - 0.5)
 
 
-def render_sample(spec: DatasetSpec, index: int) -> Sample:
-    """Frame ``index`` of the dataset ``spec`` (deterministic for (spec.seed, spec.split, index))."""
-    split = SPLITS[spec.split]
-    rng = np.random.default_rng([spec.seed, 0 if spec.split == "train" else 1, index])
-    kind = "drone" if rng.random() < spec.p_drone else "sphere"
-    config = scene_config(kind)
-    intr = intrinsics(width=spec.width, height=spec.height)
-    radius = config.target.radius
-
-    # world
+def _world(spec: DatasetSpec, split, rng, index: int):
+    """The frame's lighting (a palette of the split, or a random one) and ground texture seed."""
     palette = split.palettes[rng.integers(len(split.palettes))]
     # random palettes draw from their own stream, so p_random_palette = 0 leaves every frame as it was
     rng_palette = np.random.default_rng([spec.seed, 0 if spec.split == "train" else 1, index, 2])
@@ -387,34 +379,15 @@ def render_sample(spec: DatasetSpec, index: int) -> Sample:
                         horizon=jitter(palette.horizon), ground_dark=jitter(palette.ground_dark),
                         ground_light=jitter(palette.ground_light))
     tex_seed = int(rng.integers(*split.texture_seeds))
+    return lighting, tex_seed
 
-    # camera and target
-    yaw = rng.uniform(0, 2 * np.pi)
-    pitch = np.radians(_draw(rng, split.pitch_deg))
-    roll = np.radians(rng.uniform(-split.roll_deg, split.roll_deg))
-    R = camera_matrix(yaw, pitch, roll)
-    distance = _draw(rng, split.distance_m, log=True)
-    r_px = intr.fx * radius / distance
-    offset, (u, v) = _in_view_point(rng, intr, R, np.zeros(3), distance, margin=0.8 * r_px)
-    h_target = rng.uniform(*split.target_height_m)
-    h_cam = h_target - offset[2]
-    # onboard frames draw from their own stream, so p_onboard = 0 leaves every frame as it was
-    rng_onboard = np.random.default_rng([spec.seed, 0 if spec.split == "train" else 1, index, 1])
+
+def _occluders(spec: DatasetSpec, rng, rng_onboard, config, cols, intr, R, p, offset, distance, radius, onboard,
+               empty):
+    """Add what stands between the camera and the target, or around it, to the frame's
+    columns: an onboard view through the formation, the net or a UAV across the line of
+    sight, or distractors elsewhere. Returns ``(scene kind, bodies hidden, formation)``."""
     tethers = config.net.tethers if config.net is not None else None
-    onboard = tethers is not None and rng_onboard.random() < spec.p_onboard
-    h_min = ONBOARD_MIN_HEIGHT if onboard else 0.5
-    if h_cam < h_min:                    # looking up at the target (or no room for the net): raise both
-        h_target += h_min - h_cam
-        h_cam = h_min
-    p = np.array([0.0, 0.0, h_cam])
-    target_pos = p + offset
-    cols = _Columns(config)
-    empty = rng.random() < spec.p_empty
-    target_quat = _random_quat(rng, 25.0) if kind == "drone" else _yaw_quat(rng.uniform(0, 2 * np.pi))
-    if not empty:
-        cols.body(config.target.name, target_pos, target_quat)
-
-    # occluders and distractors
     uavs = [q.body for q in config.quadrotors]
     meta_occ = SCENE_NONE
     los = offset / distance
@@ -460,6 +433,49 @@ def render_sample(spec: DatasetSpec, index: int) -> Sample:
                 at, _ = _in_view_point(rng, intr, R, p, d, margin=0.0)
                 at[2] = max(at[2], 0.3)
                 cols.body(name, at, _random_quat(rng, 20.0))
+
+    return meta_occ, hide, formation
+
+
+def render_sample(spec: DatasetSpec, index: int) -> Sample:
+    """Frame ``index`` of the dataset ``spec`` (deterministic for (spec.seed, spec.split, index))."""
+    split = SPLITS[spec.split]
+    rng = np.random.default_rng([spec.seed, 0 if spec.split == "train" else 1, index])
+    kind = "drone" if rng.random() < spec.p_drone else "sphere"
+    config = scene_config(kind)
+    intr = intrinsics(width=spec.width, height=spec.height)
+    radius = config.target.radius
+
+    lighting, tex_seed = _world(spec, split, rng, index)
+
+    # camera and target
+    yaw = rng.uniform(0, 2 * np.pi)
+    pitch = np.radians(_draw(rng, split.pitch_deg))
+    roll = np.radians(rng.uniform(-split.roll_deg, split.roll_deg))
+    R = camera_matrix(yaw, pitch, roll)
+    distance = _draw(rng, split.distance_m, log=True)
+    r_px = intr.fx * radius / distance
+    offset, (u, v) = _in_view_point(rng, intr, R, np.zeros(3), distance, margin=0.8 * r_px)
+    h_target = rng.uniform(*split.target_height_m)
+    h_cam = h_target - offset[2]
+    # onboard frames draw from their own stream, so p_onboard = 0 leaves every frame as it was
+    rng_onboard = np.random.default_rng([spec.seed, 0 if spec.split == "train" else 1, index, 1])
+    tethers = config.net.tethers if config.net is not None else None
+    onboard = tethers is not None and rng_onboard.random() < spec.p_onboard
+    h_min = ONBOARD_MIN_HEIGHT if onboard else 0.5
+    if h_cam < h_min:                    # looking up at the target (or no room for the net): raise both
+        h_target += h_min - h_cam
+        h_cam = h_min
+    p = np.array([0.0, 0.0, h_cam])
+    target_pos = p + offset
+    cols = _Columns(config)
+    empty = rng.random() < spec.p_empty
+    target_quat = _random_quat(rng, 25.0) if kind == "drone" else _yaw_quat(rng.uniform(0, 2 * np.pi))
+    if not empty:
+        cols.body(config.target.name, target_pos, target_quat)
+
+    meta_occ, hide, formation = _occluders(spec, rng, rng_onboard, config, cols, intr, R, p, offset, distance,
+                                           radius, onboard, empty)
 
     renderer_args = dict(config=config, texture=_texture(tex_seed), lighting=lighting, hide=hide)
     renderer = Renderer(intr=intr, **renderer_args)
