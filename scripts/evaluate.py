@@ -58,7 +58,7 @@ def _error(message: str) -> int:
     return 2
 
 
-def main(argv=None) -> int:
+def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("config", help="YAML capture scene file")
     parser.add_argument("--policy", required=True, help="scripted, random, a trained policy folder (RUN/policy), or a Python file defining make_policy")
@@ -75,8 +75,40 @@ def main(argv=None) -> int:
                         help="fly on estimates: a YAML env.perception block (uav_position, ..., target_velocity)")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     parser.add_argument("--no-animation", action="store_true", help="do not write capture.gif (slow)")
-    args = parser.parse_args(argv)
+    return parser
 
+
+def _checked_inputs(args):
+    """The scene (with the perception block and its env: defaults), the output folder, a
+    note when the scene had no env: block, and the perception block; before JAX is imported.
+    Raises ConfigError, OutputError or PolicyError."""
+    from mysim_jax.config.scene import ConfigError, load_config
+    from mysim_jax.io.output import check_output_dir
+    from mysim_jax.mappo.policies import check_policy_spec
+    from mysim_jax.tasks.perception_gap import read_perception_block
+
+    perception = None
+    if args.perception is not None:
+        perception = read_perception_block(args.perception)
+        args.overrides = [*args.overrides, "env.perception=" + json.dumps(perception)]
+    config = load_config(args.config, args.overrides)
+    missing = [b for b, v in (("net", config.net), ("target", config.target), ("quadrotors", config.quadrotors))
+               if not v]
+    if missing:
+        raise ConfigError(f"{args.config}: not a capture scene: it has no {' and no '.join(missing)} block")
+    env_note = None
+    if config.env is None:
+        config = load_config(args.config, ["env={}", *args.overrides])
+        env_note = f"note: {args.config} has no env: block; evaluating with the defaults (env: {{}})"
+    out = check_output_dir(args.out)
+    check_policy_spec(args.policy)
+    if args.compare is not None:
+        check_policy_spec(args.compare)
+    return config, out, env_note, perception
+
+
+def main(argv=None) -> int:
+    args = _parser().parse_args(argv)
     for flag, value, low in (("--episodes", args.episodes, 1), ("--batch", args.batch, 1), ("--seed", args.seed, 0)):
         if value is not None and value < low:
             return _error(f"{flag} {value}: must be at least {low}")
@@ -85,29 +117,12 @@ def main(argv=None) -> int:
               "side by side", file=sys.stderr)
     args.batch = min(64 if args.batch is None else args.batch, args.episodes)
 
-    from mysim_jax.config.scene import ConfigError, load_config
-    from mysim_jax.io.output import OutputError, check_output_dir
-    from mysim_jax.mappo.policies import PolicyError, check_policy_spec
-    from mysim_jax.tasks.perception_gap import read_perception_block
+    from mysim_jax.config.scene import ConfigError
+    from mysim_jax.io.output import OutputError
+    from mysim_jax.mappo.policies import PolicyError
 
     try:
-        perception = None
-        if args.perception is not None:
-            perception = read_perception_block(args.perception)
-            args.overrides = [*args.overrides, "env.perception=" + json.dumps(perception)]
-        config = load_config(args.config, args.overrides)
-        missing = [b for b, v in (("net", config.net), ("target", config.target), ("quadrotors", config.quadrotors))
-                   if not v]
-        if missing:
-            raise ConfigError(f"{args.config}: not a capture scene: it has no {' and no '.join(missing)} block")
-        env_note = None
-        if config.env is None:
-            config = load_config(args.config, ["env={}", *args.overrides])
-            env_note = f"note: {args.config} has no env: block; evaluating with the defaults (env: {{}})"
-        out = check_output_dir(args.out)
-        check_policy_spec(args.policy)
-        if args.compare is not None:
-            check_policy_spec(args.compare)
+        config, out, env_note, perception = _checked_inputs(args)
     except (ConfigError, OutputError, PolicyError) as err:
         return _error(str(err))
 
@@ -116,33 +131,22 @@ def main(argv=None) -> int:
     if config.sim.precision == "float64":
         jax.config.update("jax_enable_x64", True)
 
+    from mysim_jax.mappo.policies import make_checked_policy
     from mysim_jax.tasks.capture import make_env
-    from mysim_jax.mappo.policies import check_policy, policy_maker
+    from mysim_jax.tasks.evaluate import run_episodes, run_two_teams
+    from mysim_jax.tasks.report import comparison_line, summary_line, write_comparison, write_evaluation
 
     try:
         env, params = make_env(config)
     except (ConfigError, ValueError) as err:
         return _error(f"{args.config}: {err}")
-    def load(spec, flag):
-        make_policy = policy_maker(spec)
-        try:
-            policy = make_policy(env, params)
-        except Exception as err:   # make_policy is the user's code: any error in it is an input error
-            raise PolicyError(f"{flag} {spec}: make_policy(env, params) failed: "
-                              f"{type(err).__name__}: {err}") from None
-        check_policy(env, params, policy, spec)
-        return policy
-
     try:
-        policy = load(args.policy, "--policy")
-        other = load(args.compare, "--compare") if args.compare is not None else None
+        policy = make_checked_policy(env, params, args.policy, "--policy")
+        other = make_checked_policy(env, params, args.compare, "--compare") if args.compare is not None else None
     except PolicyError as err:
         return _error(str(err))
     if env_note:
         print(env_note, file=sys.stderr)
-
-    from mysim_jax.tasks.evaluate import run_episodes, run_two_teams
-    from mysim_jax.tasks.report import comparison_line, summary_line, write_comparison, write_evaluation
 
     key = jax.random.PRNGKey(args.seed)
     if other is None:

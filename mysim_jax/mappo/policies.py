@@ -133,3 +133,17 @@ def check_policy(env, params, policy, spec: str = "policy", flag: str = "--polic
         got = f"shape {shape} dtype {dtype}" if shape is not None else type(out).__name__
         raise PolicyError(f"{flag} {spec}: the policy returns {got}; expected a real (float) array of shape "
                           f"{env.action_shape} (one action in [-1, 1] per UAV, one environment)")
+
+
+def make_checked_policy(env, params, spec: str, flag: str = "--policy"):
+    """The policy ``spec`` names (:func:`policy_maker`), made for ``env`` and checked on it
+    (:func:`check_policy`). Any error in a user's ``make_policy`` is a PolicyError naming
+    ``flag`` and ``spec``."""
+    make_policy = policy_maker(spec)
+    try:
+        policy = make_policy(env, params)
+    except Exception as err:   # make_policy is the user's code: any error in it is an input error
+        raise PolicyError(f"{flag} {spec}: make_policy(env, params) failed: "
+                          f"{type(err).__name__}: {err}") from None
+    check_policy(env, params, policy, spec)
+    return policy
