@@ -55,7 +55,7 @@ def _size(text: str) -> tuple[int, int]:
     return int(m.group(1)), int(m.group(2))
 
 
-def main(argv=None) -> int:
+def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("run_dir", nargs="?", help="run folder written by scripts/simulate.py (VIO mode)")
     parser.add_argument("--track", metavar="CONFIG", help="gimbal tracking + target localisation: simulate "
@@ -88,6 +88,11 @@ def main(argv=None) -> int:
     parser.add_argument("--no-video", action="store_true", help="do not write features.mp4")
     parser.add_argument("--no-replay", action="store_true", help="do not write replay.html (the run in 3D)")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    return parser
+
+
+def main(argv=None) -> int:
+    parser = _parser()
     args = parser.parse_args(argv)
     if args.track is not None:
         if args.run_dir is not None:
@@ -98,7 +103,7 @@ def main(argv=None) -> int:
 
     from mysim_jax.io.output import OutputError, check_output_dir
     from mysim_jax.perception.camera import PerceptionError
-    from mysim_jax.perception.vio import prepare_perception, run_perception
+    from mysim_jax.perception.vio import prepare_perception, run_perception, vio_summary_lines
 
     try:
         out = check_output_dir(args.out)
@@ -119,22 +124,7 @@ def main(argv=None) -> int:
             write_replay_html(job.columns, job.config, tmp / "replay.html",
                               title=f"{job.config.name} (perceived: {job.body} from {job.camera})")
     wall = time.perf_counter() - t0
-    s = metrics["summary"]
-    print(f"{metrics['scene']}: {metrics['body']} from {metrics['camera']} + IMU, {metrics['frames']} images "
-          f"({metrics['keyframes']} keyframes) in {wall:.1f} s; wrote {out}/")
-    print(f"  distance flown {s['distance_m']:.2f} m")
-    if metrics.get("backend_resets"):
-        print(f"  the VIO back end failed and was re-initialised {metrics['backend_resets']} time(s)")
-    for name, key in (("VIO", "vio"), ("dead reckoning", "dead_reckoning")):
-        e = metrics["errors"][key]
-        rpe = ("" if e["rpe_translation_rmse_m"] is None else
-               f", RPE over {e['rpe_delta_m']:g} m {e['rpe_translation_rmse_m']:.4g} m / "
-               f"{e['rpe_rotation_rmse_deg']:.3g} deg")
-        print(f"  {name}: ATE {e['ate_aligned_rmse_m']:.4g} m aligned (SE(3)), {e['ate_rmse_m']:.4g} m not aligned"
-              f"{rpe}")
-    if s["vio_ate_percent_of_distance"] is not None:
-        print(f"  VIO ATE (aligned) = {s['vio_ate_percent_of_distance']:.3g} % of the distance; dead reckoning's "
-              f"is {s['dead_reckoning_over_vio_ate']:.3g} x VIO's")
+    print("\n".join(vio_summary_lines(metrics, wall, out)))
     return 0
 
 
@@ -187,7 +177,7 @@ def _track(args) -> int:
     from mysim_jax.io.output import staged_output
     from mysim_jax.io.trajectory import write_trajectory_csv
     from mysim_jax.perception.track import run_tracking
-    from mysim_jax.perception.track_report import write_tracking_report
+    from mysim_jax.perception.track_report import tracking_summary_lines, write_tracking_report
 
     t0 = time.perf_counter()
     try:
@@ -205,22 +195,7 @@ def _track(args) -> int:
                  "miss_rate": args.miss_rate, "initial_cue": not args.no_cue, "wall_time_s": wall}
         metrics = write_tracking_report(record, tmp, pose_noise=pose_noise, extra=extra, progress=not args.no_progress,
                                         range_sigma=args.range_sigma)
-    tr = metrics["tracking"]["all"]
-    print(f"{config.name}: {len(record.cameras)} gimbal cameras x {len(record.t)} frames at {args.camera_rate:g} Hz "
-          f"in {wall:.1f} s; wrote {out}/")
-    print(f"  target in view {100 * tr['in_view_fraction']:.1f} % of frames, detected {100 * tr['detected_fraction']:.1f} %; "
-          f"centre from image centre: mean {tr['pixel_error_mean_px']:.1f} px, p95 {tr['pixel_error_p95_px']:.1f} px")
-    for m, e in metrics["localisation"]["true_poses"].items():
-        if e["error_mean_m"] is not None:
-            print(f"  {m}: error mean {e['error_mean_m']:.4f} m, p95 {e['error_p95_m']:.4f} m "
-                  f"({100 * e['coverage']:.0f} % of frames)")
-    if "skipped" in metrics.get("size_range", {}):
-        print(f"  size-range fits skipped: {metrics['size_range']['skipped']}")
-    elif "size_range" in metrics:
-        f = metrics["size_range"]
-        print(f"  range from box area: paper (k = -1) rel. error mean {100 * f['paper_inverse_area']['relative_error_mean']:.1f} %, "
-              f"pinhole (k = -1/2) {100 * f['pinhole_inverse_sqrt_area']['relative_error_mean']:.1f} %, "
-              f"free fit k = {f['free_exponent']['exponent']:.3f}")
+    print("\n".join(tracking_summary_lines(config.name, record, metrics, args.camera_rate, wall, out)))
     return 0
 
 

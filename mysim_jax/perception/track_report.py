@@ -196,3 +196,26 @@ def write_tracking_report(record: TrackingRecord, out: Path, pose_noise: PoseNoi
     np.savetxt(out / "localisation.csv", table, delimiter=",", header=",".join(header), comments="", fmt="%.6g")
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     return metrics
+
+
+def tracking_summary_lines(scene: str, record, metrics: dict, frame_rate: float, wall: float, out) -> list[str]:
+    """What ``scripts/perceive.py --track`` prints: how often the target was in view and
+    detected, the pointing error, the localisation errors, the size-range fits."""
+    lines = []
+    tr = metrics["tracking"]["all"]
+    lines.append(f"{scene}: {len(record.cameras)} gimbal cameras x {len(record.t)} frames at {frame_rate:g} Hz "
+                 f"in {wall:.1f} s; wrote {out}/")
+    lines.append(f"  target in view {100 * tr['in_view_fraction']:.1f} % of frames, detected {100 * tr['detected_fraction']:.1f} %; "
+                 f"centre from image centre: mean {tr['pixel_error_mean_px']:.1f} px, p95 {tr['pixel_error_p95_px']:.1f} px")
+    for m, e in metrics["localisation"]["true_poses"].items():
+        if e["error_mean_m"] is not None:
+            lines.append(f"  {m}: error mean {e['error_mean_m']:.4f} m, p95 {e['error_p95_m']:.4f} m "
+                         f"({100 * e['coverage']:.0f} % of frames)")
+    if "skipped" in metrics.get("size_range", {}):
+        lines.append(f"  size-range fits skipped: {metrics['size_range']['skipped']}")
+    elif "size_range" in metrics:
+        f = metrics["size_range"]
+        lines.append(f"  range from box area: paper (k = -1) rel. error mean {100 * f['paper_inverse_area']['relative_error_mean']:.1f} %, "
+                     f"pinhole (k = -1/2) {100 * f['pinhole_inverse_sqrt_area']['relative_error_mean']:.1f} %, "
+                     f"free fit k = {f['free_exponent']['exponent']:.3f}")
+    return lines

@@ -1124,3 +1124,26 @@ def run_perception(job: PerceptionJob, out_dir: str | os.PathLike, config: VioCo
     }
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     return metrics
+
+
+def vio_summary_lines(metrics: dict, wall: float, out) -> list[str]:
+    """What ``scripts/perceive.py`` prints after a VIO run: the distance flown, the errors of
+    VIO and of dead reckoning, the back end's resets."""
+    lines = []
+    s = metrics["summary"]
+    lines.append(f"{metrics['scene']}: {metrics['body']} from {metrics['camera']} + IMU, {metrics['frames']} images "
+                 f"({metrics['keyframes']} keyframes) in {wall:.1f} s; wrote {out}/")
+    lines.append(f"  distance flown {s['distance_m']:.2f} m")
+    if metrics.get("backend_resets"):
+        lines.append(f"  the VIO back end failed and was re-initialised {metrics['backend_resets']} time(s)")
+    for name, key in (("VIO", "vio"), ("dead reckoning", "dead_reckoning")):
+        e = metrics["errors"][key]
+        rpe = ("" if e["rpe_translation_rmse_m"] is None else
+               f", RPE over {e['rpe_delta_m']:g} m {e['rpe_translation_rmse_m']:.4g} m / "
+               f"{e['rpe_rotation_rmse_deg']:.3g} deg")
+        lines.append(f"  {name}: ATE {e['ate_aligned_rmse_m']:.4g} m aligned (SE(3)), {e['ate_rmse_m']:.4g} m not aligned"
+                     f"{rpe}")
+    if s["vio_ate_percent_of_distance"] is not None:
+        lines.append(f"  VIO ATE (aligned) = {s['vio_ate_percent_of_distance']:.3g} % of the distance; dead reckoning's "
+                     f"is {s['dead_reckoning_over_vio_ate']:.3g} x VIO's")
+    return lines
