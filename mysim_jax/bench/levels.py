@@ -23,25 +23,44 @@ trajectories over the steps both episodes last.
 
 Run both levels at the same policy rate, a multiple of both control periods (the tension
 of a line rings faster than a 10 Hz team looks), so that rows pair step by step.
+
+:func:`section_i` (BENCHMARKS.md (i)) sets the levels side by side: team steps/s at several
+batch sizes (all levels timed in one round-robin), sub-steps per team step, memory per
+environment, the scripted team's success on the same episodes at every level with the
+paired difference to ``full``, and :func:`catch_table` of the catches.
 """
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from tqdm.auto import tqdm
 
+from mysim_jax.bench.environment import env_call, env_variant
+from mysim_jax.bench.report import CAPTURE_ENV
+from mysim_jax.bench.timing import contention_note, median, time_round_robin, wait_for_quiet
+from mysim_jax.config.scene import load_config
 from mysim_jax.core import batching
 from mysim_jax.dynamics.forces import spring_tension
 from mysim_jax.dynamics.markers import node_states
+from mysim_jax.tasks.capture import make_env
 from mysim_jax.tasks.episode import episode_rollout
-from mysim_jax.tasks.evaluate import scripted_policy
+from mysim_jax.tasks.evaluate import run_episodes, scripted_policy
+from mysim_jax.tasks.sweep import paired_difference_interval
 
 CATCH_EPISODES = 32     # scripted catches recorded per level (BENCHMARKS.md (i))
 CATCH_RATE = 50.0       # Hz: their policy rate, a multiple of every level's control period
 CATCH_SEED = 2025       # the draw they come from
+
+LEVEL_BATCHES = (256, 1024, 4096)
+LEVEL_EPISODES = 1000         # scripted episodes per level, the same draws for every level
+LEVEL_TARGET = 3000.0         # team steps/s at B = 1024 (10 Hz) the training level should reach
+LEVEL_RATIO = 30.0            # ... and this many times `full` in the same run
+LEVEL_CALL_S = 1.0            # a timed call repeats a level's team step until it lasts about this long
 
 
 def _net_layout(env, net):
@@ -180,3 +199,90 @@ def catch_table(measures: dict[str, dict[str, np.ndarray]], rate: float = CATCH_
                      f"{med([x.size for x in touched]):.3f} | {med([x.stopping_distance for x in touched]):.3f} | "
                      f"{med([x.peak_tension for x in touched]):.2f} | {diffs} |")
     return lines
+
+
+def _level_outcomes(env, params, n_episodes: int, seed: int = 2024):
+    """Success and failure flags of the scripted team's episodes ``0 .. n − 1`` drawn from
+    ``seed`` (:func:`mysim_jax.tasks.evaluate.run_episodes`: the same spawns, masses and
+    wind at every level, so outcomes pair episode by episode)."""
+    return run_episodes(env, params, scripted_policy(env), n_episodes, min(n_episodes, 1024),
+                        jax.random.PRNGKey(seed), progress=False)
+
+
+def _repeated(call, seconds: float):
+    """``call`` repeated so that one timed call lasts about ``seconds`` (one warm-up call
+    measures it); returns ``(fn, repeats)``."""
+    jax.block_until_ready(call())
+    t0 = time.perf_counter()
+    jax.block_until_ready(call())
+    n = max(1, round(seconds / max(time.perf_counter() - t0, 1e-9)))
+    return (lambda: [call() for _ in range(n)]), n
+
+
+def section_i(cfg, results) -> list[str]:
+    """(i) Fidelity levels of the capture scene side by side (10 Hz policy): team steps/s,
+    sub-steps, memory, the scripted team's success paired with ``full``'s, and what a catch
+    looks like at each level (:func:`catch_table`)."""
+    base = load_config(CAPTURE_ENV)
+    names = ["full"] + list(base.levels)
+    batches = (16, 64) if cfg.quick else LEVEL_BATCHES
+    n_eps = 16 if cfg.quick else LEVEL_EPISODES
+    n_catch = 4 if cfg.quick else CATCH_EPISODES
+    top = 1024 if 1024 in batches else batches[-1]
+    calls, envs, rows, outcomes, measures = {}, {}, {}, {}, {}
+    for level in tqdm(names, desc="(i) levels: compile", leave=False):
+        envs[level] = env_variant([f"level={level}", "env.policy_rate=10.0"])
+        for b in batches:
+            calls[level, b] = env_call(*envs[level], b, 1)
+    timed, repeats = {}, {}
+    for key, c in calls.items():
+        timed[key], repeats[key] = _repeated(c.call, 0.05 if cfg.quick else LEVEL_CALL_S)
+    wait_for_quiet(cfg.max_wait_s, "i")
+    # every level and batch in one round-robin: the ratio to full is measured side by side
+    times = time_round_robin(timed, cfg.env_repeats, section="i")
+    for level in tqdm(names, desc="(i) levels: episodes", leave=False):
+        env, params = envs[level]
+        stats = _level_outcomes(env, params, n_eps)
+        outcomes[level] = stats.success
+        rec_config = load_config(CAPTURE_ENV, [f"level={level}", f"env.policy_rate={CATCH_RATE}"])
+        rec_env, rec_params = make_env(rec_config)
+        measures[level] = catch_measures(rec_env, rec_params, rec_config.net, jax.random.PRNGKey(CATCH_SEED), n_catch)
+        rows[level] = dict(substeps=env.control_steps * env.scene.substeps, points=env.scene.n_points,
+                           dt=env.scene.dt, sub=env.scene.substeps,
+                           rate={b: b * repeats[level, b] / median(times[level, b]) for b in batches},
+                           memory={b: calls[level, b].bytes_per_env() for b in batches},
+                           success=stats.success.mean(), bad=int(stats.failures["non_finite"].sum()))
+    results["levels"] = rows
+    lines = [
+        "## (i) Fidelity levels of the capture scene",
+        "",
+        "`configs/capture_env_falling.yaml` at each of its levels (`--set level=NAME`; `full` is the file's own "
+        "values, the others are listed and explained under `levels:` in the file), with the policy at 10 Hz "
+        "(`env.policy_rate=10`). Team steps/s as in (e): one call = one `CaptureEnv.step` of B environments "
+        f"(scripted team), repeated within a timed call until the call lasts ~{LEVEL_CALL_S:g} s; every level and "
+        f"batch timed in one round-robin (median of {cfg.env_repeats} rounds), so the ratio to `full` is measured "
+        f"side by side. Scripted success: episodes 0–{n_eps - 1} of one draw (seed 2024), run to their end at "
+        "every level (the same spawns, masses and wind), so the difference to `full` is paired episode by episode "
+        "(95 % interval, `tasks.sweep.paired_difference_interval`). Non-finite: episodes that ended with a "
+        "non-finite state.",
+        "",
+        "| level | point masses | control period / sub-steps | sub-steps per team step | "
+        + " | ".join(f"team steps/s B = {b}" for b in batches) + f" | × full (B = {top}) | memory/env [KiB] (B = {top}) "
+        f"| scripted success ({n_eps} episodes) | paired difference to full [points] | non-finite |",
+        "|---|---:|---:|---:|" + "---:|" * len(batches) + "---:|---:|---:|---:|---:|",
+    ]
+    for level, r in rows.items():
+        diff = ("–" if level == "full" else
+                "{:+.1f} ({:+.1f} to {:+.1f})".format(*(100 * x for x in
+                                                          paired_difference_interval(outcomes[level], outcomes["full"]))))
+        lines.append(f"| {level} | {r['points']} | {r['dt'] * 1e3:g} ms / {r['sub']} | {r['substeps']:,} | "
+                     + " | ".join(f"{r['rate'][b]:,.0f}" for b in batches)
+                     + f" | {r['rate'][top] / rows['full']['rate'][top]:.1f}× | {r['memory'][top] / 1024:.1f} | "
+                     f"{r['success']:.1%} | {diff} | {r['bad']} |")
+    train = rows.get("train")
+    if train is not None:
+        met = train["rate"].get(1024, 0) >= LEVEL_TARGET and train["rate"].get(1024, 0) >= LEVEL_RATIO * rows["full"]["rate"].get(1024, 1e9)
+        lines += ["", f"**Target: the training level at ≥ {LEVEL_TARGET:,.0f} team steps/s at B = 1024 and ≥ "
+                  f"{LEVEL_RATIO:g}× `full` in the same run: {'MET' if met else 'NOT MET'}**."]
+    lines += ["", *catch_table(measures)]
+    return lines + ["", contention_note("i", cfg.env_repeats), ""]

@@ -13,11 +13,13 @@ for ``t_end`` seconds. Three views, each rendered at every image size of the sam
 
 Frames per second are 1 / the median time of one ``render`` call (inputs checked, ground,
 objects, compositing, target boxes), timed round-robin across views and sizes
-(:func:`mysim_jax.bench.timing.time_round_robin`).
+(:func:`mysim_jax.bench.timing.time_round_robin`). :func:`section_h` writes them as
+BENCHMARKS.md (h), with :func:`example_image` saved beside the report's plots.
 """
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,7 +27,8 @@ import cv2
 import numpy as np
 import yaml
 
-from mysim_jax.bench.timing import median, time_round_robin
+from mysim_jax.bench.report import ROOT
+from mysim_jax.bench.timing import contention_note, median, spread, time_round_robin, wait_for_quiet
 from mysim_jax.build import build
 from mysim_jax.config.scene import config_from_dict
 from mysim_jax.io.trajectory import trajectory_columns
@@ -116,3 +119,40 @@ def example_image(frames: dict) -> np.ndarray:
         cv2.putText(image, name, (8, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1, cv2.LINE_AA)
         tiles.append(image)
     return np.concatenate(tiles, axis=1)
+
+
+def section_h(cfg, results) -> list[str]:
+    """(h) Rendering speed (:func:`measure`): a capture run seen by an onboard and an
+    observer camera, and ground only, at 1920 x 1080 and 640 x 360."""
+    t0 = time.perf_counter()
+    config, columns = capture_run(t_end=1.6)
+    sim_s = time.perf_counter() - t0
+    wait_for_quiet(cfg.max_wait_s, "h")
+    rows, frames = measure(config, columns, repeats=3 if cfg.quick else 7, section="h")
+    results["h"] = {f"{r.view} {r.width}x{r.height}": r.fps for r in rows}
+    picture = cfg.plots_dir / "render_example.png"
+    cv2.imwrite(str(picture), cv2.cvtColor(example_image(frames), cv2.COLOR_RGB2BGR))
+    onboard = frames["onboard"]
+    lines = [
+        "## (h) Rendering (camera images)",
+        "",
+        f"`Renderer.render` (mysim_jax/perception/render.py) on `{CAPTURE_FALLING.relative_to(ROOT)}` with a "
+        f"camera `cam0` on uav0 (yawed to the net, pitched 35° down), simulated 1.6 s ({sim_s:.0f} s, compile "
+        f"included). Views at t = {onboard.t:.2f} s (the row where cam0 sees the most of the target, all of it in the image): "
+        "**onboard** (cam0), **observer** (a free camera 8 m from the net: four UAVs, net, tethers, target) and "
+        "**ground** (the observer turned away: ground and sky only). One call = inputs checked, ground, objects, "
+        f"compositing, target boxes; median of the counted rounds, timed round-robin "
+        f"(mysim_jax/bench/render.py). {contention_note('h', 3 if cfg.quick else 7)}",
+        "",
+        "| view | image | ms per frame | frames/s | object pixels | target pixels | spread |",
+        "|---|---|---:|---:|---:|---:|---:|",
+    ]
+    for r in rows:
+        lines.append(f"| {r.view} | {r.width} × {r.height} | {1e3 * median(r.times):.0f} | {r.fps:.1f} | "
+                     f"{r.object_px:,} | {r.target_px:,} | {spread(r.times)} |")
+    small = [r for r in rows if (r.width, r.height) == (640, 360)]
+    slowest = min(small, key=lambda r: r.fps)
+    lines += ["", f"A 30 s flight at 20 Hz (600 frames) at 640 × 360 takes ~{600 / slowest.fps / 60:.1f} min "
+              f"at the slowest view's rate ({slowest.view}).", "",
+              f"![rendered frames](docs/bench/{picture.name})", ""]
+    return lines

@@ -187,6 +187,23 @@ class Compiled:
         return total / self.batch
 
 
+@dataclass
+class ThroughputRow:
+    """One timed row of a throughput table: ``batch`` environments, ``n_steps`` steps per
+    call, the counted calls' ``times`` [s], compile seconds and memory per environment."""
+
+    label: str
+    batch: int
+    n_steps: int
+    times: list[float]
+    compile_s: float
+    bytes_per_env: float
+
+    @property
+    def env_steps_per_s(self) -> float:
+        return self.batch * self.n_steps / median(self.times)
+
+
 def compile_batched(label: str, run_env: Callable, params, state, batch: int, n_steps: int,
                     batch_params: bool = False, chunk: int | None = None, keep_hlo: bool = False,
                     vmap: Callable = batching.vmap, compiler_options: dict | None = None) -> Compiled:

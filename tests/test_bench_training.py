@@ -1,0 +1,75 @@
+"""The training-runs list of BENCHMARKS.md (g) (mysim_jax/bench/training.py), written from kept
+run folders like those in docs/train/: a row per run, the paired difference to the scripted
+team (the run's own, or from another run's scripted outcomes on the same episodes), the
+spread over seeds, and a run stopped before its evaluation. The folders here are made up;
+nothing is trained."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import yaml
+
+from mysim_jax.bench import training
+from mysim_jax.tasks.sweep import paired_difference_interval
+
+METRICS = ("iteration", "env_steps", "wall_s", "episodes", "success_rate", "select_success")
+
+
+def _run(folder, name: str, seed: int, metrics, summary=None, episodes=None, scripted=None):
+    run = folder / name
+    (run / "eval").mkdir(parents=True)
+    (run / "train.yaml").write_text(yaml.safe_dump({"run": {"seed": seed, "eval_seed": 7}, "algo": {"init": "bc"}}))
+    (run / "scene.yaml").write_text(yaml.safe_dump({"name": "falling"}))
+    with (run / "metrics.csv").open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(METRICS)
+        w.writerows(metrics)
+    if summary is not None:
+        (run / "summary.json").write_text(json.dumps(summary))
+    if episodes is not None:
+        (run / "eval" / "episodes.csv").write_text("episode,success\n" + "".join(
+            f"{i},{int(s)}\n" for i, s in enumerate(episodes)))
+    if scripted is not None:
+        (run / "eval" / "comparison_episodes.csv").write_text("episode,outcome_scripted\n" + "".join(
+            f"{i},{'success' if s else 'target_ground'}\n" for i, s in enumerate(scripted)))
+
+
+def _summary(rate: float, **more) -> dict:
+    return {"env_steps": 1024, "training_wall_s_total": 120.0, "evaluation_wall_s": 60.0,
+            "env_steps_per_s_with_update": 50.0,
+            "evaluation": {"episodes": 4, "success": {"rate": rate, "interval95": [0.25, 0.95]},
+                           "failures": {"target_ground": {"count": 1}, "uav_ground": {"count": 0}}}, **more}
+
+
+def test_the_runs_list_pairs_runs_with_the_scripted_team_and_groups_seeds(tmp_path):
+    rows = [(0, 0, 10.0, "", "", "0.25"), (1, 1024, 120.0, "4", "0.5", "")]
+    scripted = [True, True, False, True]
+    _run(tmp_path, "a_seed0", 0, rows, scripted=scripted, summary=_summary(
+        0.75, stopped_by_time_limit=True,
+        baseline={"seed": 7, "difference": {"estimate": 0.01, "interval95": [-0.02, 0.04]}}))
+    _run(tmp_path, "a_seed1", 1, rows, summary=_summary(0.5), episodes=[True, False, True, False])
+    _run(tmp_path, "b_stopped", 0, rows)
+    (tmp_path / "b_stopped" / "NOTE.md").write_text("Stopped by hand.\n")
+    lines = training.training_runs_lines(tmp_path)
+
+    assert lines[0] == "### Training runs"
+    table = [ln for ln in lines if ln.startswith("| `")]
+    assert [ln.split("`")[1] for ln in table] == ["a_seed0", "a_seed1", "b_stopped"]
+    assert table[0] == ("| `a_seed0` | bc | 0 | 1,024 (time limit) | 2.0 | 50 | 1.0 | **75.0%** (25.0%–95.0%) of 4 "
+                        "| +1.0 (-2.0 to +4.0) | 1 target_ground |")
+    d, lo, hi = paired_difference_interval([True, False, True, False], scripted)
+    assert f"| {100 * d:+.1f} ({100 * lo:+.1f} to {100 * hi:+.1f}) |" in table[1]
+    assert table[2] == ("| `b_stopped` | bc | 0 | 1,024 | 2.0 | — | — | not evaluated (stopped after training); "
+                        "selection success 25% at 0 | — | — |")
+    seeds = next(ln for ln in lines if ln.startswith("**Over seeds**"))
+    assert "(`a_seed0`, `a_seed1`: the same file and settings" in seeds and "mean **62.5%**" in seeds
+    assert "![kept training runs side by side](docs/train/runs.png)" in lines
+    assert (tmp_path / "runs.png").is_file()
+    assert lines[-2:] == ["**b_stopped**: Stopped by hand.", ""]
+
+
+def test_no_kept_runs_give_no_list(tmp_path):
+    (tmp_path / "not_a_run").mkdir()
+    assert training.training_runs_lines(tmp_path) == []
