@@ -58,3 +58,16 @@ def test_imports_sit_at_module_level_except_the_listed_lazy_ones():
             unexplained.append(f"{rel}:{node.lineno} {module}")
     assert not unexpected, "imports inside functions (move them to the top of the module): " + ", ".join(unexpected)
     assert not unexplained, "lazy imports without a comment saying why: " + ", ".join(unexplained)
+
+
+def test_no_function_is_longer_than_80_lines_without_saying_why():
+    """Long functions mix concerns; one that is kept whole says why in its docstring
+    ("Kept whole: ..."). Scripts count too: their logic belongs in the library."""
+    long = []
+    for path in sorted(PACKAGE.rglob("*.py")) + sorted((ROOT / "scripts").glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                length = node.end_lineno - node.lineno + 1
+                if length > 80 and "kept whole" not in (ast.get_docstring(node) or "").lower():
+                    long.append(f"{path.relative_to(ROOT)}:{node.lineno} {node.name} ({length} lines)")
+    assert not long, "functions over 80 lines: " + ", ".join(long)

@@ -231,3 +231,21 @@ def test_chunked_batch_equals_one_block_and_chunk_for_scales_with_the_state():
     assert batching.chunk_for({"x": jnp.zeros((10 ** 6,), jnp.float32)}) == 8     # never below 8
     with pytest.raises(ValueError, match="chunk must be a positive int"):
         batching.vmap(run, chunk=0)
+
+
+def test_the_private_jax_name_stack_hook_still_carries_scope_names():
+    """``batching`` reaches into ``jax._src.source_info_util`` (its one private JAX import)
+    so that the equations it re-emits keep their ``jax.named_scope`` names in profiles and
+    HLO. A JAX that moves it would drop the names silently; this says so instead."""
+    import jax
+    import jax.numpy as jnp
+
+    from mysim_jax.core import batching
+
+    def f(x):
+        with jax.named_scope("springs"):
+            return jnp.sin(x) * 2.0
+
+    assert batching._source_info_util is not None, "jax._src.source_info_util moved: update mysim_jax/core/batching.py"
+    text = jax.jit(batching.vmap(f)).lower(jnp.ones((8, 3))).as_text(debug_info=True)
+    assert "springs" in text
