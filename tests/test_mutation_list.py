@@ -1,25 +1,27 @@
 """The mutation list (scripts/mutations.yaml) stays applicable as the code moves: each
-entry's snippet occurs exactly once in its file, and the tests it names exist. (A stale
-entry stops ``scripts/mutate.py``; this finds it in the suite, before a mutation run.)"""
+entry is complete, its snippet occurs exactly once in its file, and the tests it names
+exist. (A stale entry stops ``scripts/mutate.py``; this finds it in the suite, before a
+mutation run.)"""
 
 from __future__ import annotations
 
-from pathlib import Path
+import pytest
 
-import yaml
-
-ROOT = Path(__file__).resolve().parents[1]
+from mysim_jax.bench.mutation import MUTATIONS, ROOT, check_snippets, load_mutations
 
 
 def test_every_mutation_applies_once_and_names_existing_tests():
-    entries = yaml.safe_load((ROOT / "scripts" / "mutations.yaml").read_text())
-    assert len(entries) > 50
-    stale = []
-    for m in entries:
-        path = ROOT / m["file"]
-        count = path.read_text().count(m["original"]) if path.is_file() else -1
-        if count != 1:
-            stale.append(f"{m['id']}: its snippet occurs {count} times in {m['file']}")
-        files = [t.split("::")[0] for t in str(m["tests"]).split() if t.startswith("tests/")]
-        stale += [f"{m['id']}: no test file {f}" for f in files if not (ROOT / f).is_file()]
-    assert not stale, "; ".join(stale)
+    mutations = load_mutations(MUTATIONS)
+    assert len(mutations) > 50
+    check_snippets(ROOT, mutations)          # exits naming the stale entries
+    missing = [f"{m.id}: {t}" for m in mutations for t in m.selection
+               if t.startswith("tests/") and not (ROOT / t.split("::")[0]).is_file()]
+    assert not missing, "mutations naming tests that do not exist: " + ", ".join(missing)
+
+
+def test_a_stale_snippet_is_named(tmp_path):
+    mutations = load_mutations(MUTATIONS)[:1]
+    (tmp_path / mutations[0].file).parent.mkdir(parents=True)
+    (tmp_path / mutations[0].file).write_text("nothing of the original here\n")
+    with pytest.raises(SystemExit, match=mutations[0].id):
+        check_snippets(tmp_path, mutations)
