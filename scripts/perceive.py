@@ -45,7 +45,6 @@ import argparse
 import re
 import sys
 import time
-from pathlib import Path
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -137,7 +136,7 @@ def _track(args) -> int:
     try:
         config = load_config(args.track)
         out = check_output_dir(args.out)
-        from mysim_jax.perception.track import OracleDetector, check_tracking_scene, image_detector
+        from mysim_jax.perception.track import check_tracking_scene, make_detector, make_pose_noise
 
         check_tracking_scene(config)
         if config.sim.precision == "float64":
@@ -149,27 +148,10 @@ def _track(args) -> int:
         if not args.camera_rate > 0:
             raise PerceptionError(f"--camera-rate must be positive, got {args.camera_rate}")
         intr = intrinsics(width=args.size[0], height=args.size[1])
-        if args.weights is not None and args.detector != "learned":
-            raise PerceptionError("--weights is for --detector learned")
-        if args.weights is not None and not Path(args.weights).is_file():
-            raise PerceptionError(f"--weights {args.weights}: no such file; train one with scripts/train_detector.py")
-        if args.detector == "oracle":
-            detector = OracleDetector(noise_px=args.det_noise, miss_rate=args.miss_rate, seed=args.seed)
-        else:
-            try:
-                from mysim_jax.perception.detect.model import load_detector
-            except ImportError as err:
-                raise PerceptionError(f"the learned detector is not available ({err}); use --detector oracle") from None
-            detector = image_detector(load_detector(args.weights))
+        detector = make_detector(args.detector, args.weights, args.det_noise, args.miss_rate, args.seed)
         pose_noise = None
         if args.pose_noise is not None:
-            from mysim_jax.perception.localize import PoseNoise
-
-            pose_noise = PoseNoise(position_m=args.pose_noise[0], rotation_rad=args.pose_noise[1], seed=args.seed,
-                                   correlation_time=args.pose_noise_time)
-            if not (args.pose_noise[0] >= 0 and args.pose_noise[1] >= 0 and args.pose_noise_time >= 0):
-                raise PerceptionError(f"--pose-noise values and --pose-noise-time must be >= 0, got "
-                                      f"{args.pose_noise}, {args.pose_noise_time}")
+            pose_noise = make_pose_noise(args.pose_noise[0], args.pose_noise[1], args.pose_noise_time, args.seed)
     except (ConfigError, OutputError, PerceptionError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

@@ -55,6 +55,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Callable, Sequence
 
 import jax
@@ -66,7 +67,9 @@ from mysim_jax.control.build import R_Y_90, gimbal_marker_frames
 from mysim_jax.core.npgeom import quat_to_matrix
 from mysim_jax.perception.camera import Intrinsics, PerceptionError, intrinsics as make_intrinsics
 from mysim_jax.perception.detect import Detection   # noqa: F401  (the detections this module handles)
-from mysim_jax.perception.localize import box_size_px, box_touches_border, fuse, pixel_bearings, sphere_range
+from mysim_jax.perception.detect.model import load_detector
+from mysim_jax.perception.localize import (PoseNoise, box_size_px, box_touches_border, fuse, pixel_bearings,
+                                          sphere_range)
 from mysim_jax.perception.render import Frame, Renderer
 from mysim_jax.sim import rollout, single_env_scene
 from mysim_jax.tasks.scripted import team_policy
@@ -743,3 +746,25 @@ def tracking_metrics(record: TrackingRecord) -> dict:
     out["modes"] = {str(m): int(c) for m, c in zip(modes, counts)}
     out["image_centre_px"] = [record.intr.cx, record.intr.cy]
     return out
+
+
+def make_detector(kind: str, weights=None, noise_px: float = 1.0, miss_rate: float = 0.0, seed: int = 0):
+    """The frame detector a tracking run uses: ``"oracle"`` (the true box with edge noise
+    and misses) or ``"learned"`` (the CNN, with ``weights`` or the committed ones).
+    PerceptionError for weights that do not fit the choice or do not exist."""
+    if weights is not None and kind != "learned":
+        raise PerceptionError("--weights is for --detector learned")
+    if weights is not None and not Path(weights).is_file():
+        raise PerceptionError(f"--weights {weights}: no such file; train one with scripts/train_detector.py")
+    if kind == "oracle":
+        return OracleDetector(noise_px=noise_px, miss_rate=miss_rate, seed=seed)
+    return image_detector(load_detector(weights))
+
+
+def make_pose_noise(position_m: float, rotation_rad: float, correlation_time: float = 0.0, seed: int = 0) -> PoseNoise:
+    """Camera-pose noise for localisation (standard deviations, Gauss-Markov correlation
+    time; 0: white). PerceptionError for a negative value."""
+    if not (position_m >= 0 and rotation_rad >= 0 and correlation_time >= 0):
+        raise PerceptionError(f"--pose-noise values and --pose-noise-time must be >= 0, got "
+                              f"{[position_m, rotation_rad]}, {correlation_time}")
+    return PoseNoise(position_m=position_m, rotation_rad=rotation_rad, seed=seed, correlation_time=correlation_time)
