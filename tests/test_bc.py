@@ -78,3 +78,29 @@ def test_the_clone_matches_the_scripted_team_on_held_out_states():
                                rtol=1e-6)
     for a, b in zip(jax.tree.leaves(state.params["critic"]), jax.tree.leaves(ts.params["critic"])):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_dagger_rounds_let_the_clone_fly_and_label_its_states_with_the_scripted_team():
+    """``bc.dagger_rounds``: the clone flies the next round (here a clone that outputs
+    nothing: its actor's last layer zeroed), so the states visited differ from the scripted
+    team's, while every label is still the scripted team's action; the rounds' data are
+    added to the first (twice the pairs after one round)."""
+    from mysim_jax.mappo import bc
+
+    trainer = _trainer("env.level=train", "algo.bc.num_envs=8", "algo.bc.steps=6", "algo.bc.noise=0.0",
+                       "algo.bc.epochs=2", "algo.bc.dagger_rounds=1")
+    ts = trainer.init(jax.random.PRNGKey(0))
+    arrays = trainer.policy_arrays(ts)
+    arrays = {**arrays, "actor": jax.tree.map(np.zeros_like, arrays["actor"])}    # the clone does nothing
+    key = jax.random.PRNGKey(3)
+    flown_by_team = bc.collect(trainer, key)
+    flown_by_clone = bc.collect(trainer, key, arrays=arrays)
+    # same resets, then different flights: the observations part after the first step
+    np.testing.assert_array_equal(flown_by_team.obs[0], flown_by_clone.obs[0])
+    assert float(np.max(np.abs(flown_by_team.obs[-1] - flown_by_clone.obs[-1]))) > 1e-3
+    # labels: the scripted team's actions at the clone's states (the same first labels, then
+    # nonzero actions although the clone flew with zero actions)
+    np.testing.assert_allclose(flown_by_team.actions[0], flown_by_clone.actions[0], atol=1e-6)
+    assert float(np.max(np.abs(flown_by_clone.actions[1:]))) > 1e-3
+    state, report = bc.clone(trainer, ts, jax.random.PRNGKey(4))
+    assert report["pairs"] == 2 * 8 * 6 * 4 and len(report["dagger"]) == 1

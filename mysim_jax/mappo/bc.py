@@ -49,17 +49,22 @@ class Demonstrations:
         return int(np.prod(self.obs.shape[:3]))
 
 
-def collect(trainer, key) -> Demonstrations:
-    """The demonstrations of the module docstring for ``trainer``'s environment."""
+def collect(trainer, key, arrays=None) -> Demonstrations:
+    """The demonstrations of the module docstring for ``trainer``'s environment. With
+    ``arrays`` (:meth:`Trainer.policy_arrays` of a clone) the clone flies instead of the
+    scripted team (its deterministic action plus the same noise), still labelled with the
+    scripted team's action at every state it visits (DAgger)."""
     bc = trainer.config.bc
     env, params = trainer.env, trainer.env_params
+    student = None if arrays is None else trainer.policy_fn()
 
-    def one_env(key, state, obs):
+    def one_env(key, state, obs, arrays):
         def body(carry, k):
             state, obs = carry
             k_noise, k_step = jax.random.split(k)
             teacher = env.scripted_actions(state, params)
-            action = teacher + bc.noise * jax.random.normal(k_noise, teacher.shape, teacher.dtype)
+            pilot = teacher if student is None else student(k_noise, obs, state, params, arrays).astype(teacher.dtype)
+            action = pilot + bc.noise * jax.random.normal(k_noise, teacher.shape, teacher.dtype)
             obs2, state2, _, _, _, info = env.step(k_step, state, action, params)
             row = (obs, teacher, info["success"] & info["done"], info["done"])
             return (state2, obs2), row
@@ -70,8 +75,8 @@ def collect(trainer, key) -> Demonstrations:
     k_reset, k_run = jax.random.split(key)
     # jitted: run eagerly, a vmapped reset compiles one small program per primitive
     obs, states = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))(jax.random.split(k_reset, bc.num_envs), params)
-    run = jax.jit(batching.vmap(one_env, chunk=trainer.block))
-    obs_rows, teacher, success, done = run(jax.random.split(k_run, bc.num_envs), states, obs)
+    run = jax.jit(batching.vmap(one_env, in_axes=(0, 0, 0, None), chunk=trainer.block))
+    obs_rows, teacher, success, done = run(jax.random.split(k_run, bc.num_envs), states, obs, arrays)
     # (envs, steps, ...) -> (steps, envs, ...)
     swap = lambda x: jnp.swapaxes(x, 0, 1)      # noqa: E731
     return Demonstrations(obs=swap(obs_rows).astype(jnp.float32), actions=swap(teacher).astype(jnp.float32),
@@ -161,14 +166,36 @@ def fit(trainer, ts, demos: Demonstrations, key):
     return state, report
 
 
+def _joined(a: Demonstrations, b: Demonstrations) -> Demonstrations:
+    """Both datasets, along the step axis: environment ``e`` of each is held out alike."""
+    return jax.tree.map(lambda x, y: jnp.concatenate([x, y], axis=0), a, b)
+
+
 def clone(trainer, ts, key):
-    """``(state, report)``: collect demonstrations and fit the actor to them."""
-    k_collect, k_fit = jax.random.split(key)
+    """``(state, report)``: collect demonstrations and fit the actor to them; then, for each
+    of ``bc.dagger_rounds``, let the clone fly, label the states it visits with the
+    scripted team's actions, add them to the data and fit again (DAgger, Ross et al. 2011).
+    The report's ``dagger`` lists each round's episodes and the clone's success in them."""
+    rounds = trainer.config.bc.dagger_rounds
+    keys = jax.random.split(key, 2 * (rounds + 1))
     t0 = time.perf_counter()
-    demos = collect(trainer, k_collect)
+    demos = collect(trainer, keys[0])
     jax.block_until_ready(demos.obs)
     collect_s = time.perf_counter() - t0
-    state, report = fit(trainer, ts, demos, k_fit)
+    state, report = fit(trainer, ts, demos, keys[1])
+    flown = []
+    for r in range(rounds):
+        t0 = time.perf_counter()
+        more = collect(trainer, keys[2 + 2 * r], arrays=trainer.policy_arrays(state))
+        jax.block_until_ready(more.obs)
+        collect_s += time.perf_counter() - t0
+        ended = int(jnp.sum(more.done))
+        flown.append({"episodes_ended": ended,
+                      "clone_success_rate": float(jnp.sum(more.success) / max(ended, 1))})
+        demos = _joined(demos, more)
+        state, report = fit(trainer, ts, demos, keys[3 + 2 * r])
     report["collect_s"] = round(collect_s, 2)
     report["team_steps"] = int(demos.obs.shape[0] * demos.obs.shape[1])
+    if rounds:
+        report["dagger"] = flown
     return state, report

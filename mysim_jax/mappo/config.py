@@ -136,7 +136,9 @@ class BCConfig(StrictModel):
     critic (the policy is held), and an anchor ``anchor_coef · |μ(o) − μ_clone(o)|²`` (the
     squared distance of the policy's mean from the clone's, per action dimension) pulls the
     policy back towards the clone, its weight decaying linearly to zero over
-    ``anchor_iterations`` PPO iterations."""
+    ``anchor_iterations`` PPO iterations. ``dagger_rounds`` > 0 then lets the clone fly as
+    many more times (``num_envs`` x ``steps`` each, with the same noise), labels the states
+    it visits with the scripted team's actions and refits on all the data (DAgger)."""
 
     num_envs: PosInt = 128
     steps: PosInt = 48
@@ -149,6 +151,7 @@ class BCConfig(StrictModel):
     critic_warmup: NonNegInt = 2
     anchor_coef: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 1.0
     anchor_iterations: PosInt = 100
+    dagger_rounds: NonNegInt = 0
 
 
 class AlgoConfig(StrictModel):
