@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -131,27 +132,25 @@ class _Tables:
         return self.n_points + self.marker_names.index(ref)
 
 
+class _Spring(NamedTuple):
+    name: str
+    node_a: int
+    node_b: int
+    tension_only: bool
+    stiffness: float
+    damping: float
+    rest: float
+
+
 @dataclass
 class _Springs:
-    """Every spring of the scene, the ropes' segments first: names, end nodes, law, constants."""
+    """Every spring of the scene, the ropes' segments first, and each rope's mass points."""
 
-    names: list = dataclasses.field(default_factory=list)
-    node_a: list = dataclasses.field(default_factory=list)
-    node_b: list = dataclasses.field(default_factory=list)
-    tension_only: list = dataclasses.field(default_factory=list)
-    stiffness: list = dataclasses.field(default_factory=list)
-    damping: list = dataclasses.field(default_factory=list)
-    rest: list = dataclasses.field(default_factory=list)
-    rope_point_index: list = dataclasses.field(default_factory=list)   # per rope, its masses' point indices
+    rows: list = dataclasses.field(default_factory=list)              # a _Spring per spring
+    rope_point_index: list = dataclasses.field(default_factory=list)  # per rope, its masses' point indices
 
-    def add(self, name, a, b, tension_only, stiffness, damping, rest):
-        self.names.append(name)
-        self.node_a.append(a)
-        self.node_b.append(b)
-        self.tension_only.append(tension_only)
-        self.stiffness.append(stiffness)
-        self.damping.append(damping)
-        self.rest.append(rest)
+    def column(self, field: str) -> tuple:
+        return tuple(getattr(r, field) for r in self.rows)
 
 
 def _inertia_matrix(inertia) -> np.ndarray:
@@ -213,12 +212,13 @@ def _spring_table(t: _Tables, placed: dict) -> _Springs:
         chain = [t.node(r.start)] + list(range(first, first + r.n_masses)) + [t.node(r.end)]
         sp.rope_point_index.append(tuple(range(first, first + r.n_masses)))
         for j in range(r.n_masses + 1):
-            sp.add(f"{r.name}[{j}]", chain[j], chain[j + 1], r.model == "tension_only", seg.stiffness[j],
-                   seg.damping[j], seg.rest_length[j])
+            sp.rows.append(_Spring(f"{r.name}[{j}]", chain[j], chain[j + 1], r.model == "tension_only",
+                                   seg.stiffness[j], seg.damping[j], seg.rest_length[j]))
     for s in t.config.springs:
         rest = (float(np.linalg.norm(t.world_pos(s.end) - t.world_pos(s.start))) if s.rest_length is None
                 else s.rest_length)
-        sp.add(s.name, t.node(s.start), t.node(s.end), s.model == "tension_only", s.stiffness, s.damping, rest)
+        sp.rows.append(_Spring(s.name, t.node(s.start), t.node(s.end), s.model == "tension_only", s.stiffness,
+                               s.damping, rest))
     return sp
 
 
@@ -245,10 +245,10 @@ def _scene(t: _Tables, sp: _Springs, loads, contact_scene, quad_scene) -> Scene:
         anchor_names=tuple(a.name for a in config.anchors),
         rope_names=tuple(r.name for r in config.ropes),
         rope_point_index=tuple(sp.rope_point_index),
-        spring_names=tuple(sp.names),
-        spring_node_a=tuple(sp.node_a),
-        spring_node_b=tuple(sp.node_b),
-        spring_tension_only=tuple(sp.tension_only),
+        spring_names=sp.column("name"),
+        spring_node_a=sp.column("node_a"),
+        spring_node_b=sp.column("node_b"),
+        spring_tension_only=sp.column("tension_only"),
         has_gravity=any(g != 0.0 for g in config.gravity),
         has_loads=bool(np.any(load_force) or np.any(load_torque)),
         joint_buckets=_joint_buckets(config, t.body_index, t.anchor_index, t.marker_names),
@@ -314,7 +314,7 @@ def build(config: SceneConfig):
     body_mass = np.asarray([b.mass for b in config.bodies], float).reshape(-1)
     inertia = np.asarray([_inertia_matrix(b.inertia) for b in config.bodies], float).reshape(-1, 3, 3)
     substeps = _check_stability(config, scene, point_mass, body_mass, inertia, t.marker_pos,
-                                np.asarray(sp.stiffness, float), np.asarray(sp.damping, float))
+                                np.asarray(sp.column("stiffness"), float), np.asarray(sp.column("damping"), float))
     scene = dataclasses.replace(scene, substeps=substeps)
 
     def arr(x, shape):
@@ -328,9 +328,9 @@ def build(config: SceneConfig):
         marker_quat=arr(t.marker_quat, (-1, 4)),
         anchor_pos=arr([a.pos for a in config.anchors], (-1, 3)),
         anchor_quat=arr([a.quat for a in config.anchors], (-1, 4)),
-        spring_stiffness=arr(sp.stiffness, (-1,)),
-        spring_damping=arr(sp.damping, (-1,)),
-        spring_rest_length=arr(sp.rest, (-1,)),
+        spring_stiffness=arr(sp.column("stiffness"), (-1,)),
+        spring_damping=arr(sp.column("damping"), (-1,)),
+        spring_rest_length=arr(sp.column("rest"), (-1,)),
         gravity=arr(config.gravity, (3,)),
         load_node_force=arr(load_force, (t.n_nodes, 3)),
         load_body_torque=arr(load_torque, (-1, 3)),

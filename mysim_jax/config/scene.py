@@ -553,22 +553,16 @@ class SceneConfig(StrictModel):
         """Rope and spring ends that name nothing attachable."""
         problems: list[str] = []
         attachable = self.attachment_names()
-        for i, r in enumerate(self.ropes):
-            for end in ("start", "end"):
-                ref = getattr(r, end)
-                if ref not in attachable:
-                    problems.append(f"ropes.{i}.{end}: '{ref}' {self._unknown(ref)}")
-                elif ref.startswith(f"{r.name}_"):
-                    problems.append(f"ropes.{i}.{end}: a rope cannot attach to its own masses")
-            if r.start == r.end:
-                problems.append(f"ropes.{i}: start and end are the same ('{r.start}')")
-        for i, s in enumerate(self.springs):
-            for end in ("start", "end"):
-                ref = getattr(s, end)
-                if ref not in attachable:
-                    problems.append(f"springs.{i}.{end}: '{ref}' {self._unknown(ref)}")
-            if s.start == s.end:
-                problems.append(f"springs.{i}: start and end are the same ('{s.start}')")
+        for kind, items in (("ropes", self.ropes), ("springs", self.springs)):
+            for i, x in enumerate(items):
+                for end in ("start", "end"):
+                    ref = getattr(x, end)
+                    if ref not in attachable:
+                        problems.append(f"{kind}.{i}.{end}: '{ref}' {self._unknown(ref)}")
+                    elif kind == "ropes" and ref.startswith(f"{x.name}_"):
+                        problems.append(f"ropes.{i}.{end}: a rope cannot attach to its own masses")
+                if x.start == x.end:
+                    problems.append(f"{kind}.{i}: start and end are the same ('{x.start}')")
         return problems
 
     def _joint_problems(self) -> list[str]:
