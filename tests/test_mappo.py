@@ -259,6 +259,51 @@ def test_target_kl_stops_the_epochs_and_the_critic_warm_up_holds_the_policy():
     assert float(warm.schedule(2 + warm.config.bc.anchor_iterations)[1]) == 0.0
 
 
+def test_a_time_limit_is_bootstrapped_or_ends_the_task():
+    """With ``bootstrap_time_limit`` (the default) a step that reaches the time limit gets
+    ``γ V(last state)`` added to its reward; without it that step's reward is the
+    environment's alone. The rollouts are otherwise the same (same keys, same networks),
+    so the rewards differ exactly on the truncated steps, by that value."""
+    env = ReachEnv()
+    params = env.default_params()
+    cfg = dict(total_env_steps=32 * 32, num_envs=32, num_steps=32, lr=3e-3, init_std=0.5)
+    boot = Trainer(AlgoConfig(**cfg), env, params)
+    ends = Trainer(AlgoConfig(bootstrap_time_limit=False, **cfg), env, params)
+    ts = boot.init(jax.random.PRNGKey(3))
+    traj_b = boot._rollout(ts)[-1]
+    traj_e = ends._rollout(ts)[-1]
+    np.testing.assert_array_equal(np.asarray(traj_b.raw_obs), np.asarray(traj_e.raw_obs))
+    diff = np.asarray(traj_b.reward) - np.asarray(traj_e.reward)            # (T, B, A)
+    done = np.asarray(traj_b.done)                                          # (T, B)
+    timed_out = done & ~np.asarray(traj_b.success)
+    assert 0 < timed_out.sum() < timed_out.size
+    assert np.all(diff[~timed_out] == 0.0)           # every other step: the same reward
+    assert np.all(np.abs(diff[timed_out]) > 1e-6)    # a time-out: the bootstrap, nonzero
+
+
+def test_a_frozen_observation_normalisation_keeps_the_held_actor_unchanged():
+    """During the critic's warm-up the actor's weights are held; with
+    ``bc.freeze_obs_norm`` its observation statistics are held too, so the policy (weights
+    and normalisation) after an iteration is the one before it, bit for bit. Without it
+    the rollout updates the statistics, and the same weights act differently."""
+    env = ReachEnv()
+    params = env.default_params()
+    key = jax.random.PRNGKey(0)
+    policies = {}
+    for frozen in (False, True):
+        cfg = AlgoConfig(total_env_steps=32 * 16 * 8, init="bc", bc={"freeze_obs_norm": frozen}, **SMALL)
+        trainer = Trainer(cfg, env, params)
+        ts0 = trainer.init(key)
+        ts1, m = trainer.iteration(ts0)
+        assert float(m["policy_coef"]) == 0.0
+        policies[frozen] = (trainer.policy_arrays(ts0), trainer.policy_arrays(ts1))
+    before, after = policies[True]
+    for a, b in zip(jax.tree.leaves(before), jax.tree.leaves(after)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    before, after = policies[False]
+    assert not np.array_equal(np.asarray(before["obs_mean"]), np.asarray(after["obs_mean"]))
+
+
 def test_the_anchor_pulls_the_policy_towards_the_clone():
     """With the anchor at a large weight the policy's mean stays closer to the anchor
     policy's than without it, over the same iterations from the same start."""

@@ -138,7 +138,12 @@ class BCConfig(StrictModel):
     policy back towards the clone, its weight decaying linearly to zero over
     ``anchor_iterations`` PPO iterations. ``dagger_rounds`` > 0 then lets the clone fly as
     many more times (``num_envs`` x ``steps`` each, with the same noise), labels the states
-    it visits with the scripted team's actions and refits on all the data (DAgger)."""
+    it visits with the scripted team's actions and refits on all the data (DAgger).
+    ``freeze_obs_norm`` keeps the actor's observation normalisation at the clone's (the
+    statistics of the cloning data, part of the function that was fitted) instead of
+    updating it with every rollout: a rollout's states are not the cloning data's (the
+    environments start in step, so the first iterations see only the episodes' first
+    steps), and the updated statistics change what the unchanged actor does."""
 
     num_envs: PosInt = 128
     steps: PosInt = 48
@@ -152,6 +157,7 @@ class BCConfig(StrictModel):
     anchor_coef: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 1.0
     anchor_iterations: PosInt = 100
     dagger_rounds: NonNegInt = 0
+    freeze_obs_norm: bool = False
 
 
 class AlgoConfig(StrictModel):
@@ -169,6 +175,11 @@ class AlgoConfig(StrictModel):
     lr_schedule: Literal["constant", "linear"] = "linear"   # linear: decays to 0 at the last update
     gamma: Fraction = 0.99
     gae_lambda: Annotated[float, Field(ge=0, le=1)] = 0.95
+    # an episode cut by the environment's time limit: true bootstraps it with the value of
+    # its last state (the limit is an artefact of training: the task goes on); false ends it
+    # there with nothing more (the limit is part of the task, as when a time-out counts as
+    # a miss and the observation carries the time left)
+    bootstrap_time_limit: bool = True
     clip_eps: PosFloat = 0.2               # policy ratio clipping
     value_clip_eps: PosFloat = 0.2         # value clipping (in normalised value units)
     vf_coef: PosFloat = 0.5

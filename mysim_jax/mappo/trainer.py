@@ -27,7 +27,8 @@ global norm clipped to ``max_grad_norm``, the learning rate constant or decaying
 zero over the run. Observations and states are normalised by running statistics (updated
 after each iteration's update, so a rollout and its update use the same normalisation), and
 value targets by MAPPO's ValueNorm. An episode cut by the time limit is bootstrapped with the
-value of its last state (``info["final_global_state"]``).
+value of its last state (``info["final_global_state"]``), or with ``algo.bootstrap_time_limit:
+false`` ended there like any other episode.
 
 Everything the next iteration needs is in :class:`TrainerState` (environments included),
 so a checkpoint of it resumes a run exactly.
@@ -348,9 +349,12 @@ class Trainer:
             keys = jax.random.split(k_step, c.num_envs)
             obs2, env_state2, reward, _, truncated, info = step_batch(keys, env_state, action)
             reward = reward.astype(jnp.float32)
-            final_value = self._values(params, ts.ret_stats, ts.state_stats,
-                                       info["final_global_state"].astype(jnp.float32))
-            boot = reward + c.gamma * final_value * truncated[:, None].astype(jnp.float32)
+            if c.bootstrap_time_limit:
+                final_value = self._values(params, ts.ret_stats, ts.state_stats,
+                                           info["final_global_state"].astype(jnp.float32))
+                boot = reward + c.gamma * final_value * truncated[:, None].astype(jnp.float32)
+            else:   # the time limit ends the task: nothing follows the last step
+                boot = reward
             done = info["done"]
             tr = Transition(obs=obs_n, critic_in=critic_in, action=action, log_prob=log_prob, value=value,
                             reward=boot, done=done, raw_obs=obs, raw_state=gstate,
@@ -456,7 +460,8 @@ class Trainer:
         key, k_update = jax.random.split(key)
         (params, opt_state, _), aux = jax.lax.scan(epoch, (ts.params, ts.opt_state, jnp.bool_(False)),
                                                    jax.random.split(k_update, c.update_epochs))
-        obs_stats = ts.obs_stats.update(traj.raw_obs) if c.normalize_obs else ts.obs_stats
+        frozen = c.init == "bc" and c.bc.freeze_obs_norm     # the actor keeps the clone's normalisation
+        obs_stats = ts.obs_stats.update(traj.raw_obs) if c.normalize_obs and not frozen else ts.obs_stats
         state_stats = ts.state_stats.update(traj.raw_state) if c.normalize_obs else ts.state_stats
 
         ended = traj.done.astype(jnp.float32)
