@@ -209,9 +209,6 @@ class AlgoConfig(StrictModel):
                              f"(num_envs x num_steps = {self.batch_size})")
         if not self.hidden:
             raise ValueError("hidden: give at least one layer width")
-        if self.bc.freeze_obs_norm and self.init != "bc":
-            raise ValueError("algo.bc.freeze_obs_norm keeps a clone's observation normalisation, and "
-                             f"algo.init is {self.init!r}: set algo.init: bc or drop freeze_obs_norm")
         return self
 
     @property

@@ -460,7 +460,7 @@ class Trainer:
         key, k_update = jax.random.split(key)
         (params, opt_state, _), aux = jax.lax.scan(epoch, (ts.params, ts.opt_state, jnp.bool_(False)),
                                                    jax.random.split(k_update, c.update_epochs))
-        frozen = c.bc.freeze_obs_norm     # the actor keeps the clone's normalisation (algo.init: bc)
+        frozen = c.init == "bc" and c.bc.freeze_obs_norm     # the actor keeps the clone's normalisation
         obs_stats = ts.obs_stats.update(traj.raw_obs) if c.normalize_obs and not frozen else ts.obs_stats
         state_stats = ts.state_stats.update(traj.raw_state) if c.normalize_obs else ts.state_stats
 
