@@ -263,7 +263,8 @@ def test_a_time_limit_is_bootstrapped_or_ends_the_task():
     """With ``bootstrap_time_limit`` (the default) a step that reaches the time limit gets
     ``γ V(last state)`` added to its reward; without it that step's reward is the
     environment's alone. The rollouts are otherwise the same (same keys, same networks),
-    so the rewards differ exactly on the truncated steps, by that value."""
+    so the rewards differ exactly on the truncated steps (there by the bootstrap, which is
+    nonzero for an untrained critic; its value is not recomputed here)."""
     env = ReachEnv()
     params = env.default_params()
     cfg = dict(total_env_steps=32 * 32, num_envs=32, num_steps=32, lr=3e-3, init_std=0.5)

@@ -143,7 +143,9 @@ class BCConfig(StrictModel):
     statistics of the cloning data, part of the function that was fitted) instead of
     updating it with every rollout: a rollout's states are not the cloning data's (the
     environments start in step, so the first iterations see only the episodes' first
-    steps), and the updated statistics change what the unchanged actor does."""
+    steps), and the updated statistics change what the unchanged actor does. Like the rest
+    of ``bc:`` it applies with ``algo.init: bc`` only (a file that sets it can still be
+    run from scratch with ``--set algo.init=none``)."""
 
     num_envs: PosInt = 128
     steps: PosInt = 48
