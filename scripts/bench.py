@@ -73,8 +73,8 @@ RUNNERS = {"a": throughput.section_a, "b": throughput.section_b, "c": mujoco_com
            "g": training.section_g, "h": render.section_h, "i": levels.section_i, "j": throughput.section_j}
 
 
-def _options(argv):
-    """``(parser, parsed options)``."""
+def build_parser() -> argparse.ArgumentParser:
+    """The command line's parser (the documented-commands test parses with it)."""
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="smoke test: fewer repeats, points and variants")
     parser.add_argument("--only", default=",".join(SECTIONS),
@@ -87,7 +87,7 @@ def _options(argv):
                         "(rope_net, rope_net_slack, collision_light, collision_heavy, capture_falling; default: all)")
     parser.add_argument("--runs-only", action="store_true", help="refresh only the training-runs list of section "
                         "(g) in BENCHMARKS.md from docs/train/ (no measuring; the throughput table is kept)")
-    return parser, parser.parse_args(argv)
+    return parser
 
 
 def _config(parser, args) -> BenchConfig:
@@ -122,7 +122,8 @@ def _config(parser, args) -> BenchConfig:
 
 def main(argv=None) -> int:
     """Run the sections asked for and write the report (or refresh the training runs only)."""
-    parser, args = _options(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
     if args.runs_only:
         return training.refresh_training_runs(Path(args.out) if args.out else ROOT / "BENCHMARKS.md")
     cfg = _config(parser, args)

@@ -14,13 +14,20 @@ from __future__ import annotations
 import argparse
 import sys
 
+from mysim_jax.core.cli import add_set_argument
 
-def main(argv=None) -> int:
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line's parser (the documented-commands test parses with it)."""
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("config")
     parser.add_argument("--seeds", type=int, default=24, help="number of seeds, 0..N-1 (default 24)")
-    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
-    args = parser.parse_args(argv)
+    add_set_argument(parser, "sim.dt=5e-4", "a config value")
+    return parser
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
 
     from mysim_jax.config.scene import ConfigError, load_config
 

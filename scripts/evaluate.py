@@ -33,6 +33,12 @@ on the same episodes (episode ``i`` is drawn from its own key, whichever team fl
 and writes ``comparison.json`` (both success rates and their paired difference with its
 95 % interval) and ``comparison_episodes.csv`` (each team's outcome per episode).
 
+A trained policy is flown only on an environment whose observations and actions mean what
+they meant in training (setpoint mode, policy rate, action scale, observation layout,
+target; ``policy.json`` records them): another is refused with the differences named,
+unless ``--allow-mismatch`` (a deliberate test). The fidelity level, the ranges and
+``--perception`` may differ: judging a policy there is what evaluations are for.
+
 ``--perception FILE`` evaluates the team flying on estimates instead of true states: FILE is
 an ``env.perception`` block (YAML: ``uav_position``, ``uav_velocity``, ``target_position``,
 ``target_velocity``, each ``{sigma, correlation_time}``; mysim_jax/config/env.py),
@@ -52,13 +58,16 @@ import argparse
 import json
 import sys
 
+from mysim_jax.core.cli import add_set_argument
+
 
 def _error(message: str) -> int:
     print(f"error: {message}", file=sys.stderr)
     return 2
 
 
-def _parser() -> argparse.ArgumentParser:
+def build_parser() -> argparse.ArgumentParser:
+    """The command line's parser (the documented-commands test parses with it)."""
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("config", help="YAML capture scene file")
     parser.add_argument("--policy", required=True, help="scripted, random, a trained policy folder (RUN/policy), or a Python file defining make_policy")
@@ -67,12 +76,14 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--batch", type=int, default=None, help="environments run side by side (default 64, "
                         "at most --episodes)")
     parser.add_argument("--seed", type=int, default=0, help="PRNG seed of the whole evaluation (default 0)")
-    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                        help="override a config value, e.g. --set env.policy_rate=10 (repeatable)")
+    add_set_argument(parser, "env.policy_rate=10", "a config value")
     parser.add_argument("--compare", metavar="POLICY",
                         help="also run this team (as --policy) on the same episodes and compare (paired)")
     parser.add_argument("--perception", metavar="FILE",
                         help="fly on estimates: a YAML env.perception block (uav_position, ..., target_velocity)")
+    parser.add_argument("--allow-mismatch", action="store_true",
+                        help="fly a trained policy on a scene whose setpoints, policy rate, action scale, observation "
+                        "layout or target differ from those it was trained on (a deliberate test; refused otherwise)")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     parser.add_argument("--no-animation", action="store_true", help="do not write capture.gif (slow)")
     return parser
@@ -82,6 +93,7 @@ def _checked_inputs(args):
     """The scene (with the perception block and its env: defaults), the output folder, a
     note when the scene had no env: block, and the perception block; before JAX is imported.
     Raises ConfigError, OutputError or PolicyError."""
+    from mysim_jax.config.env import drawn_value_problems
     from mysim_jax.config.scene import ConfigError, load_config
     from mysim_jax.io.output import check_output_dir
     from mysim_jax.mappo.policies import check_policy_spec
@@ -92,6 +104,9 @@ def _checked_inputs(args):
         perception = read_perception_block(args.perception)
         args.overrides = [*args.overrides, "env.perception=" + json.dumps(perception)]
     config = load_config(args.config, args.overrides)
+    ignored = drawn_value_problems(config, args.overrides)
+    if ignored:
+        raise ConfigError("; ".join(ignored))
     missing = [b for b, v in (("net", config.net), ("target", config.target), ("quadrotors", config.quadrotors))
                if not v]
     if missing:
@@ -108,7 +123,7 @@ def _checked_inputs(args):
 
 
 def main(argv=None) -> int:
-    args = _parser().parse_args(argv)
+    args = build_parser().parse_args(argv)
     for flag, value, low in (("--episodes", args.episodes, 1), ("--batch", args.batch, 1), ("--seed", args.seed, 0)):
         if value is not None and value < low:
             return _error(f"{flag} {value}: must be at least {low}")
@@ -141,8 +156,9 @@ def main(argv=None) -> int:
     except (ConfigError, ValueError) as err:
         return _error(f"{args.config}: {err}")
     try:
-        policy = make_checked_policy(env, params, args.policy, "--policy")
-        other = make_checked_policy(env, params, args.compare, "--compare") if args.compare is not None else None
+        policy = make_checked_policy(env, params, args.policy, "--policy", args.allow_mismatch)
+        other = (make_checked_policy(env, params, args.compare, "--compare", args.allow_mismatch)
+                 if args.compare is not None else None)
     except PolicyError as err:
         return _error(str(err))
     if env_note:

@@ -45,8 +45,8 @@ from mysim_jax.bench.mutation import (DEFAULT_REPORT, MUTATIONS, ROOT, Outcome, 
                                       copy_tracked_files, load_mutations, mutate_and_run, write_report)
 
 
-def main(argv=None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
+def build_parser() -> argparse.ArgumentParser:
+    """The command line's parser (the documented-commands test parses with it)."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--only", help="comma-separated mutation ids to run")
     parser.add_argument("--list", action="store_true", help="list the mutations and exit")
@@ -54,7 +54,12 @@ def main(argv=None) -> int:
                                                     "for a full run; none with --only)")
     parser.add_argument("--timeout", type=float, default=240.0, help="per-mutation timeout in s (default 240)")
     parser.add_argument("--mutations", type=Path, default=MUTATIONS, help="mutation list (YAML)")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    args = build_parser().parse_args(argv)
 
     mutations = load_mutations(args.mutations)
     if args.list:

@@ -54,7 +54,8 @@ def _size(text: str) -> tuple[int, int]:
     return int(m.group(1)), int(m.group(2))
 
 
-def _parser() -> argparse.ArgumentParser:
+def build_parser() -> argparse.ArgumentParser:
+    """The command line's parser (the documented-commands test parses with it)."""
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("run_dir", nargs="?", help="run folder written by scripts/simulate.py (VIO mode)")
     parser.add_argument("--track", metavar="CONFIG", help="gimbal tracking + target localisation: simulate "
@@ -91,14 +92,24 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    parser = _parser()
+    parser = build_parser()
     args = parser.parse_args(argv)
-    if args.track is not None:
-        if args.run_dir is not None:
-            parser.error("give either RUN_DIR (VIO) or --track CONFIG (tracking), not both")
-        return _track(args)
-    if args.run_dir is None:
+    if args.track is not None and args.run_dir is not None:
+        parser.error("give either RUN_DIR (VIO) or --track CONFIG (tracking), not both")
+    if args.track is None and args.run_dir is None:
         parser.error("RUN_DIR is required (or --track CONFIG)")
+    from mysim_jax.core.extras import MissingExtra, available, require
+
+    try:
+        require("scripts/perceive.py", "gtsam", "evo", "allantools")
+    except MissingExtra as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    if args.track is not None:
+        return _track(args)
+    if not args.no_replay and not available("plotly"):
+        print("note: replay.html skipped: the HTML replay needs plotly (pip install -e '.[plots]')", file=sys.stderr)
+        args.no_replay = True
 
     from mysim_jax.io.output import OutputError, check_output_dir
     from mysim_jax.perception.camera import PerceptionError

@@ -33,7 +33,8 @@ def _error(message: str) -> int:
     return 2
 
 
-def main(argv=None) -> int:
+def build_parser() -> argparse.ArgumentParser:
+    """The command line's parser (the documented-commands test parses with it)."""
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
     fit = sub.add_parser("fit", help="measured errors -> an env.perception block (YAML)")
@@ -44,7 +45,11 @@ def main(argv=None) -> int:
     cmp_.add_argument("true_dir", help="evaluation on true states")
     cmp_.add_argument("perceived_dir", help="the same episodes with --perception")
     cmp_.add_argument("--out", help="also write the result as JSON here")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
 
     from mysim_jax.core.config_base import ConfigError
     from mysim_jax.tasks.perception_gap import GapError, compare_evaluations, perception_block, read_error_model

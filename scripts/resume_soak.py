@@ -43,14 +43,19 @@ def _rows(path: Path) -> list[dict]:
         return [{k: v for k, v in r.items() if k not in TIMING} for r in csv.DictReader(f)]
 
 
-def main(argv=None) -> int:
+def build_parser() -> argparse.ArgumentParser:
+    """The command line's parser (the documented-commands test parses with it)."""
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--kills", type=int, default=20, help="SIGKILLs (default 20)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the kill moments (default 0)")
     parser.add_argument("--iterations", type=int, default=400, help="iterations of the run (default 400)")
     parser.add_argument("--window", type=float, default=2.0, help="largest delay after a new checkpoint, s")
     parser.add_argument("--out", required=True, help="output folder (created; must not hold a run)")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
     out = Path(args.out)
     if out.exists() and any(out.iterdir()):
         print(f"error: --out {out}: not empty", file=sys.stderr)

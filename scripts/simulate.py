@@ -29,19 +29,25 @@ from __future__ import annotations
 import argparse
 import sys
 
+from mysim_jax.core.cli import add_set_argument
 
-def main(argv=None) -> int:
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line's parser (the documented-commands test parses with it)."""
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("config", help="YAML scene file")
     parser.add_argument("--out", required=True, help="output directory (created if missing)")
-    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                        help="override a config value, e.g. --set sim.dt=5e-4 (repeatable)")
+    add_set_argument(parser, "sim.dt=5e-4", "a config value")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     parser.add_argument("--no-replay", action="store_true", help="do not write replay.html (the interactive 3D "
                         "replay of the run)")
     parser.add_argument("--gains", metavar="FILE", help="controller gains for the quadrotors (YAML, e.g. the "
                         "gains.yaml of scripts/tune_pid.py); --set overrides still apply on top")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
 
     from mysim_jax.config.scene import ConfigError, check_output_memory, load_config
     from mysim_jax.io.output import OutputError, check_output_dir
@@ -65,6 +71,12 @@ def main(argv=None) -> int:
     except (ConfigError, OutputError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
+
+    from mysim_jax.core.extras import available
+
+    if not args.no_replay and not available("plotly"):
+        print("note: replay.html skipped: the HTML replay needs plotly (pip install -e '.[plots]')", file=sys.stderr)
+        args.no_replay = True
 
     import jax
 

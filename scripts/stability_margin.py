@@ -55,7 +55,8 @@ DEFAULT_SCENES = ("rope_net", "random_1", "random_2", "random_2:spherical", "ran
                   "random_5", "random_6")
 
 
-def main(argv=None):
+def build_parser() -> argparse.ArgumentParser:
+    """The command line's parser (the documented-commands test parses with it)."""
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--envs", type=int, default=1024)
     parser.add_argument("--speed", type=float, default=10.0, help="largest initial speed [m/s]")
@@ -71,7 +72,11 @@ def main(argv=None):
     parser.add_argument("--quick", action="store_true", help="64 envs, 0.5 s, 3 fractions, 2 scenes")
     parser.add_argument("--out", type=Path, default=None,
                         help="markdown report (default docs/stability.md; --quick: docs/stability_quick.md)")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv=None):
+    args = build_parser().parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)
     if args.quick:
         args.envs, args.t_end = 64, 0.5

@@ -12,7 +12,9 @@ evaluation) sections (mysim_jax/mappo/config.py). ``--profile NAME`` applies the
 named set of overrides (its ``profiles:``), then ``--set`` overrides single values.
 
 While it runs, a progress bar shows the mean return and success rate of the episodes that
-ended in the last iteration and the env-steps/s (update included). It writes into OUT
+ended in the last iteration and the team steps/s (rollout and update). Training stops
+after algo.total_env_steps team steps (a step budget; run.time_limit_min is an optional
+guard, and a run it stops says so in summary.json and curves.png). It writes into OUT
 (default ``runs/<name>``; mysim_jax/mappo/run.py): ``metrics.csv`` and TensorBoard events
 (``tb/``), ``curves.png``, orbax checkpoints every ``run.checkpoint_every`` iterations,
 the final policy (``policy/``, usable as ``scripts/evaluate.py --policy OUT/policy``),
@@ -38,17 +40,19 @@ import argparse
 import json
 import sys
 
+from mysim_jax.core.cli import add_set_argument
+
 
 def _error(message: str) -> int:
     print(f"error: {message}", file=sys.stderr)
     return 2
 
 
-def main(argv=None) -> int:
+def build_parser() -> argparse.ArgumentParser:
+    """The command line's parser (the documented-commands test parses with it)."""
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("config", nargs="?", help="YAML training file")
-    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                        help="override a training-file value, e.g. --set algo.lr=1e-3 (repeatable)")
+    add_set_argument(parser, "algo.lr=1e-3", "a training-file value")
     parser.add_argument("--profile", default=None, metavar="NAME",
                         help="apply the training file's profile NAME (its profiles: block) before --set")
     parser.add_argument("--out", default=None, help="run folder to create (default runs/<name>)")
@@ -60,7 +64,11 @@ def main(argv=None) -> int:
     group.add_argument("--coordinator", metavar="HOST:PORT", help="address of process 0's coordination service")
     group.add_argument("--num-processes", type=int, metavar="N", help="number of processes")
     group.add_argument("--process-id", type=int, metavar="I", help="this process's index, 0 to N-1")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
     distributed = (args.coordinator, args.num_processes, args.process_id)
     if any(v is not None for v in distributed) and any(v is None for v in distributed):
         return _error("--coordinator, --num-processes and --process-id go together: give all three or none")

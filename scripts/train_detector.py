@@ -41,7 +41,8 @@ import time
 from pathlib import Path
 
 
-def main(argv=None) -> int:
+def build_parser() -> argparse.ArgumentParser:
+    """The command line's parser (the documented-commands test parses with it)."""
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("config", help="detector config (YAML), e.g. configs/detector.yaml")
     parser.add_argument("--out", default="runs/detector", help="output folder (default runs/detector)")
@@ -55,7 +56,11 @@ def main(argv=None) -> int:
     parser.add_argument("--eval-images", type=int, help="frames per evaluation set (default: the config's "
                         "data.eval_images)")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bars")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
 
     from mysim_jax.core.config_base import ConfigError
     from mysim_jax.io.output import OutputError, check_output_dir

@@ -24,8 +24,11 @@ from __future__ import annotations
 import argparse
 import sys
 
+from mysim_jax.core.cli import add_set_argument
 
-def main(argv=None) -> int:
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line's parser (the documented-commands test parses with it)."""
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("config", help="YAML scene with controlled quadrotors")
     parser.add_argument("--out", required=True, help="output directory (created if missing)")
@@ -42,10 +45,13 @@ def main(argv=None) -> int:
     parser.add_argument("--horizon-study", action="store_true",
                         help="also measure gradient norm, truncation error, time and memory against the horizon")
     parser.add_argument("--study-horizons", default="1,2.5,5,10,20", help="horizons (s) for --horizon-study")
-    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                        help="override a config value (repeatable)")
+    add_set_argument(parser, "sim.dt=5e-4", "a config value")
     parser.add_argument("--no-progress", action="store_true", help="hide progress bars")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
     if args.iterations < 0 or args.lr <= 0 or args.clip <= 0 or args.every < 1:
         print("error: --iterations >= 0, --lr > 0, --clip > 0, --every >= 1", file=sys.stderr)
         return 2

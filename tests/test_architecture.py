@@ -12,11 +12,13 @@ ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "mysim_jax"
 
 # Imports that stay inside functions, each for the reason its line's comment (or its helper's
-# docstring) gives: optional extras (bpy and the modules that ship with it, gtsam).
+# docstring) gives: optional extras (bpy and the modules that ship with it, gtsam, plotly;
+# mysim_jax/core/extras.py).
 LAZY_IMPORTS = {
     ("io/blender_import.py", "bpy"), ("io/blender_import.py", "bmesh"), ("io/blender_import.py", "mathutils"),
     ("io/blender_import.py", "bpy_extras"),
     ("perception/vio.py", "gtsam"),
+    ("io/replay.py", "plotly"),
 }
 
 

@@ -49,19 +49,24 @@ def test_the_runs_list_pairs_runs_with_the_scripted_team_and_groups_seeds(tmp_pa
     _run(tmp_path, "a_seed0", 0, rows, scripted=scripted, summary=_summary(
         0.75, stopped_by_time_limit=True,
         baseline={"seed": 7, "difference": {"estimate": 0.01, "interval95": [-0.02, 0.04]}}))
-    _run(tmp_path, "a_seed1", 1, rows, summary=_summary(0.5), episodes=[True, False, True, False])
+    _run(tmp_path, "a_seed1", 1, rows, summary=_summary(0.5, machine="CPU X (family 1), 2 cores"),
+         episodes=[True, False, True, False])
     _run(tmp_path, "b_stopped", 0, rows)
+    (tmp_path / "machines.yaml").write_text("b_stopped: an older machine\n")
     (tmp_path / "b_stopped" / "NOTE.md").write_text("Stopped by hand.\n")
     lines = training.training_runs_lines(tmp_path)
 
     assert lines[0] == "### Training runs"
     table = [ln for ln in lines if ln.startswith("| `")]
     assert [ln.split("`")[1] for ln in table] == ["a_seed0", "a_seed1", "b_stopped"]
-    assert table[0] == ("| `a_seed0` | bc | 0 | 1,024 (time limit) | 2.0 | 50 | 1.0 | **75.0%** (25.0%–95.0%) of 4 "
-                        "| +1.0 (-2.0 to +4.0) | 1 target_ground |")
+    # the machine: the summary's, else machines.yaml's entry, else not recorded
+    assert table[0] == ("| `a_seed0` | bc | 0 | 1,024 (stopped by the time guard) | not recorded | 2.0 | 50 | 1.0 | "
+                        "**75.0%** (25.0%–95.0%) of 4 | +1.0 (-2.0 to +4.0) | 1 target_ground |")
+    assert "| 1,024 | CPU X (family 1), 2 cores | 2.0 |" in table[1]
     d, lo, hi = paired_difference_interval([True, False, True, False], scripted)
     assert f"| {100 * d:+.1f} ({100 * lo:+.1f} to {100 * hi:+.1f}) |" in table[1]
-    assert table[2] == ("| `b_stopped` | bc | 0 | 1,024 | 2.0 | — | — | not evaluated (stopped after training); "
+    assert table[2] == ("| `b_stopped` | bc | 0 | 1,024 | an older machine | 2.0 | — | — | not evaluated (stopped "
+                        "after training); "
                         "selection success 25% at 0 | — | — |")
     seeds = next(ln for ln in lines if ln.startswith("**Over seeds**"))
     assert "(`a_seed0`, `a_seed1`: the same file and settings" in seeds and "mean **62.5%**" in seeds

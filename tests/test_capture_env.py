@@ -405,7 +405,7 @@ def test_actions_of_the_wrong_shape_are_rejected(small, shape):
 def test_randomisation_draws_inside_the_ranges():
     config = load_config("configs/capture_falling.yaml", SMALL + [
         "env.randomize.target_mass={low: 0.05, high: 0.2}", "env.randomize.uav_mass_scale={low: 0.9, high: 1.1}",
-        "env.randomize.wind={low: [-0.3, -0.2, 0.0], high: [0.3, 0.2, 0.0]}",
+        "env.randomize.wind_force={low: [-0.3, -0.2, 0.0], high: [0.3, 0.2, 0.0]}",
         "env.noise.target_position={low: 0.1, high: 0.1}"])
     env, params = make_env(config)
     assert env.scene.quadrotor.has_wind and env.observation_noise
@@ -415,14 +415,14 @@ def test_randomisation_draws_inside_the_ranges():
     for name, lo, hi in (("target_mass", 0.05, 0.2), ("uav_mass_scale", 0.9, 1.1)):
         v = getattr(ep, name)
         assert v.min() >= lo and v.max() <= hi and v.max() - v.min() > 0.8 * (hi - lo), name
-    assert np.all(np.abs(ep.wind[:, 0]) <= 0.3) and np.all(ep.wind[:, 2] == 0.0) and ep.wind[:, 0].std() > 0.1
+    assert np.all(np.abs(ep.wind_force[:, 0]) <= 0.3) and np.all(ep.wind_force[:, 2] == 0.0) and ep.wind_force[:, 0].std() > 0.1
     np.testing.assert_array_equal(ep.noise[:, 2], np.float32(0.1))
     spawn = np.asarray(states.sim.phys.body_pos[:, env.target_body])
     assert spawn[:, 2].min() >= 6.0 and spawn[:, 2].max() <= 7.0 and np.ptp(spawn[:, 0]) > 2.5
     # the draws reach the physics of the episode
     sim = env.episode_params(params, jax.tree.map(lambda x: x[0], states.episode))
     assert float(sim.body_mass[env.target_body]) == pytest.approx(float(ep.target_mass[0]))
-    np.testing.assert_allclose(np.asarray(sim.quadrotor.wind_force), np.tile(ep.wind[0], (4, 1)), rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(sim.quadrotor.wind_force), np.tile(ep.wind_force[0], (4, 1)), rtol=1e-6)
     np.testing.assert_allclose(np.asarray(sim.body_mass)[list(env.quad_bodies)], 0.28 * ep.uav_mass_scale[0], rtol=1e-6)
     # noisy target measurement: independent per agent, about the drawn sigma
     true_rel = spawn[:, None, :] - np.asarray(states.sim.phys.body_pos)[:, list(env.quad_bodies)]
@@ -434,7 +434,7 @@ def test_randomisation_draws_inside_the_ranges():
     ("env.rewards={distanse: 1.0}", "unknown reward term.*'distanse'.*the terms are distance"),
     ("env.rewards={spin: -0.8}", r"env.rewards.spin.*greater than or equal to 0"),
     ("env.randomize.target_mass={low: 0.2, high: 0.1}", r"env.randomize.target_mass.*empty range"),
-    ("env.randomize.wind={low: [0.1, 0, 0], high: [-0.1, 0, 0]}", r"env.randomize.wind.*empty range.*axis x"),
+    ("env.randomize.wind_force={low: [0.1, 0, 0], high: [-0.1, 0, 0]}", r"env.randomize.wind_force.*empty range.*axis x"),
     ("env.noise.uav_position={low: 0.1, high: 0.0}", r"env.noise.uav_position.*empty range"),
     ("env.randomize.uav_mass_scale={low: 0.0, high: 1.0}", r"uav_mass_scale.*must be positive"),
     ("env.policy_rate=30", r"env.policy_rate: 30 Hz.*not a whole multiple of sim.dt"),

@@ -107,7 +107,7 @@ def test_scaled_ranges_scale_the_target_s_difficulty_only_and_resets_draw_from_t
         full, scaled = getattr(params.ranges, side), getattr(ranges, side)
         for field in TARGET_DIFFICULTY:
             np.testing.assert_allclose(getattr(scaled, field), 0.25 * np.asarray(getattr(full, field)), rtol=1e-6)
-        for field in ("target_mass", "uav_mass_scale", "wind"):
+        for field in ("target_mass", "uav_mass_scale", "wind_force"):
             np.testing.assert_array_equal(getattr(scaled, field), getattr(full, field))
     keys = jax.random.split(jax.random.PRNGKey(0), 64)
     _, states = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))(keys, params.replace(ranges=ranges))

@@ -61,12 +61,47 @@ def test_outputs_and_learning(tmp_path):
     # learning: the last iterations' episodes end in success far more often than the first
     assert summary["evaluation"]["success"]["rate"] > 0.8
     assert float(rows[1]["success_rate"]) < 0.3
+    # it stopped on its step budget, and says so with the machine its wall times ran on
+    assert summary["stopped_by"] == "step_budget" and not summary["stopped_by_time_limit"]
+    assert summary["planned_env_steps"] == summary["env_steps"] == 40 * 512 and "cores" in summary["machine"]
     # the saved policy refuses an environment of another shape, naming both
     from mysim_jax.mappo.toy import ReachEnv
     from mysim_jax.mappo.policies import PolicyError, policy_maker
 
     with pytest.raises(PolicyError, match="trained on observations of size 8"):
         policy_maker(str(out / "policy"))(ReachEnv(n_agents=3), None)
+
+
+def test_a_run_the_time_guard_stops_says_so(tmp_path):
+    """run.time_limit_min is a guard: a run it stops before the step budget reports the
+    stop and its iteration (summary.json), and the curve's title says so."""
+    cfg = tmp_path / "reach.yaml"
+    cfg.write_text(reach_training_text("reach_guard", 32 * 16 * 200, checkpoint_every=50, eval_episodes=20,
+                                       time_limit_min=0.0001))
+    out = tmp_path / "run"
+    res = _run([str(cfg), "--out", str(out)])
+    assert res.returncode == 0, res.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["stopped_by"] == "time_limit" and summary["stopped_by_time_limit"]
+    assert summary["iterations"] < summary["planned_iterations"] == 200
+    assert summary["env_steps"] == summary["iterations"] * 512 < summary["planned_env_steps"]
+    assert f"time limit of 0.0001 min reached after iteration {summary['iterations']}" in res.stdout + res.stderr
+    assert (out / "curves.png").is_file()
+
+
+def test_the_curves_name_a_time_guard_stop(tmp_path, monkeypatch):
+    import matplotlib.figure
+
+    from mysim_jax.mappo import run as run_module
+
+    titles = []
+    monkeypatch.setattr(matplotlib.figure.Figure, "suptitle", lambda self, t, **k: titles.append(t))
+    rows = [{"iteration": i, "env_steps": 512 * i, "episodes": 1, "mean_return": 0.1 * i, "success_rate": 0.1,
+             "mean_length": 10, "value_loss": 1, "policy_loss": 0, "entropy": 1} for i in range(1, 4)]
+    run_module.plot_curves(rows, tmp_path / "a.png", "t", None, (3, 200))
+    run_module.plot_curves(rows, tmp_path / "b.png", "t", None, None)
+    assert "stopped by the time guard (run.time_limit_min) after iteration 3 of 200" in titles[0]
+    assert titles[1] == "t"
 
 
 ITERATIONS, EVERY = 30, 5

@@ -120,7 +120,7 @@ def _stage_variants(n: int) -> dict[str, tuple[str, list[str], str]]:
                     ["net.line.drag_coefficient=0", "net.tethers.line.drag_coefficient=0"], "control"),
         "no_target_drag": ("physics without the target's air drag (`target.drag_coefficient=0`)",
                            ["target.drag_coefficient=0"], "control"),
-        "no_wind": ("physics without wind (`env.randomize.wind: null`)", ["env.randomize.wind=null"], "control"),
+        "no_wind": ("physics without wind (`env.randomize.wind_force: null`)", ["env.randomize.wind_force=null"], "control"),
     }
 
 

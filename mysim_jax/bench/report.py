@@ -32,7 +32,8 @@ import jax
 import jaxlib
 import numpy as np
 
-from mysim_jax.bench.timing import QUIET_SHARE, ROOT, cpu_model, git_revision
+from mysim_jax.bench.timing import QUIET_SHARE, ROOT, git_revision
+from mysim_jax.core.machine import cpu_model
 
 ROPE_NET = ROOT / "configs" / "rope_net.yaml"
 COLLISION_LIGHT = ROOT / "configs" / "collision_light.yaml"

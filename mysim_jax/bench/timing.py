@@ -14,7 +14,6 @@
 from __future__ import annotations
 
 import os
-import platform
 import subprocess
 import time
 from dataclasses import dataclass
@@ -268,28 +267,6 @@ def steps_for_batch(batch: int, env_steps_per_call: float) -> int:
     """Scan length K so that one call does about ``env_steps_per_call`` env-steps."""
     k = int(round(env_steps_per_call / batch / 50.0)) * 50
     return int(min(20_000, max(100, k)))
-
-
-def cpu_model() -> str:
-    """The CPU's model name with its family and model numbers and widest vector extension
-    (from ``/proc/cpuinfo``): machines sold under one name ("AMD EPYC") differ several
-    times in speed, and the numbers tell them apart."""
-    try:
-        fields: dict[str, str] = {}
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if not line.strip():
-                break                                  # the first processor's block is enough
-            key, _, value = line.partition(":")
-            fields[key.strip()] = value.strip()
-    except OSError:
-        return platform.processor() or "unknown"
-    name = fields.get("model name", platform.processor() or "unknown")
-    flags = set(fields.get("flags", "").split())
-    vector = next((v for f, v in (("avx512f", "AVX-512"), ("avx2", "AVX2"), ("avx", "AVX")) if f in flags), None)
-    details = [f"family {fields['cpu family']}" if "cpu family" in fields else None,
-               f"model {fields['model']}" if "model" in fields else None, vector]
-    details = [d for d in details if d]
-    return f"{name} ({', '.join(details)})" if details else name
 
 
 def git_revision() -> str:

@@ -167,7 +167,8 @@ def training_runs_lines(folder: Path = TRAIN_RUNS) -> list[str]:
         "### Training runs",
         "",
         "Each run is `python scripts/train.py configs/<file>.yaml` (with the `--set` overrides its `train.yaml` "
-        "records) on this machine, its folder's `summary.json`, `train.yaml`, `metrics.csv`, `curves.png` and "
+        "records) on the machine its row names (the run's `summary.json`, or `docs/train/machines.yaml` for runs "
+        "that predate that record; docs/machines.md), its folder's `summary.json`, `train.yaml`, `metrics.csv`, `curves.png` and "
         "`eval/` kept in `docs/train/<run>/`. Training success is the share of episodes ended in the iteration "
         "that succeeded (exploration noise on); the selection curve is the deterministic policy on the fixed "
         "selection episodes; evaluation is the saved (selected) policy on `run.eval_episodes` fresh episodes "
@@ -175,9 +176,9 @@ def training_runs_lines(folder: Path = TRAIN_RUNS) -> list[str]:
         "scripted team on the same evaluation episodes (the run's own `eval/comparison.json`, or the scripted "
         "outcomes another run measured on the same episodes), with its 95 % interval.",
         "",
-        "| run | init | seed | team steps | training [min] | env-steps/s (update incl.) | evaluation [min] | "
-        "success (95 % interval) | vs scripted [points] | how the others ended |",
-        "|---|---|---:|---:|---:|---:|---:|---|---|---|",
+        "| run | init | seed | team steps | machine | training [min] | team steps/s (update incl.) | "
+        "evaluation [min] | success (95 % interval) | vs scripted [points] | how the others ended |",
+        "|---|---|---:|---:|---|---:|---:|---:|---|---|---|",
     ]
     groups: dict[str, list[tuple[str, float]]] = {}
     for run in runs:
@@ -212,10 +213,10 @@ def _run_row(run: Path, scripted: dict, groups: dict) -> str:
     succ_text = (f"**{succ['rate']:.1%}** ({succ['interval95'][0]:.1%}–{succ['interval95'][1]:.1%}) of "
                  f"{ev['episodes']}" if succ else "—")
     versus = _versus(run, s, succ, scripted, eval_seed)
-    stopped = " (time limit)" if s.get("stopped_by_time_limit") else ""
+    stopped = " (stopped by the time guard)" if s.get("stopped_by_time_limit") else ""
     rate = s.get("env_steps_per_s_with_update")
     rate_text = "—" if rate is None else f"{rate:,.0f}"
-    line = (f"| `{run.name}` | {init} | {seed} | {s['env_steps']:,}{stopped} | "
+    line = (f"| `{run.name}` | {init} | {seed} | {s['env_steps']:,}{stopped} | {run_machine(run, s)} | "
             f"{s['training_wall_s_total'] / 60:.1f} | {rate_text} | "
             f"{s.get('evaluation_wall_s', float('nan')) / 60:.1f} | {succ_text} | {versus} | {fails or '—'} |")
     if succ:
@@ -224,13 +225,23 @@ def _run_row(run: Path, scripted: dict, groups: dict) -> str:
     return line
 
 
+def run_machine(run: Path, summary: dict | None = None) -> str:
+    """The machine a kept run ran on: its ``summary.json``'s ``machine``, else its entry in
+    ``docs/train/machines.yaml`` (runs that predate the record), else "not recorded"."""
+    if summary and summary.get("machine"):
+        return summary["machine"]
+    table = run.parent / "machines.yaml"
+    known = yaml.safe_load(table.read_text()) if table.is_file() else {}
+    return (known or {}).get(run.name, "not recorded")
+
+
 def _unevaluated_row(run: Path, seed, init) -> str:
     """The row of a run stopped before its evaluation: what its metrics.csv says."""
     rows = read_metrics(run)
     last = rows[-1]
     selected = [r for r in rows if r.get("select_success") not in ("", None)]
     sel = ", ".join(f"{float(r['select_success']):.0%} at {r['iteration']}" for r in selected)
-    return (f"| `{run.name}` | {init} | {seed} | {int(last['env_steps']):,} | "
+    return (f"| `{run.name}` | {init} | {seed} | {int(last['env_steps']):,} | {run_machine(run)} | "
             f"{float(last['wall_s']) / 60:.1f} | — | — | not evaluated (stopped after training); "
             f"selection success {sel or '—'} | — | — |")
 

@@ -14,18 +14,23 @@ is a complete block::
       failure: {max_tilt_deg: 80, ...}
       noise: {target_position: {low: 0, high: 0}, ...}   # observation noise sigma, drawn per episode
       perception: {uav_position: {sigma: 0.05, correlation_time: 3.0}, ...}   # fly on estimates
-      randomize: {target_mass: {low: 0.08, high: 0.12}, wind: {low: [..], high: [..]}, ...}
+      randomize: {target_mass: {low: 0.08, high: 0.12}, wind_force: {low: [..], high: [..]}, ...}
 
 The episode's time limit is the scene's ``sim.t_end``. Every randomised quantity is a
 ``{low, high}`` range drawn uniformly per episode from the episode's key; ``low == high``
-fixes it, ``low > high`` is an error. Pydantic only: validating a file never imports JAX.
+fixes it, ``low > high`` is an error. A draw replaces the scene's own value in the
+environment (``env.randomize.target_mass`` replaces ``target.mass``, and so on:
+:data:`REPLACED_BY_DRAWS`), so an override of such a value while its draw is on would be
+ignored: :func:`drawn_value_problems` makes it an error that says how to fix the value.
+Pydantic only: validating a file never imports JAX.
 """
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Any
 
-from pydantic import Field, field_validator
+import yaml
+from pydantic import Field, field_validator, model_validator
 
 from mysim_jax.config.capture import BoxRange, Range
 from mysim_jax.core.config_base import NonNegFloat, PosFloat, StrictModel
@@ -177,16 +182,26 @@ class PerceptionConfig(StrictModel):
 
 class RandomizeConfig(StrictModel):
     """Per-episode draws beyond the target's spawn (which ``target.spawn`` ranges give).
-    ``None`` keeps the scene's value. ``uav_mass_scale`` multiplies every UAV's mass and
-    inertia (the controller keeps assuming the nominal mass); ``wind`` is one force [N] on
-    every UAV for the episode; the evasive ranges apply to a maneuvering target."""
+    ``None`` keeps the scene's value; a range replaces it (:data:`REPLACED_BY_DRAWS`).
+    ``uav_mass_scale`` multiplies every UAV's mass and inertia (the controller keeps
+    assuming the nominal mass); ``wind_force`` is one force [N] on every UAV for the
+    episode, added to the quadrotors' own ``wind.force`` (a force, not a wind speed); the
+    evasive ranges apply to a maneuvering target."""
 
     target_mass: Range | None = None               # kg (inertia scales with it)
     uav_mass_scale: Range | None = None            # -
-    wind: BoxRange | None = None                   # N, world frame
+    wind_force: BoxRange | None = None             # N, world frame, on every UAV
     flee_acceleration: Range | None = None         # m/s^2
     jink_acceleration: Range | None = None         # m/s^2
     max_speed: Range | None = None                 # m/s
+
+    @model_validator(mode="before")
+    @classmethod
+    def _renamed(cls, data):
+        if isinstance(data, dict) and "wind" in data:
+            raise ValueError("wind: renamed wind_force (a force in N on every UAV, not a wind speed): write "
+                             "env.randomize.wind_force with the same {low, high}")
+        return data
 
     @field_validator("target_mass", "uav_mass_scale")
     @classmethod
@@ -223,3 +238,61 @@ class EnvConfig(StrictModel):
     def weights(self) -> dict[str, float]:
         """Every term's weight: the file's, else the paper's (outcomes: OUTCOME_WEIGHTS)."""
         return {**PAPER_WEIGHTS, **OUTCOME_WEIGHTS, **self.rewards}
+
+
+# Scene values that a per-episode draw replaces in the environment: (the value's dotted
+# key, the draw of env.randomize that replaces it, unit).
+REPLACED_BY_DRAWS = (
+    ("target.mass", "target_mass", "kg"),
+    ("target.propulsion.max_speed", "max_speed", "m/s"),
+    ("target.propulsion.flee_acceleration", "flee_acceleration", "m/s^2"),
+    ("target.propulsion.jink_acceleration", "jink_acceleration", "m/s^2"),
+)
+
+
+def _assigned(overrides) -> dict[str, Any]:
+    """Every dotted key an override list assigns, with its value (a mapping value assigns
+    each of its leaves: ``target={mass: 1}`` assigns ``target.mass``)."""
+    out: dict[str, Any] = {}
+
+    def walk(key: str, value):
+        out[key] = value
+        if isinstance(value, dict):
+            for k, v in value.items():
+                walk(f"{key}.{k}", v)
+
+    for ov in overrides:
+        key, sep, text = ov.partition("=")
+        if not sep:
+            continue
+        try:
+            value = yaml.safe_load(text)
+        except yaml.YAMLError:
+            continue                      # the scene loader reports it
+        walk(".".join(p for p in key.strip().split(".") if p), value)
+    return out
+
+
+def drawn_value_problems(config, overrides, where: str = "--set") -> list[str]:
+    """One line per override (``key=value``) that sets a scene value the environment
+    replaces by a per-episode draw of ``config.env.randomize`` (the loaded scene, a
+    SceneConfig with an ``env:`` block): the value would be ignored. Each line names the
+    draw and how to fix the value for every episode (``low`` = ``high``), or how to turn
+    the draw off. Empty when nothing is ignored (or the scene has no ``env:``)."""
+    if getattr(config, "env", None) is None:
+        return []
+    assigned = _assigned(overrides)
+    problems = []
+    for key, draw, unit in REPLACED_BY_DRAWS:
+        if key not in assigned:
+            continue
+        r = getattr(config.env.randomize, draw)
+        if r is None:
+            continue
+        value = assigned[key]
+        problems.append(
+            f"{where} {key}={value}: env.randomize.{draw} draws it per episode ({r.low:g} to {r.high:g} {unit}) and "
+            f"replaces {key} in the environment, so the value would be ignored; to fly with {value} {unit} in every "
+            f"episode set env.randomize.{draw}={{low: {value}, high: {value}}} instead (or "
+            f"env.randomize.{draw}=null to use {key})")
+    return problems

@@ -43,9 +43,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import plotly.io
 
 from mysim_jax.config.scene import expand_capture
+from mysim_jax.core.extras import require
 from mysim_jax.core.npgeom import rotate
 
 COLORS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#17becf",
@@ -492,6 +492,10 @@ def write_replay_html(columns, config, path, title: str | None = None, max_frame
     HTML file with plotly.js inline. ``columns``: trajectory columns; ``config``: the scene
     config the run was simulated with. Raises :class:`ReplayError` naming what is missing
     when the columns do not fit the config."""
+    # plotly is an optional extra ([plots]): imported only when a replay is written
+    require("the HTML replay (replay.html)", "plotly")
+    import plotly.io
+
     fig = replay_figure(columns, config, title=title, max_frames=max_frames, trail=trail)
     path = Path(path)
     plotly.io.write_html(fig, path, include_plotlyjs=True, full_html=True, auto_play=False, div_id="replay",

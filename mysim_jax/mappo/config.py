@@ -40,6 +40,7 @@ from typing import Annotated, Any, Literal
 from pydantic import Field, ValidationError, model_validator
 import yaml
 
+from mysim_jax.config.env import drawn_value_problems
 from mysim_jax.config.scene import apply_override, load_config
 from mysim_jax.core.config_base import (ConfigError, Name, PosFloat, StrictModel, available_memory_bytes,
                                         format_validation_error, read_yaml_file)
@@ -250,7 +251,10 @@ class RunConfig(StrictModel):
     seed: NonNegInt = 0
     checkpoint_every: PosInt = 10          # iterations between checkpoints
     keep_checkpoints: PosInt = 2
-    time_limit_min: PosFloat | None = None   # stop training after this many minutes (then evaluate)
+    # an optional guard: stop training after this many minutes (then evaluate). A run it
+    # stops says so (summary.json stopped_by, curves.png); its result then depends on the
+    # machine's speed, so reported runs stop on algo.total_env_steps instead
+    time_limit_min: PosFloat | None = None
     eval_episodes: PosInt = 1000
     eval_batch: PosInt = 250
     eval_seed: NonNegInt = 12345           # evaluation episodes are drawn apart from training's
@@ -406,6 +410,9 @@ def load_scene(config: TrainConfig, train_path: str | Path, level: str | None = 
     if missing:
         raise ConfigError(f"{train_path}: env.scene: {path} is not a capture environment: it has no "
                           f"{' and no '.join(missing)} block")
+    ignored = drawn_value_problems(scene, config.env.set, where=f"{train_path}: env.set:")
+    if ignored:
+        raise ConfigError("; ".join(ignored))
     if config.env.curriculum is not None and scene.target.behaviour != "maneuvering":
         raise ConfigError(f"{train_path}: env.curriculum scales an evading target's speed, jink and flee ranges; "
                           f"the target of {path} is '{scene.target.behaviour}' (remove env.curriculum or use a "
@@ -469,7 +476,9 @@ def reach_training_text(name: str, total_env_steps: int, **run) -> str:
 def describe(config: TrainConfig) -> str:
     """Derived sizes, one line."""
     a = config.algo
+    guard = ("" if config.run.time_limit_min is None else
+             f"; time guard run.time_limit_min = {config.run.time_limit_min:g} min (stops earlier on a slow machine)")
     return (f"{a.num_iterations} iterations of {a.num_envs} envs x {a.num_steps} steps = {a.batch_size:,} team steps "
             f"({a.num_minibatches} minibatches of {a.minibatch_size:,}, {a.update_epochs} epochs); "
-            f"{a.num_iterations * a.batch_size:,} team steps in all")
+            f"{a.num_iterations * a.batch_size:,} team steps in all (the step budget, algo.total_env_steps){guard}")
 

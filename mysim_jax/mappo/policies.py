@@ -18,6 +18,10 @@ A policy spec is one of
 
 * a trained policy folder (``policy/`` of a ``scripts/train.py`` run: ``policy.json`` and
   ``policy.msgpack``, :mod:`mysim_jax.mappo.checkpoint`): the MAPPO actor's mean action.
+  ``policy.json`` records what its observations and actions meant where it was trained
+  (:func:`~mysim_jax.tasks.contract.environment_contract`: setpoint mode, policy rate,
+  action scale, observation layout, target); an environment that differs in any of these
+  is refused with the differences named, unless ``allow_mismatch`` (a deliberate test).
 
 :func:`policy_maker` resolves a spec to a ``make_policy(env, params)`` function (it
 imports a policy file, so call it after choosing JAX's precision); :func:`check_policy`
@@ -37,6 +41,7 @@ import jax.numpy as jnp
 
 from mysim_jax.mappo.checkpoint import is_policy_folder, load_policy
 from mysim_jax.mappo.trainer import Actor, deterministic_policy
+from mysim_jax.tasks.contract import contract_differences, environment_contract
 from mysim_jax.tasks.evaluate import random_policy, scripted_policy
 
 BUILTIN = ("scripted", "random")
@@ -67,7 +72,7 @@ def check_policy_spec(spec: str, flag: str = "--policy") -> None:
         raise PolicyError(f"{flag} {spec}: not a Python file (.py); {_usage()}")
 
 
-def policy_maker(spec: str, flag: str = "--policy"):
+def policy_maker(spec: str, flag: str = "--policy", allow_mismatch: bool = False):
     """``make_policy(env, params) -> policy`` for a spec (module docstring)."""
     check_policy_spec(spec, flag)
     if spec in BUILTIN:
@@ -75,7 +80,7 @@ def policy_maker(spec: str, flag: str = "--policy"):
         return lambda env, params: factory(env)
     path = Path(spec)
     if path.is_dir():
-        return _trained_policy_maker(path, flag)
+        return _trained_policy_maker(path, flag, allow_mismatch)
     name = f"_mysim_policy_{path.stem}"
     module_spec = importlib.util.spec_from_file_location(name, path)
     if module_spec is None or module_spec.loader is None:
@@ -93,9 +98,26 @@ def policy_maker(spec: str, flag: str = "--policy"):
     return make
 
 
-def _trained_policy_maker(path: Path, flag: str):
+def check_environment(meta: dict, env, params, where: str) -> None:
+    """Refuse ``env`` when it differs from the environment a saved policy records in what
+    its observations and actions mean (:mod:`mysim_jax.tasks.contract`). ``where`` names
+    the policy in the message."""
+    recorded = meta.get("environment")
+    if recorded is None:
+        raise PolicyError(f"{where}: policy.json does not record the environment it was trained on (saved by an "
+                          "older version), so this one cannot be checked against it: pass --allow-mismatch to fly it "
+                          "unchecked")
+    differences = contract_differences(recorded, environment_contract(env, params))
+    if differences:
+        raise PolicyError(f"{where}: trained on another environment ({recorded.get('scene')}, level "
+                          f"{recorded.get('level')}): {'; '.join(differences)}. Evaluate it on the scene it was "
+                          "trained on (scene.yaml of its run folder), or pass --allow-mismatch to fly it here anyway")
+
+
+def _trained_policy_maker(path: Path, flag: str, allow_mismatch: bool = False):
     """``make_policy`` of a saved MAPPO policy; it checks that the environment's
-    observation and action shapes are those the policy was trained on."""
+    observation and action shapes are those the policy was trained on and, unless
+    ``allow_mismatch``, that they mean the same (:func:`check_environment`)."""
     try:
         meta, arrays = load_policy(path)
     except Exception as exc:    # a damaged file is an input error
@@ -108,6 +130,8 @@ def _trained_policy_maker(path: Path, flag: str):
             raise PolicyError(f"{flag} {path}: trained on observations of size {meta['obs_size']} and actions "
                               f"{tuple(meta['action_shape'])}; this environment has {env.obs_size} and "
                               f"{tuple(env.action_shape)} (another number of UAVs?)")
+        if not allow_mismatch:
+            check_environment(meta, env, params, f"{flag} {path}")
         actor = Actor(int(meta["action_shape"][1]), tuple(meta["hidden"]), meta["activation"])
         base = env.scripted_actions if meta.get("residual") else None
         return deterministic_policy(actor, arrays, bool(meta["normalize_obs"]), base)
@@ -135,13 +159,15 @@ def check_policy(env, params, policy, spec: str = "policy", flag: str = "--polic
                           f"{env.action_shape} (one action in [-1, 1] per UAV, one environment)")
 
 
-def make_checked_policy(env, params, spec: str, flag: str = "--policy"):
+def make_checked_policy(env, params, spec: str, flag: str = "--policy", allow_mismatch: bool = False):
     """The policy ``spec`` names (:func:`policy_maker`), made for ``env`` and checked on it
     (:func:`check_policy`). Any error in a user's ``make_policy`` is a PolicyError naming
-    ``flag`` and ``spec``."""
-    make_policy = policy_maker(spec)
+    ``flag`` and ``spec``; a trained policy's environment check (``allow_mismatch``) too."""
+    make_policy = policy_maker(spec, flag, allow_mismatch)
     try:
         policy = make_policy(env, params)
+    except PolicyError:
+        raise
     except Exception as err:   # make_policy is the user's code: any error in it is an input error
         raise PolicyError(f"{flag} {spec}: make_policy(env, params) failed: "
                           f"{type(err).__name__}: {err}") from None

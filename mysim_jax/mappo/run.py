@@ -47,6 +47,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 
 from mysim_jax.config.scene import dump_config
 from mysim_jax.core import parallel
+from mysim_jax.core.machine import machine
 from mysim_jax.core.config_base import ConfigError
 from mysim_jax.io.output import check_output_dir
 from mysim_jax.mappo import bc
@@ -57,6 +58,7 @@ from mysim_jax.mappo.curriculum import Curriculum
 from mysim_jax.mappo.toy import ReachEnv
 from mysim_jax.mappo.trainer import Trainer, deterministic_policy, deterministic_policy_fn
 from mysim_jax.tasks.capture import make_env, scaled_target_ranges
+from mysim_jax.tasks.contract import environment_contract
 from mysim_jax.tasks.evaluate import Evaluator
 from mysim_jax.tasks.report import comparison_line, summary_line, write_comparison, write_evaluation
 from mysim_jax.tasks.sweep import wilson_interval
@@ -229,10 +231,13 @@ def _column(rows: list[dict], key: str):
     return np.array([value(r) for r in rows])
 
 
-def plot_curves(rows: list[dict], path: Path, title: str, best_iteration: int | None = None) -> Path | None:
+def plot_curves(rows: list[dict], path: Path, title: str, best_iteration: int | None = None,
+                time_guard: tuple[int, int] | None = None) -> Path | None:
     """Learning curves of ``metrics.csv`` rows: return, success rate (training episodes, and
     the deterministic policy on the selection episodes with the selected iteration
-    marked), episode length, losses, entropy.
+    marked), episode length, losses, entropy. ``time_guard`` = ``(iteration, planned)``
+    when ``run.time_limit_min`` stopped the run before its step budget: the title says so
+    and every panel marks where.
 
     Return, success and length are per episode: iterations in which no episode ended leave a
     gap rather than a zero.
@@ -273,10 +278,20 @@ def plot_curves(rows: list[dict], path: Path, title: str, best_iteration: int | 
                 ax.step(x[has], frac[has], where="post", color="tab:purple", lw=1.0,
                         label="curriculum: fraction of the target's full speed / jink / flee ranges")
             ax.set_ylim(-0.02, 1.02)
+        if time_guard is not None:
+            its = _column(rows, "iteration")
+            at = np.flatnonzero(its == time_guard[0])
+            if at.size:
+                ax.axvline(x[at[0]], color="black", ls=":", lw=1.2,
+                           label="stopped by run.time_limit_min" if key == "success_rate" else None)
+        if key == "success_rate":
             ax.legend(fontsize=7, loc="lower right")
         ax.set_title(label, fontsize=10)
         ax.set_xlabel("team steps")
         ax.grid(alpha=0.3)
+    if time_guard is not None:
+        title = (f"{title}\nstopped by the time guard (run.time_limit_min) after iteration {time_guard[0]} of "
+                 f"{time_guard[1]}: not the step budget")
     fig.suptitle(title)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -498,7 +513,7 @@ def _show_progress(s: _Session, bar, row: dict, m: dict, dt: float) -> None:
     if s.curriculum is not None:
         sel += f", stage {s.curriculum.stage + 1}"
     bar.set_postfix_str(f"return {m['mean_return']:.2f}, success {m['success_rate']:.0%}{sel}, "
-                        f"{s.c.algo.batch_size / dt:,.0f} env-steps/s")
+                        f"{s.c.algo.batch_size / dt:,.0f} team steps/s")
 
 
 @dataclass
@@ -568,7 +583,11 @@ def _summary(s: _Session, run: _Trained, train_wall: float) -> dict:
     per_iteration = float(np.median(run.iteration_times)) if run.iteration_times else None
     summary = {
         "name": c.name, "config": s.p.source, "iterations": iteration, "planned_iterations": c.algo.num_iterations,
+        # what ended training: the step budget (algo.total_env_steps), or the optional time
+        # guard (run.time_limit_min), which makes the result depend on the machine's speed
+        "stopped_by": "time_limit" if run.stopped_early else "step_budget",
         "stopped_by_time_limit": run.stopped_early, "env_steps": iteration * c.algo.batch_size,
+        "planned_env_steps": c.algo.num_iterations * c.algo.batch_size,
         "agent_steps": iteration * c.algo.batch_size * n_agents,
         "training_wall_s_this_process": round(train_wall, 1),
         "training_wall_s_total": float(rows[-1]["wall_s"]) if rows else 0.0,
@@ -576,6 +595,7 @@ def _summary(s: _Session, run: _Trained, train_wall: float) -> dict:
         "env_steps_per_s_with_update": c.algo.batch_size / per_iteration if per_iteration else None,
         "final_train_success_rate": float(rows[-1]["success_rate"]) if rows and "success_rate" in rows[-1] else None,
         "init": c.algo.init,
+        "machine": machine(),              # what the wall times above were measured on
         "devices": 1 if s.trainer.mesh is None else s.trainer.mesh.size,
         "processes": jax.process_count(),
     }
@@ -607,6 +627,9 @@ def _save_policy(s: _Session, run: _Trained, arrays) -> None:
             "residual": c.algo.residual,
             "env": "builtin:" + c.env.builtin if c.env.builtin else SCENE_FILE, "iteration": run.iteration,
             "selected_iteration": best_iteration if best_iteration >= 0 else run.iteration, "train": c.name}
+    if s.p.scene is not None:
+        # what the policy's observations and actions mean: evaluating it elsewhere is checked against it
+        meta["environment"] = environment_contract(s.env, s.env_params)
     save_policy(s.p.out / "policy", arrays, meta)
 
 
@@ -674,7 +697,8 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
         return {}
     _write_rows(p.out / "metrics.csv", run.rows)
     best_iteration = int(run.state.best_iteration)
-    plot_curves(run.rows, p.out / "curves.png", c.name, best_iteration if best_iteration >= 0 else None)
+    plot_curves(run.rows, p.out / "curves.png", c.name, best_iteration if best_iteration >= 0 else None,
+                (run.iteration, c.algo.num_iterations) if run.stopped_early else None)
     _save_policy(s, run, arrays)
     summary = _summary(s, run, train_wall)
     if evaluate:

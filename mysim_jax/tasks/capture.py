@@ -99,7 +99,7 @@ class Episode:
 
     target_mass: jnp.ndarray      # () kg
     uav_mass_scale: jnp.ndarray   # () -
-    wind: jnp.ndarray             # (3,) N on every UAV, world
+    wind_force: jnp.ndarray       # (3,) N on every UAV, world
     flee_acceleration: jnp.ndarray  # () m/s^2
     jink_acceleration: jnp.ndarray  # () m/s^2
     max_speed: jnp.ndarray        # () m/s
@@ -204,6 +204,8 @@ class CaptureEnv:
     gravity: tuple[float, float, float] = (0.0, 0.0, -9.81)   # m/s^2, world
     perception: bool = False             # the team flies on estimates (levels: EnvParams.perception)
     observation_noise: bool = True       # env.noise has a nonzero range (else no noise is drawn)
+    scene_name: str = ""                 # the scene file's name: (recorded with a trained policy)
+    level: str = "full"                  # the scene's fidelity level (recorded with a trained policy)
 
     # --- sizes ------------------------------------------------------------------------
     @property
@@ -364,7 +366,7 @@ class CaptureEnv:
         sim = sim.replace(body_mass=body_mass, body_inertia=inertia, effects={**sim.effects, "target": tp})
         if self.randomized_wind:
             qp = sim.quadrotor
-            sim = sim.replace(quadrotor=qp.replace(wind_force=qp.wind_force + ep.wind[None, :]))
+            sim = sim.replace(quadrotor=qp.replace(wind_force=qp.wind_force + ep.wind_force[None, :]))
         return sim
 
     def _reset_state(self, key, params: EnvParams) -> EnvState:
@@ -593,8 +595,8 @@ def _ranges(config, dtype) -> Ranges:
     pairs = {
         "target_mass": rng(r.target_mass, target.mass),
         "uav_mass_scale": rng(r.uav_mass_scale, 1.0),
-        "wind": (jnp.asarray((0.0, 0.0, 0.0) if r.wind is None else r.wind.low, dtype),
-                 jnp.asarray((0.0, 0.0, 0.0) if r.wind is None else r.wind.high, dtype)),
+        "wind_force": (jnp.asarray((0.0, 0.0, 0.0) if r.wind_force is None else r.wind_force.low, dtype),
+                       jnp.asarray((0.0, 0.0, 0.0) if r.wind_force is None else r.wind_force.high, dtype)),
         "flee_acceleration": rng(r.flee_acceleration, prop.flee_acceleration if prop else 0.0),
         "jink_acceleration": rng(r.jink_acceleration, prop.jink_acceleration if prop else 0.0),
         "max_speed": rng(r.max_speed, prop.max_speed if prop else 0.0),
@@ -631,7 +633,7 @@ def make_env(config) -> tuple[CaptureEnv, EnvParams]:
         raise ValueError(f"scene '{config.name}': no env: block (add `env: {{}}` for the defaults)")
     env_cfg, net = config.env, config.net
     scene, params, state = build(config)
-    if env_cfg.randomize.wind is not None and not scene.quadrotor.has_wind:
+    if env_cfg.randomize.wind_force is not None and not scene.quadrotor.has_wind:
         scene = dataclasses.replace(scene, quadrotor=dataclasses.replace(scene.quadrotor, has_wind=True))
     team = team_policy(config.model_copy(update={"team": config.team or _default_team()}), scene)
     quads = [q.body for q in config.quadrotors]
@@ -663,11 +665,11 @@ def make_env(config) -> tuple[CaptureEnv, EnvParams]:
         tether_markers=tuple(tethers), line_nodes_a=tuple(a), line_nodes_b=tuple(b),
         slots=tuple(map(tuple, slots.tolist())), control_steps=control_steps, max_steps=max_steps,
         policy_dt=control_steps * config.sim.dt, success=env_cfg.success, failure=env_cfg.failure,
-        scales=env_cfg.reward_scales, randomized_wind=env_cfg.randomize.wind is not None, scripted=team,
+        scales=env_cfg.reward_scales, randomized_wind=env_cfg.randomize.wind_force is not None, scripted=team,
         falling=config.target.behaviour == "falling",
         target_drag_per_mass=float(config.target.drag_constant / config.target.mass),
         gravity=tuple(float(g) for g in config.gravity),
-        perception=env_cfg.perception is not None,
+        perception=env_cfg.perception is not None, scene_name=config.name, level=config.level,
         observation_noise=any(getattr(env_cfg.noise, f).high > 0.0 for f in NoiseConfig.model_fields))
     weights = env_cfg.weights()
     env_params = EnvParams(sim=params, start=state,

@@ -36,6 +36,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from mysim_jax.core import batching, parallel
+from mysim_jax.core.machine import machine
 from mysim_jax.config.env import FAILURES, REWARD_TERMS
 from mysim_jax.tasks.sweep import wilson_interval
 
@@ -102,6 +103,7 @@ class EpisodeStats:
             "mean_return": float(np.mean(self.returns)),
             "mean_terms": {k: float(np.mean(v)) for k, v in self.terms.items()},
             "wall_s": self.wall_s,
+            "machine": machine(),         # what wall_s was measured on
             "policy_steps": self.policy_steps,
         }
 
