@@ -171,5 +171,5 @@ def make_checked_policy(env, params, spec: str, flag: str = "--policy", allow_mi
     except Exception as err:   # make_policy is the user's code: any error in it is an input error
         raise PolicyError(f"{flag} {spec}: make_policy(env, params) failed: "
                           f"{type(err).__name__}: {err}") from None
-    check_policy(env, params, policy, spec)
+    check_policy(env, params, policy, spec, flag)
     return policy
