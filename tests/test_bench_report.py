@@ -51,7 +51,7 @@ def test_summary_lines_judge_the_targets_and_name_their_sections():
     results = {
         "ours_4096": 2.5e6, "kernel_ratio": {1024: 0.9, 4096: 0.7}, "kernel_met": False,
         "b": {1: {"matmul": 1000.0, "segment_sum": 2000.0}},
-        "env_rows": [ThroughputRow("4096", 4096, 1, [2.0], 1.0, 1.0)],
+        "env_rows": [ThroughputRow("4096", 4096, 1, [2.0], 1.0, 1.0)], "env_rate_level": (25.0, "full"),
         "d": rope, "g": {"iteration": 50.0, "env": 200.0},
         "f": {"library": 3.0e6, "floor": 9.0e6},
     }
@@ -60,7 +60,7 @@ def test_summary_lines_judge_the_targets_and_name_their_sections():
     text = "\n".join(lines)
     assert "**2,500,000 env-steps/s** — target ≥ 1,000,000: **met**" in text
     assert "B=1024: **0.90×**, B=4096: **0.70×**" in text and "**NOT met**." in text
-    assert "**2,048.0 team (policy) steps/s** — target ≥ 20,000: **NOT met**" in text
+    assert "**2,048.0 team steps/s** at 25 Hz on the level `full` — target ≥ 20,000: **NOT met**" in text
     assert "rk4 1e-04 float64: 2.0e-09 m at 0.500 s/sim-s" in text and "tsit5" not in text
     assert "({:.0%})".format(50 / 200) in text
     assert "gravity-only floor 9,000,000." in text and "`jax.vmap`" not in text.split("Profile (f)")[1]

@@ -68,6 +68,7 @@ def section_e(cfg, results) -> list[str]:
     rows, first_rows = _time_batches(cfg, env, params)
     results["env_rows"] = rows
     results["env_first_rows"] = first_rows
+    results["env_rate_level"] = (1.0 / env.policy_dt, env.level)     # what a team step is here
 
     # where the time goes, at B = 256: the physics alone (control periods), and variants
     # of the scene with one stage removed
@@ -151,7 +152,8 @@ def _batch_table(cfg, env, params, rows, first_rows) -> list[str]:
         "",
         f"`configs/capture_env_falling.yaml` (float32, {scene.n_points} point masses, {scene.n_springs} springs, "
         f"4 quadrotors and the target, contact, line drag; {env.control_steps} control periods of "
-        f"{scene.dt * 1e3:g} ms per team step at 25 Hz, {scene.substeps} semi-implicit Euler sub-steps each). "
+        f"{scene.dt * 1e3:g} ms per team step at {1.0 / env.policy_dt:g} Hz, the scene's own rate, on its level "
+        f"`{env.level}`, {scene.substeps} semi-implicit Euler sub-steps each). "
         "One call = `jax.jit(mysim_jax.core.batching.vmap(run_env, chunk=c))(keys, states)` (batch axis last, in blocks of "
         f"c = `batching.chunk_for(state)` = {batching.chunk_for(env.reset(jax.random.PRNGKey(0), params)[1])} environments when B is larger) with `run_env` a `lax.scan` of K "
         "`CaptureEnv.step` calls whose actions are the scripted team's (`CaptureEnv.scripted_actions`): "
@@ -185,8 +187,7 @@ def _stage_table(cfg, env, rows, pb: int, variants, t) -> list[str]:
         f"{top.env_steps_per_s / TARGET_POLICY_STEPS:.2%} of it).",
         "",
         f"`jax.vmap` rows are timed only up to B = {cfg.env_first_max_batch} (at B = 4096 one batch-first call "
-        "takes over two minutes). For B = 4096 the batch-first figure is the previous full run's, at git bb2af88 "
-        "on this machine type: 28.3 team steps/s.",
+        "takes minutes).",
         "",
         f"### Where a team step's time goes (B = {pb})",
         "",

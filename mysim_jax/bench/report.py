@@ -141,8 +141,9 @@ def _headline_summary(results) -> list[str]:
                    f"**{'met' if results['kernel_met'] else 'NOT met'}**.")
     if "env_rows" in results:
         top = results["env_rows"][-1]
+        rate, level = results.get("env_rate_level", (float("nan"), "?"))
         out.append(f"- Capture environment (e), scripted team, B = {top.batch}: **{top.env_steps_per_s:,.1f} team "
-                   f"(policy) steps/s** — target ≥ {TARGET_POLICY_STEPS:,}: "
+                   f"steps/s** at {rate:g} Hz on the level `{level}` — target ≥ {TARGET_POLICY_STEPS:,}: "
                    f"**{'met' if top.env_steps_per_s >= TARGET_POLICY_STEPS else 'NOT met'}** (where the time goes: (e)).")
     if "mujoco_steps_per_s" in results:
         out.append(f"- MuJoCo (c), Euler, one thread: **{results['mujoco_steps_per_s']:,.0f} steps/s**; its payload z "
@@ -249,8 +250,9 @@ def _other_summary(results) -> list[str]:
     out = []
     if "g" in results:
         g = results["g"]
-        out.append(f"- Training (g), MAPPO on the capture environment: **{g['iteration']:,.0f} team env-steps/s "
-                   f"including the update**, against {g['env']:,.0f} for the environment alone "
+        out.append(f"- Training (g), MAPPO on the capture environment: **{g['iteration']:,.0f} team steps/s "
+                   f"including the update** (the default training file's rate and level), against {g['env']:,.0f} "
+                   "for the environment alone "
                    f"({g['iteration'] / g['env']:.0%}).")
     if "h" in results:
         h = results["h"]

@@ -95,10 +95,11 @@ def section_g(cfg, results) -> list[str]:
         + f": {algo.num_envs} environments × {algo.num_steps} team steps per iteration, update of "
         f"{algo.update_epochs} epochs × {algo.num_minibatches} minibatches, networks {list(algo.hidden)} "
         f"(mysim_jax/bench/training.py). Each call AOT-compiled; timed round-robin, median of "
-        f"{len(m.times['iteration'])} rounds. env-steps/s = team (policy) steps of all environments per second; "
-        f"a team step is {env.control_steps} control periods of {env.scene.substeps} physics sub-steps.",
+        f"{len(m.times['iteration'])} rounds. Team steps/s = policy steps of the whole team over all environments "
+        f"per second, at {1.0 / env.policy_dt:g} Hz on the level `{env.level}`: a team step is {env.control_steps} "
+        f"control periods of {env.scene.substeps} physics sub-steps (docs/machines.md).",
         "",
-        "| call | what | s per call | team env-steps/s | compile [s] |",
+        "| call | what | s per call | team steps/s | compile [s] |",
         "|---|---|---:|---:|---:|",
         f"| iteration | rollout + GAE + update (`Trainer.iteration`) | {median(m.times['iteration']):.2f} | "
         f"{rate['iteration']:,.0f} | {m.compile_s['iteration']:.1f} |",
