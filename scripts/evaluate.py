@@ -58,7 +58,7 @@ import argparse
 import json
 import sys
 
-from mysim_jax.core.cli import add_set_argument
+from mysim_jax.core.cli import add_set_argument, add_team_arguments
 
 
 def _error(message: str) -> int:
@@ -70,20 +70,11 @@ def build_parser() -> argparse.ArgumentParser:
     """The command line's parser (the documented-commands test parses with it)."""
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("config", help="YAML capture scene file")
-    parser.add_argument("--policy", required=True, help="scripted, random, a trained policy folder (RUN/policy), or a Python file defining make_policy")
-    parser.add_argument("--episodes", type=int, required=True, help="number of episodes (>= 1)")
-    parser.add_argument("--out", required=True, help="output directory (created if missing)")
-    parser.add_argument("--batch", type=int, default=None, help="environments run side by side (default 64, "
-                        "at most --episodes)")
+    add_team_arguments(parser)
     parser.add_argument("--seed", type=int, default=0, help="PRNG seed of the whole evaluation (default 0)")
     add_set_argument(parser, "env.policy_rate=10", "a config value")
-    parser.add_argument("--compare", metavar="POLICY",
-                        help="also run this team (as --policy) on the same episodes and compare (paired)")
     parser.add_argument("--perception", metavar="FILE",
                         help="fly on estimates: a YAML env.perception block (uav_position, ..., target_velocity)")
-    parser.add_argument("--allow-mismatch", action="store_true",
-                        help="fly a trained policy on a scene whose setpoints, policy rate, action scale, observation "
-                        "layout or target differ from those it was trained on (a deliberate test; refused otherwise)")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     parser.add_argument("--no-animation", action="store_true", help="do not write capture.gif (slow)")
     return parser

@@ -50,7 +50,7 @@ import argparse
 import shlex
 import sys
 
-from mysim_jax.core.cli import add_set_argument
+from mysim_jax.core.cli import add_set_argument, add_team_arguments
 
 
 def _error(message: str) -> int:
@@ -62,24 +62,13 @@ def build_parser() -> argparse.ArgumentParser:
     """The command line's parser (the documented-commands test parses with it)."""
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("scene", help="YAML capture scene file with an env: block")
-    parser.add_argument("--policy", required=True, help="scripted, random, a trained policy folder (RUN/policy), "
-                        "or a Python file defining make_policy")
-    parser.add_argument("--compare", metavar="POLICY",
-                        help="also run this team (as --policy) on the same episodes at every point and compare "
-                        "(paired)")
+    add_team_arguments(parser, "episodes per point and team (>= 1)")
     parser.add_argument("--vary", action="append", required=True, metavar="KEY=v1,v2,...",
                         help="one axis of the grid: a scene key (or seed) and its values (YAML, split on the commas "
                         "outside brackets); repeat for more axes")
-    parser.add_argument("--episodes", type=int, required=True, help="episodes per point and team (>= 1)")
-    parser.add_argument("--out", required=True, help="output directory (created if missing)")
-    parser.add_argument("--batch", type=int, default=None, help="environments run side by side (default 64, "
-                        "at most --episodes)")
     parser.add_argument("--seed", type=int, default=None, help="PRNG seed of every point's episodes (default 0; "
                         "or vary it with --vary seed=...)")
     add_set_argument(parser, "level=train", "a scene value at every point")
-    parser.add_argument("--allow-mismatch", action="store_true",
-                        help="fly a trained policy on scenes whose setpoints, policy rate, action scale, observation "
-                        "layout or target differ from those it was trained on (a deliberate test; refused otherwise)")
     parser.add_argument("--no-progress", action="store_true", help="hide the per-point episode progress bars")
     return parser
 

@@ -33,3 +33,20 @@ def add_set_argument(parser: argparse.ArgumentParser, example: str = "sim.dt=5e-
     parser.add_argument("--set", dest="overrides", action="extend", nargs="+", type=override, default=[],
                         metavar="KEY=VALUE",
                         help=f"override {what}, e.g. --set {example}; several after one --set, or --set repeated")
+
+
+def add_team_arguments(parser: argparse.ArgumentParser, episodes_help: str = "number of episodes (>= 1)") -> None:
+    """The options of a script that flies capture teams on episodes (``evaluate.py``,
+    ``sweep.py``): ``--policy`` (required), ``--compare``, ``--episodes`` (required),
+    ``--out`` (required), ``--batch`` and ``--allow-mismatch``."""
+    parser.add_argument("--policy", required=True, help="scripted, random, a trained policy folder (RUN/policy), "
+                        "or a Python file defining make_policy")
+    parser.add_argument("--compare", metavar="POLICY",
+                        help="also run this team (as --policy) on the same episodes and compare (paired)")
+    parser.add_argument("--episodes", type=int, required=True, help=episodes_help)
+    parser.add_argument("--out", required=True, help="output directory (created if missing)")
+    parser.add_argument("--batch", type=int, default=None, help="environments run side by side (default 64, "
+                        "at most --episodes)")
+    parser.add_argument("--allow-mismatch", action="store_true",
+                        help="fly a trained policy on a scene whose setpoints, policy rate, action scale, observation "
+                        "layout or target differ from those it was trained on (a deliberate test; refused otherwise)")
