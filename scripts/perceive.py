@@ -66,13 +66,16 @@ def build_parser() -> argparse.ArgumentParser:
                         "(mysim_jax.perception.detect)")
     parser.add_argument("--weights", metavar="MSGPACK", help="--track, learned: detector weights written by "
                         "scripts/train_detector.py (default: the committed docs/detector/detector.msgpack)")
+    parser.add_argument("--full-frame", action="store_true", help="--track, learned: search the whole image "
+                        "every frame (default: around where the tracker expects the target, the whole image when "
+                        "it has lost it)")
     parser.add_argument("--det-noise", type=float, default=1.0, metavar="PX", help="--track, oracle: box edge noise "
                         "(px, default 1)")
     parser.add_argument("--miss-rate", type=float, default=0.0, help="--track, oracle: probability of a missed "
                         "detection (default 0)")
-    parser.add_argument("--range-sigma", type=float, default=0.05, metavar="REL", help="--track: relative range "
-                        "noise the fusion assumes (default 0.05, for a sphere; ~0.3 for a drone target, whose box "
-                        "depends on its attitude)")
+    parser.add_argument("--range-sigma", type=float, metavar="REL", help="--track: relative range noise the "
+                        "fusion assumes for ranges from box sizes (default by the target: 0.05 for a sphere, 0.3 for "
+                        "a drone, whose box depends on its attitude)")
     parser.add_argument("--no-cue", action="store_true", help="--track: no start cue; the cameras search")
     parser.add_argument("--pose-noise", type=float, nargs=2, metavar=("M", "RAD"), help="--track: also localise "
                         "with camera poses perturbed by these position and rotation standard deviations")
@@ -154,12 +157,18 @@ def _track(args) -> int:
             raise PerceptionError(f"{args.track}: tracking runs the scene in float32; set sim.precision: float32")
         if args.t_end is not None and not args.t_end > 0:
             raise PerceptionError(f"--t-end must be positive, got {args.t_end}")
+        if args.range_sigma is None:
+            from mysim_jax.perception.localize import RANGE_SIGMA
+            from mysim_jax.perception.render import auto_target_style
+
+            args.range_sigma = RANGE_SIGMA[auto_target_style(config)]
         if not args.range_sigma > 0:
             raise PerceptionError(f"--range-sigma must be positive, got {args.range_sigma}")
         if not args.camera_rate > 0:
             raise PerceptionError(f"--camera-rate must be positive, got {args.camera_rate}")
         intr = intrinsics(width=args.size[0], height=args.size[1])
-        detector = make_detector(args.detector, args.weights, args.det_noise, args.miss_rate, args.seed)
+        detector = make_detector(args.detector, args.weights, args.det_noise, args.miss_rate, args.seed,
+                                 region=not args.full_frame)
         pose_noise = None
         if args.pose_noise is not None:
             pose_noise = make_pose_noise(args.pose_noise[0], args.pose_noise[1], args.pose_noise_time, args.seed)
@@ -167,6 +176,7 @@ def _track(args) -> int:
         print(f"error: {err}", file=sys.stderr)
         return 2
 
+    from mysim_jax.core.machine import machine
     from mysim_jax.io.output import staged_output
     from mysim_jax.io.trajectory import write_trajectory_csv
     from mysim_jax.perception.track import run_tracking
@@ -175,7 +185,7 @@ def _track(args) -> int:
     t0 = time.perf_counter()
     try:
         record = run_tracking(config, detector, intr, frame_rate=args.camera_rate, t_end=args.t_end,
-                              initial_cue=not args.no_cue, progress=not args.no_progress)
+                              initial_cue=not args.no_cue, range_sigma=args.range_sigma, progress=not args.no_progress)
     except PerceptionError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
@@ -185,7 +195,10 @@ def _track(args) -> int:
         write_trajectory_csv(tmp / "trajectory.csv", record.columns)
         extra = {"scene": config.name, "frames": int(len(record.t)), "frame_rate_hz": args.camera_rate,
                  "image": list(args.size), "detector": args.detector, "det_noise_px": args.det_noise,
-                 "miss_rate": args.miss_rate, "initial_cue": not args.no_cue, "wall_time_s": wall}
+                 "miss_rate": args.miss_rate, "initial_cue": not args.no_cue, "wall_time_s": wall,
+                 "machine": machine()}
+        if hasattr(detector, "stats"):
+            extra["detection_time"] = detector.stats()
         metrics = write_tracking_report(record, tmp, pose_noise=pose_noise, extra=extra, progress=not args.no_progress,
                                         range_sigma=args.range_sigma)
     print("\n".join(tracking_summary_lines(config.name, record, metrics, args.camera_rate, wall, out)))

@@ -25,6 +25,11 @@ second stage is trained (from FILE's second stage with ``refine.fine_tune: true`
     python scripts/train_detector.py configs/detector_refine.yaml --init docs/detector/detector.msgpack \
         --out runs/detector_refine
 
+``--modes full region`` also evaluates the CNN in region mode, as gimbal tracking runs it:
+around a hint of where the target is, drawn near the truth with the tracker's prediction
+errors (``mysim_jax.perception.detect.train.region_hints``); ``cnn_region/...`` in
+``metrics.json``.
+
 ``--eval-seed N`` draws the evaluation frames with seed N instead of ``data.seed`` (fresh frames
 of the same splits; the training frames keep ``data.seed``); ``--eval-images N`` makes each
 evaluation set N frames instead of ``data.eval_images`` (a larger draw, a tighter estimate).
@@ -55,6 +60,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "data.eval_seed, else data.seed)")
     parser.add_argument("--eval-images", type=int, help="frames per evaluation set (default: the config's "
                         "data.eval_images)")
+    parser.add_argument("--modes", nargs="+", choices=("full", "region"), default=["full"],
+                        help="how the CNN is evaluated: on the whole image (full, default) and / or around a "
+                        "tracker's hint drawn near the truth (region: the mode gimbal tracking uses)")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bars")
     return parser
 
@@ -106,13 +114,15 @@ def main(argv=None) -> int:
     from mysim_jax.perception.detect.train import run
 
     t0 = time.perf_counter()
-    metrics = run(cfg, out, progress=not args.no_progress, cache=cache, weights=args.weights, init=args.init)
+    metrics = run(cfg, out, progress=not args.no_progress, cache=cache, weights=args.weights, init=args.init,
+                  modes=tuple(args.modes))
     done = (f"evaluated {args.weights}" if args.weights else
             f"trained {cfg.train.steps} steps{f' from {args.init}' if args.init else ''} in "
             f"{metrics['train_seconds']:.0f} s" +
             (f", the second stage {cfg.refine.steps} steps in {metrics['refine_seconds']:.0f} s" if cfg.refine else ""))
     print(f"{done}; wrote {out}/ ({time.perf_counter() - t0:.0f} s in all)")
-    for key in ("cnn/held_out", "baseline/held_out", "cnn/in_distribution", "baseline/in_distribution"):
+    names = [n for n in ("cnn", "cnn_region", "baseline") if f"{n}/held_out" in metrics]
+    for key in [f"{n}/{set_name}" for set_name in ("held_out", "in_distribution") for n in names]:
         m = metrics[key]
         print(f"  {key:26s} precision {m['precision']:.3f}  recall {m['recall']:.3f}  mean IoU {m['mean_iou']:.3f}  "
               f"AP50 {m['ap50']:.3f}  {m['fps']:.1f} frames/s ({m['n_targets']} targets in {m['n_images']} frames)")

@@ -476,6 +476,44 @@ def test_flip_test_is_mirror_symmetric_and_saved(detector, held_out_batch, tmp_p
     assert CNNDetector.load(flip.save(tmp_path / "flip.msgpack")).flip_test
 
 
+def test_region_mode_finds_what_the_whole_image_finds(detector, held_out_batch):
+    """``detect_region`` around the target's true centre, shifted by a typical tracking
+    prediction error (15 px), finds a box that matches the target (IoU >= 0.5) on the frames
+    where the whole-image detector does, at least as often less one; its boxes are in the
+    image's pixels (the same box as the whole image's within a few pixels); the window stays
+    inside the image where it fits."""
+    from mysim_jax.perception.detect.model import RegionSettings
+
+    region = RegionSettings()
+    full_hits = region_hits = 0
+    for s in held_out_batch:
+        side = float(max(s.box[2] - s.box[0], s.box[3] - s.box[1]))
+        centre = np.array([(s.box[0] + s.box[2]) / 2 + 15.0, (s.box[1] + s.box[3]) / 2 - 10.0])
+        full, roi = detector.detect(s.image), detector.detect_region(s.image, centre, side, region)
+        f_hit = bool(full) and iou(full[0].box, s.box) >= 0.5
+        r_hit = bool(roi) and iou(roi[0].box, s.box) >= 0.5
+        full_hits, region_hits = full_hits + f_hit, region_hits + r_hit
+        if f_hit and r_hit:
+            assert np.abs(roi[0].box - full[0].box).max() <= 0.15 * side + 3.0
+    assert region_hits >= full_hits - 1, (region_hits, full_hits)
+    (x0, y0, w), scale = detector.region_window((360, 640), (5.0, 5.0), 20.0, region)
+    assert x0 == 0 and y0 == 0 and w >= region.min_window_px and np.isclose(w * scale, region.input_px)
+    (x0, y0, w), _ = detector.region_window((360, 640), (320.0, 180.0), 400.0, region)    # wider than the image
+    assert w > 360 and np.isclose(y0 + w / 2, 180.0) and 0 <= x0 <= 640 - w
+    s = held_out_batch[0]
+    assert isinstance(detector.detect_region(s.image, (0.0, 0.0), 30.0), list)     # the window past the corner
+    with pytest.raises(PerceptionError, match="finite centre"):
+        detector.detect_region(s.image, (np.nan, 3.0), 10.0)
+    with pytest.raises(PerceptionError, match="multiple of 32"):
+        RegionSettings(input_px=100)
+
+
+def test_refine_batches_pad_to_few_sizes():
+    from mysim_jax.perception.detect.refine import padded_count
+
+    assert [padded_count(n) for n in (1, 4, 5, 8, 9, 16, 17, 33)] == [4, 4, 8, 8, 16, 16, 32, 48]
+
+
 def test_classical_baseline_finds_a_sphere(held_out_batch):
     from mysim_jax.perception.detect.classical import ColourBlobDetector
 

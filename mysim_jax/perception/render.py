@@ -316,6 +316,12 @@ def _check_settings(intr: Intrinsics, target_style, min_line_px) -> None:
         raise PerceptionError(f"min_line_px must be >= 0, got {min_line_px}")
 
 
+def auto_target_style(config) -> str:
+    """How ``target_style="auto"`` draws the scene's target: ``"drone"`` for a maneuvering
+    target (the evading drone), else ``"sphere"``."""
+    return "drone" if config.target.behaviour == "maneuvering" else "sphere"
+
+
 def _body_models(config, target_style):
     """The bodies drawn, in the order of their models (the target, the quadrotors, their
     cameras), the models, and each camera's quadrotor."""
@@ -324,9 +330,7 @@ def _body_models(config, target_style):
     camera_owner: dict[str, str] = {}
     target = getattr(config, "target", None)
     if target is not None:
-        style = target_style
-        if style == "auto":
-            style = "drone" if target.behaviour == "maneuvering" else "sphere"
+        style = auto_target_style(config) if target_style == "auto" else target_style
         bodies.append(target.name)
         if style == "drone":
             L = target.radius / 1.48

@@ -54,6 +54,7 @@ teammates' cue.
 from __future__ import annotations
 
 import dataclasses
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Sequence
@@ -68,9 +69,9 @@ from mysim_jax.core.npgeom import quat_to_matrix
 from mysim_jax.perception.camera import Intrinsics, PerceptionError, intrinsics as make_intrinsics
 from mysim_jax.perception.detect import Detection   # noqa: F401  (the detections this module handles)
 from mysim_jax.perception.detect.model import load_detector
-from mysim_jax.perception.localize import (PoseNoise, box_size_px, box_touches_border, fuse, pixel_bearings,
-                                          sphere_range)
-from mysim_jax.perception.render import Frame, Renderer
+from mysim_jax.perception.localize import (RANGE_SIGMA, PoseNoise, box_size_px, box_touches_border, fuse,
+                                          pixel_bearings, sphere_range)
+from mysim_jax.perception.render import Frame, Renderer, auto_target_style
 from mysim_jax.sim import rollout, single_env_scene
 from mysim_jax.tasks.scripted import team_policy
 
@@ -86,6 +87,83 @@ def image_detector(detector) -> FrameDetector:
     if not hasattr(detector, "detect"):
         raise PerceptionError(f"a detector needs a detect(image) method; got {type(detector).__name__}")
     return lambda frame: detector.detect(frame.image)
+
+
+@dataclass(frozen=True)
+class RegionHint:
+    """Where a camera's tracker expects the target in its next image."""
+
+    centre: np.ndarray      # (2,) px, the expected box centre
+    side: float             # px, the expected box's longer side
+
+
+# the hint that the target is expected outside the image (behind the camera or beyond its
+# border): a detector that takes hints does not look at all
+OUT_OF_VIEW = RegionHint(centre=np.full(2, np.nan), side=0.0)
+
+
+class RegionDetector:
+    """A frame detector that looks where the tracker expects the target (region-of-interest
+    mode) and at the whole image otherwise.
+
+    Called as ``detector(frame, hint)``: with a :class:`RegionHint` it runs
+    ``detector.detect_region(image, hint.centre, hint.side, region)`` (the learned
+    detector's :meth:`~mysim_jax.perception.detect.model.CNNDetector.detect_region`);
+    without a hint, ``detector.detect(image)`` on the whole image; with :data:`OUT_OF_VIEW`
+    nothing (the target is expected outside this image). With ``fallback_full``,
+    a region that finds nothing is followed by the whole image in the same frame (off by
+    default: the hint is where the target is expected, so a miss there is mostly a hidden
+    target, and the tracker's recovery and the team's cue take over). :meth:`stats` gives
+    the calls of each kind and the detection time per frame (wall clock of the detector
+    alone, not the rendering)."""
+
+    accepts_hints = True
+
+    def __init__(self, detector, region=None, fallback_full: bool = False):
+        if not (hasattr(detector, "detect") and hasattr(detector, "detect_region")):
+            raise PerceptionError(f"region mode needs a detector with detect and detect_region; "
+                                  f"got {type(detector).__name__}")
+        self.detector, self.region, self.fallback_full = detector, region, fallback_full
+        self.seconds: list[float] = []
+        self.kinds: list[str] = []          # "region", "region+full" (the fallback ran), "full"
+
+    def __call__(self, frame: Frame, hint: RegionHint | None = None) -> list:
+        if hint is OUT_OF_VIEW:
+            self.seconds.append(0.0)
+            self.kinds.append("skipped")
+            return []
+        t0 = time.perf_counter()
+        kind = "full"
+        if hint is not None:
+            found = self.detector.detect_region(frame.image, hint.centre, hint.side, self.region)
+            kind = "region"
+            if not found and self.fallback_full:
+                found, kind = self.detector.detect(frame.image), "region+full"
+        else:
+            found = self.detector.detect(frame.image)
+        self.seconds.append(time.perf_counter() - t0)
+        self.kinds.append(kind)
+        return found
+
+    def stats(self) -> dict:
+        """Calls by kind and detection time (median ms, and frames/s from the mean time),
+        over the frames the detector looked at, and per kind; ``skipped``: frames in which
+        the target was expected outside the image (not looked at)."""
+        sec, kinds = np.asarray(self.seconds), np.asarray(self.kinds)
+
+        def summary(sel):
+            t = sec[sel]
+            return {"calls": int(t.size), "median_ms": float(1e3 * np.median(t)) if t.size else None,
+                    "frames_per_s": float(1.0 / t.mean()) if t.size else None}
+
+        out = {"all": summary(kinds != "skipped")}
+        for kind in ("region", "region+full", "full"):
+            out[kind] = summary(kinds == kind)
+        out["skipped"] = int(np.sum(kinds == "skipped"))
+        out["note"] = ("frames/s = 1 / mean detection time per camera frame looked at (the detector alone, one "
+                       "image at a time); 'region+full': the region found nothing and the whole image was "
+                       "searched; 'skipped': frames in which the target was expected outside the image")
+        return out
 
 
 class OracleDetector:
@@ -438,7 +516,7 @@ class TrackingRecord:
                                            self.intr.cx, self.intr.cy]))
 
 
-def _team_point(frames, detections, intr, radius) -> np.ndarray | None:
+def _team_point(frames, detections, intr, radius, range_sigma: float = 0.05) -> np.ndarray | None:
     """(3,) m: the target's position from other cameras' detections (least squares over their
     rays, with ranges from whole boxes; one camera needs a range), or None."""
     boxes = np.array([np.asarray(d.box, float) for d in detections])
@@ -447,7 +525,7 @@ def _team_point(frames, detections, intr, radius) -> np.ndarray | None:
     ranges = sphere_range(box_size_px(intr, boxes), radius, intr.fx)
     ranges = np.where(box_touches_border(intr, boxes) | ~np.isfinite(ranges), np.nan, ranges)
     try:
-        return fuse("all_ls", np.array([f.p for f in frames]), bearings, ranges)
+        return fuse("all_ls", np.array([f.p for f in frames]), bearings, ranges, range_sigma=range_sigma)
     except PerceptionError:
         return None
 
@@ -531,13 +609,15 @@ def _state_columns(scene, state) -> dict[str, np.ndarray]:
     return cols
 
 
-def _detect(renderer, detector, cams, geoms, cols, bq, bi, t, force_loss):
+def _detect(renderer, detector, cams, geoms, cols, bq, bi, t, force_loss, hint_of=None):
     """Every gimbal camera's frame at this row, its detections (none inside ``force_loss``),
-    its gimbal angles and its UAV's attitude."""
+    its gimbal angles and its UAV's attitude. ``hint_of(g, frame)``: where camera ``g``
+    expects the target (a :class:`RegionHint` or None), for a detector that takes hints."""
     frames, dets, angles, uav_Rs = [], [], [], []
+    hints = getattr(detector, "accepts_hints", False) and hint_of is not None
     for g, (uav, cam) in enumerate(cams):
         frame = renderer.render(cols, cam.name, 0)
-        found = list(detector(frame))
+        found = list(detector(frame, hint_of(g, frame)) if hints else detector(frame))
         if force_loss is not None and force_loss[0] <= t < force_loss[1]:
             found = []
         uR = quat_to_matrix(bq[bi[uav]])
@@ -546,6 +626,57 @@ def _detect(renderer, detector, cams, geoms, cols, bq, bi, t, force_loss):
         dets.append(found)
         uav_Rs.append(uR)
     return frames, dets, angles, uav_Rs
+
+
+def region_hint(tracker: GimbalTracker, t: float, frame: Frame, last_side: float | None,
+                max_age_s: float) -> RegionHint | None:
+    """Where ``tracker``'s camera should see the target in ``frame`` (taken at ``t``): its
+    last detection's world bearing advanced at the tracked bearing rate, projected through the
+    frame's camera rotation, with the last box's longer side; None when the last detection
+    is older than ``max_age_s`` or there is none; :data:`OUT_OF_VIEW` when the bearing is
+    behind the camera or far outside the image."""
+    if tracker.last_bearing is None or last_side is None or t - tracker.last_seen_t > max_age_s + 1e-9:
+        return None
+    b = tracker.last_bearing + tracker.bearing_rate * (t - tracker.last_seen_t)
+    return _hint_along(tracker.intr, frame, b, last_side)
+
+
+def point_hint(intr: Intrinsics, frame: Frame, point, radius: float) -> RegionHint | None:
+    """Where a target of ``radius`` m at ``point`` ((3,) m, world: e.g. the teammates'
+    estimate) shows in ``frame``: its projection, with the side of the sphere's image;
+    :data:`OUT_OF_VIEW` when it is behind the camera or far outside the image, None when the
+    camera is inside the sphere."""
+    d = np.asarray(point, float) - np.asarray(frame.p, float)
+    dist = float(np.linalg.norm(d))
+    if not dist > radius:
+        return None
+    return _hint_along(intr, frame, d / dist, 2.0 * intr.fx * radius / np.sqrt(dist * dist - radius * radius))
+
+
+def _hint_along(intr: Intrinsics, frame: Frame, bearing, side: float) -> RegionHint | None:
+    c = np.asarray(frame.R, float).T @ np.asarray(bearing, float)
+    if c[2] <= 1e-6:
+        return OUT_OF_VIEW
+    u, v = intr.fx * c[0] / c[2] + intr.cx, intr.fy * c[1] / c[2] + intr.cy
+    margin = max(side, 32.0)
+    if not (-margin <= u <= intr.width + margin and -margin <= v <= intr.height + margin):
+        return OUT_OF_VIEW
+    return RegionHint(centre=np.array([u, v]), side=float(side))
+
+
+def _hint(g, tracker, t, frame, last_side, max_age_s, team, cue, intr, radius) -> RegionHint | None:
+    """Camera ``g``'s region hint: the first in view of its own track's prediction, the
+    teammates' last point (``team``: (t, point) or None) when recent, and the start cue
+    before its first detection (``cue``: a world point or None); :data:`OUT_OF_VIEW` when
+    every one of them puts the target outside the image; None when there is none (the
+    whole image is searched)."""
+    hints = [region_hint(tracker, t, frame, last_side, max_age_s)]
+    if team is not None and t - team[0] <= max_age_s + 1e-9:
+        hints.append(point_hint(intr, frame, team[1], radius))
+    if cue is not None and tracker.last_seen_t is None:
+        hints.append(point_hint(intr, frame, cue, radius))
+    hints = [h for h in hints if h is not None]
+    return next((h for h in hints if h is not OUT_OF_VIEW), OUT_OF_VIEW if hints else None)
 
 
 def _associate_all(dets, frames, ref_of, gate_deg, intr, radius):
@@ -565,7 +696,8 @@ def _associate_all(dets, frames, ref_of, gate_deg, intr, radius):
     return out
 
 
-def _steer(trackers, t, frames, dets, angles, uav_Rs, omegas, intr, radius, cue, cooperative_cue):
+def _steer(trackers, t, frames, dets, angles, uav_Rs, omegas, intr, radius, cue, cooperative_cue,
+           range_sigma: float = 0.05):
     """Each tracker's gimbal command from its detections, or, without one, from the start
     cue (``cue``, a world point, before its first detection) or from the point the cameras
     that see the target locate (``cooperative_cue``)."""
@@ -577,7 +709,7 @@ def _steer(trackers, t, frames, dets, angles, uav_Rs, omegas, intr, radius, cue,
             aim = cue - frames[g].p
         elif cooperative_cue and not dets[g] and any(s != g for s in seen):
             point = _team_point([frames[s] for s in seen if s != g], [dets[s][0] for s in seen if s != g],
-                                intr, radius)
+                                intr, radius, range_sigma)
             if point is not None:
                 aim = point - frames[g].p
         commands.append(tracker.update(t, dets[g], angles[g], uav_Rs[g], frames[g].R, aim, uav_omega=omegas[g]))
@@ -627,7 +759,7 @@ def run_tracking(config, detector: FrameDetector | None = None, intr: Intrinsics
                  frame_rate: float = 25.0, tracker_config: GimbalTrackerConfig = GimbalTrackerConfig(),
                  t_end: float | None = None, initial_cue: bool = True, cooperative_cue: bool = True,
                  force_loss: tuple[float, float] | None = None, target_style: str = "auto",
-                 progress: bool = True) -> TrackingRecord:
+                 range_sigma: float | None = None, progress: bool = True) -> TrackingRecord:
     """Simulate ``config`` (a scene config with gimbal cameras and a target) with every gimbal
     steered by a :class:`GimbalTracker` from its rendered images (see the module doc).
 
@@ -641,7 +773,11 @@ def run_tracking(config, detector: FrameDetector | None = None, intr: Intrinsics
     (least squares over their rays and box ranges; one camera with a whole box suffices). ``force_loss``: ``(t0, t1)`` s, a window in which every
     detection is dropped (to test recovery). ``target_style``: how the renderer draws the
     target (:class:`~mysim_jax.perception.render.Renderer`; ``"auto"``: a drone for a
-    maneuvering target, else a sphere).
+    maneuvering target, else a sphere). ``range_sigma``: the relative noise of ranges from
+    box sizes in the teammates' point (the cooperative cue and the region hints; default
+    :data:`~mysim_jax.perception.localize.RANGE_SIGMA` of the target's look). A detector
+    that takes hints (:class:`RegionDetector`) is told where each camera expects the
+    target (:func:`region_hint`, :func:`point_hint`).
     """
     check_tracking_scene(config)
     if not frame_rate > 0:
@@ -670,6 +806,10 @@ def run_tracking(config, detector: FrameDetector | None = None, intr: Intrinsics
     target = config.target.name
 
     cue_point = _start_cue(config, params, state, bi[target])
+    last_side: list[float | None] = [None] * len(cams)      # px, each camera's last target box
+    team = None                                              # (t, (3,) m): the cameras' last joint point
+    range_sigma = RANGE_SIGMA[auto_target_style(config)] if range_sigma is None else float(range_sigma)
+    region_max_age = (tracker_config.hold_frames + 1) * frame_dt
     rec = {k: [] for k in ("t", "camera_R", "camera_p", "angles", "command", "mode", "det_box", "true_box",
                            "true_centre", "true_depth", "visible_fraction", "target_pos", "target_vel")}
     rows = []
@@ -683,13 +823,26 @@ def run_tracking(config, detector: FrameDetector | None = None, intr: Intrinsics
         if not (np.all(np.isfinite(bq)) and np.all(np.isfinite(bp))):
             raise PerceptionError(f"the simulation turned non-finite at t = {t:g} s; simulate the scene with "
                                   f"scripts/simulate.py to see where")
-        frames, dets, angles, uav_Rs = _detect(renderer, detector, cams, geoms, cols, bq, bi, t, force_loss)
+        cue_now = cue_point(t) if initial_cue else None
+        hint_of = lambda g, frame: _hint(g, trackers[g], t, frame, last_side[g], region_max_age, team,  # noqa: E731
+                                         cue_now, intr, config.target.radius)
+        frames, dets, angles, uav_Rs = _detect(renderer, detector, cams, geoms, cols, bq, bi, t, force_loss, hint_of)
         if tracker_config.gate_deg is not None:
             ref_of = lambda g: cue_point(t) if initial_cue and trackers[g].last_seen_t is None else None  # noqa: E731
             dets = _associate_all(dets, frames, ref_of, tracker_config.gate_deg, intr, config.target.radius)
+        for g, d in enumerate(dets):
+            if d:
+                b = np.asarray(d[0].box, float)
+                last_side[g] = float(max(b[2] - b[0], b[3] - b[1]))
+        seen = [g for g in range(len(dets)) if dets[g]]
+        if seen:
+            point = _team_point([frames[g] for g in seen], [dets[g][0] for g in seen], intr, config.target.radius,
+                                range_sigma)
+            if point is not None:
+                team = (t, point)
         omegas = [np.asarray(state.phys.body_angvel[bi[u]], float) for u in uavs]
         commands = _steer(trackers, t, frames, dets, angles, uav_Rs, omegas, intr, config.target.radius,
-                          cue_point(t) if initial_cue else None, cooperative_cue)
+                          cue_point(t) if initial_cue else None, cooperative_cue, range_sigma)
         _record(rec, t, frames, angles, commands, trackers, dets, bp[bi[target]],
                 np.asarray(state.phys.body_vel[bi[target]], float))
         bar.update(1)
@@ -748,17 +901,21 @@ def tracking_metrics(record: TrackingRecord) -> dict:
     return out
 
 
-def make_detector(kind: str, weights=None, noise_px: float = 1.0, miss_rate: float = 0.0, seed: int = 0):
+def make_detector(kind: str, weights=None, noise_px: float = 1.0, miss_rate: float = 0.0, seed: int = 0,
+                  region: bool = True):
     """The frame detector a tracking run uses: ``"oracle"`` (the true box with edge noise
-    and misses) or ``"learned"`` (the CNN, with ``weights`` or the committed ones).
-    PerceptionError for weights that do not fit the choice or do not exist."""
+    and misses) or ``"learned"`` (the CNN, with ``weights`` or the committed ones; with
+    ``region`` a :class:`RegionDetector`, which looks where the tracker expects the target,
+    else the whole image every frame). PerceptionError for weights that do not fit the
+    choice or do not exist."""
     if weights is not None and kind != "learned":
         raise PerceptionError("--weights is for --detector learned")
     if weights is not None and not Path(weights).is_file():
         raise PerceptionError(f"--weights {weights}: no such file; train one with scripts/train_detector.py")
     if kind == "oracle":
         return OracleDetector(noise_px=noise_px, miss_rate=miss_rate, seed=seed)
-    return image_detector(load_detector(weights))
+    cnn = load_detector(weights)
+    return RegionDetector(cnn) if region else image_detector(cnn)
 
 
 def make_pose_noise(position_m: float, rotation_rad: float, correlation_time: float = 0.0, seed: int = 0) -> PoseNoise:

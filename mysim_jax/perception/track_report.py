@@ -143,6 +143,9 @@ def target_error_model(record: TrackingRecord, loc, poses: str = "true", method:
             "filter": {"kind": "constant acceleration", "position_sigma_m": position_sigma,
                        "jerk_sigma_m_s3": jerk_sigma},
             "first_fix_s": float(loc.t[first]),
+            "position_error_mean_m": float(np.linalg.norm(p[first:] - record.target_pos[first:], axis=1).mean()),
+            "position_error_p95_m": float(np.percentile(np.linalg.norm(p[first:] - record.target_pos[first:], axis=1), 95)),
+            "velocity_error_mean_m_s": float(np.linalg.norm(v[first:] - record.target_vel[first:], axis=1).mean()),
             "position_m": gauss_markov_fit(t, p[first:] - record.target_pos[first:]),
             "velocity_m_s": gauss_markov_fit(t, v[first:] - record.target_vel[first:])}
 
@@ -211,6 +214,25 @@ def tracking_summary_lines(scene: str, record, metrics: dict, frame_rate: float,
         if e["error_mean_m"] is not None:
             lines.append(f"  {m}: error mean {e['error_mean_m']:.4f} m, p95 {e['error_p95_m']:.4f} m "
                          f"({100 * e['coverage']:.0f} % of frames)")
+    noisy = metrics["localisation"].get("perturbed_poses")
+    if noisy is not None:
+        e = noisy[TEAM_METHOD]
+        if e["error_mean_m"] is not None:
+            lines.append(f"  {TEAM_METHOD}, camera poses perturbed ({1000 * noisy['position_sigma_m']:.0f} mm, "
+                         f"{1000 * noisy['rotation_sigma_rad']:.1f} mrad, {noisy['correlation_time_s']:g} s): error mean "
+                         f"{e['error_mean_m']:.4f} m, p95 {e['error_p95_m']:.4f} m")
+    em = metrics.get("error_model", {})
+    if "position_error_mean_m" in em:
+        lines.append(f"  team track ({em['camera_poses']} poses, filtered): position error mean "
+                     f"{em['position_error_mean_m']:.4f} m, p95 {em['position_error_p95_m']:.4f} m; velocity error "
+                     f"mean {em['velocity_error_mean_m_s']:.3f} m/s; range noise assumed "
+                     f"{metrics['localisation']['range_sigma']:g}")
+    dt = metrics.get("detection_time")
+    if dt is not None:
+        lines.append(f"  detection: {dt['all']['frames_per_s']:.1f} frames/s over the camera frames looked at "
+                     f"({dt['region']['calls']} around the expected target, {dt['region+full']['calls']} there then "
+                     f"the whole image, {dt['full']['calls']} the whole image; {dt['skipped']} not looked at: the "
+                     f"target expected outside the image)")
     if "skipped" in metrics.get("size_range", {}):
         lines.append(f"  size-range fits skipped: {metrics['size_range']['skipped']}")
     elif "size_range" in metrics:

@@ -211,6 +211,26 @@ def check_image(image) -> np.ndarray:
     return image
 
 
+@dataclass(frozen=True)
+class RegionSettings:
+    """How :meth:`CNNDetector.detect_region` looks around an expected target."""
+
+    input_px: int = 192            # px, side of the network input (a multiple of 32)
+    target_px: float = 48.0        # px, the expected target's longer side at the network's scale
+    min_window_px: float = 96.0    # px of the image, the smallest window side (room for prediction errors)
+    max_candidates: int = 4        # first-stage candidates the second stage looks at, best first
+    max_level: float | None = None  # largest scale (x the pyramid's level 1) for a small target; None: the pyramid's
+
+    def __post_init__(self):
+        if self.input_px < PAD_TO or self.input_px % PAD_TO:
+            raise PerceptionError(f"region input_px must be a positive multiple of {PAD_TO}, got {self.input_px}")
+        if self.max_candidates < 1:
+            raise PerceptionError(f"region max_candidates must be at least 1, got {self.max_candidates}")
+        if not (self.target_px > 0 and self.min_window_px > 0):
+            raise PerceptionError(f"region target_px and min_window_px must be positive, got "
+                                  f"{self.target_px}, {self.min_window_px}")
+
+
 @dataclass
 class CNNDetector:
     """The learned detector (see the module doc). ``min_score``: detections below it are dropped."""
@@ -224,6 +244,7 @@ class CNNDetector:
     pyramid_band_px: tuple[float, float] = (24.0, 96.0)   # box sides (network px) a level keeps; see the module doc
     flip_test: bool = False         # also run each level on the mirrored image and average; see the module doc
     refiner: object | None = None   # the second stage (refine.Refiner); None: the first stage alone
+    region: RegionSettings = RegionSettings()   # region mode (detect_region) when not given there
 
     def __post_init__(self):
         self.pyramid = tuple(float(s) for s in self.pyramid)
@@ -319,6 +340,80 @@ class CNNDetector:
         """Detections in ``image`` ((H, W, 3) uint8 RGB, any size), best first, scores >= ``min_score``
         (default: the detector's)."""
         return self.detect_batch([image], min_score)[0]
+
+    def region_window(self, image_shape, centre, side_px: float, region: RegionSettings) -> tuple[np.ndarray, float]:
+        """The square window ``(x0, y0, side)`` (image px, edge coordinates) that
+        :meth:`detect_region` looks in for a target expected at ``centre`` with a box of
+        longer side ``side_px``, and its scale (network px per image px). Centred on
+        ``centre`` and then moved inside the image along each axis where it fits; a window
+        wider than the image is centred on it."""
+        lo = min(self.pyramid)
+        hi = max(self.pyramid) if region.max_level is None else region.max_level
+        scale_of_level = self.input_width / image_shape[1]      # network px per image px at level 1
+        scale = float(np.clip(region.target_px / max(float(side_px), 1.0), lo * scale_of_level, hi * scale_of_level))
+        side = region.input_px / scale
+        if side < region.min_window_px:          # a near-centred small target: widen the window, coarser scale
+            side = float(region.min_window_px)
+            scale = region.input_px / side
+        # centred on the expected target, then moved inside the image where it fits (the image's
+        # own pixels rather than repeated border pixels around a target near the border)
+        H, W = image_shape[:2]
+        x0 = float(centre[0]) + 0.5 - side / 2
+        y0 = float(centre[1]) + 0.5 - side / 2
+        x0 = min(max(x0, 0.0), W - side) if side <= W else (W - side) / 2
+        y0 = min(max(y0, 0.0), H - side) if side <= H else (H - side) / 2
+        return np.array([x0, y0, side]), scale
+
+    def detect_region(self, image: np.ndarray, centre, side_px: float, region: RegionSettings | None = None,
+                      min_score: float | None = None) -> list[Detection]:
+        """Detections near where a tracker expects the target (region-of-interest mode).
+
+        ``centre``: (2,) px, the expected box centre; ``side_px``: the expected box's longer
+        side (px). One square window around ``centre`` (:meth:`region_window`) is resized to
+        ``region.input_px`` so that the expected target spans about ``region.target_px``
+        network pixels (within the scales of the pyramid), and the network runs on it once
+        (with the flip test when the detector has it); the candidates go through the second
+        stage on the full image as in :meth:`detect`. Boxes are in ``image``'s pixels, best
+        first. Far cheaper than :meth:`detect` (one small input instead of the pyramid);
+        a target outside the window is not found, so a tracker falls back to :meth:`detect`
+        when it has lost the target."""
+        image = check_image(image)
+        region = self.region if region is None else region
+        if not (np.all(np.isfinite(np.asarray(centre, float))) and np.isfinite(side_px) and side_px > 0):
+            raise PerceptionError(f"detect_region needs a finite centre and a positive box side, got {centre}, {side_px}")
+        floor = self.min_score if min_score is None else min_score
+        first_floor = self.refiner.settings.candidate_min_score if self.refiner is not None else floor
+        (x0, y0, side), scale = self.region_window(image.shape, centre, side_px, region)
+        n = region.input_px
+        # the window resized to n x n (window px j <-> edge coordinate x0 + (j + 0.5) / scale), the
+        # image's edge pixels repeated beyond it
+        M = np.array([[scale, 0.0, -x0 * scale + 0.5 * scale - 0.5], [0.0, scale, -y0 * scale + 0.5 * scale - 0.5]])
+        if scale < 1.0:       # shrinking: area-average the image first, as the pyramid does
+            small = cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+            sx, sy = small.shape[1] / image.shape[1], small.shape[0] / image.shape[0]
+            M = np.array([[scale / sx, 0.0, 0.5 * scale / sx - x0 * scale - 0.5],
+                          [0.0, scale / sy, 0.5 * scale / sy - y0 * scale - 0.5]])
+            x = cv2.warpAffine(small, M, (n, n), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        else:
+            x = cv2.warpAffine(image, M, (n, n), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        x = x[None]
+        if self.flip_test:
+            scores, boxes = self._forward_flip(self.params, x, np.ascontiguousarray(x[:, :, ::-1]), n // STRIDE)
+        else:
+            scores, boxes = self._forward(self.params, x)
+        H, W = image.shape[:2]
+        dets = []
+        for s, b in zip(np.asarray(scores)[0], np.asarray(boxes, float)[0]):
+            if s < first_floor:
+                break
+            box = (b + 0.5) / scale + np.array([x0, y0, x0, y0]) - 0.5     # window px -> image px
+            box = np.clip(box, -0.5, [W - 0.5, H - 0.5, W - 0.5, H - 0.5])
+            if box[2] > box[0] and box[3] > box[1]:
+                dets.append(Detection(box=box, score=float(s)))
+        if self.refiner is not None:
+            dets = self.refiner.refine([image], [dets[: region.max_candidates]])[0]
+            dets = [d for d in _suppress(dets) if d.score >= floor]
+        return dets
 
     # --- files --------------------------------------------------------------------------------
 

@@ -233,7 +233,16 @@ class RefineSettings:
                    members=int(d.get("members", 1)))
 
 
-BUCKET = 16     # windows are refined in batches padded to a multiple of this (few compiled shapes)
+BUCKETS = (4, 8, 16)    # windows are refined in batches padded to the smallest of these that holds them,
+                        # or to a multiple of the largest (few compiled shapes)
+
+
+def padded_count(n: int) -> int:
+    """The batch size ``n`` windows are padded to (:data:`BUCKETS`)."""
+    for b in BUCKETS:
+        if n <= b:
+            return b
+    return BUCKETS[-1] * -(-n // BUCKETS[-1])
 
 
 class Refiner:
@@ -269,7 +278,7 @@ class Refiner:
         cut = np.concatenate([cut_windows(images[i], windows[owner == i], s.size) for i in np.unique(owner)])
         prior = to_window(boxes, windows)
         n = len(owner)
-        pad = -n % BUCKET
+        pad = padded_count(n) - n
         if pad:
             cut = np.concatenate([cut, np.zeros((pad,) + cut.shape[1:], np.uint8)])
             prior = np.concatenate([prior, np.tile([[0.3, 0.3, 0.7, 0.7]], (pad, 1))])

@@ -297,17 +297,57 @@ def train_refine_stage(cfg: DetectorConfig, first_stage, images, labels, spec, c
 # --- evaluation -------------------------------------------------------------------------------
 
 
+# Region-mode evaluation (:func:`region_hints`): the hint a tracker gives the detector, drawn
+# around the truth with the errors of the tracker's prediction on the evading-drone tracking
+# run (docs/tracking.md: centre off by 0.07 of the box's longer side at the median and 0.14
+# at the 95th percentile). Per axis the centre is off by N(0, (HINT_CENTRE_REL * side +
+# HINT_CENTRE_PX)^2) px (radial median ~0.07 side + 2 px, p95 ~0.15 side + 5 px); the side
+# is the true one times exp(N(0, HINT_SIDE_LOG^2)). A frame without a counted target gets
+# the hint at the pixel its target was drawn at (``meta["pixel"]``: an occluder drawn in
+# front of the target is then inside the window), with a side drawn log-uniform in
+# HINT_EMPTY_SIDE_PX.
+HINT_CENTRE_REL, HINT_CENTRE_PX = 0.06, 2.0
+HINT_SIDE_LOG = 0.1
+HINT_EMPTY_SIDE_PX = (8.0, 120.0)
+
+
+def region_hints(labels: list[dict], seed: int) -> list[tuple[np.ndarray, float]]:
+    """Per frame ``(centre (2,) px, side px)``: where a tracker would expect the target (see
+    the constants above); deterministic for ``seed``."""
+    out = []
+    for i, lab in enumerate(labels):
+        rng = np.random.default_rng([seed, 7, i])
+        if lab["box"] is not None:
+            b = np.asarray(lab["box"], float)
+            side = float(max(b[2] - b[0], b[3] - b[1]))
+            centre = np.array([(b[0] + b[2]) / 2, (b[1] + b[3]) / 2])
+            centre = centre + rng.normal(0.0, HINT_CENTRE_REL * side + HINT_CENTRE_PX, 2)
+            side *= float(np.exp(rng.normal(0.0, HINT_SIDE_LOG)))
+        else:
+            centre = np.asarray(lab["meta"]["pixel"], float)
+            side = float(np.exp(rng.uniform(*np.log(HINT_EMPTY_SIDE_PX))))
+        out.append((centre, max(side, 1.0)))
+    return out
+
+
 def evaluate(detector, images, labels, cfg: DetectorConfig, min_score: float, progress: bool = True,
-             name: str = "") -> tuple[dict, list, list[dict]]:
+             name: str = "", hints: list | None = None) -> tuple[dict, list, list[dict]]:
     """Metrics of ``detector`` on a set (detections down to score 0.01 for AP) and its speed:
-    median over frames of one ``detect`` call, frames/s. Returns the metrics, the detections
+    median over frames of one ``detect`` call, frames/s. With ``hints`` (per frame
+    ``(centre, side)``, :func:`region_hints`) the detector runs in region mode
+    (``detect_region``) instead of on the whole image. Returns the metrics, the detections
     per frame and the per-target rows (:func:`target_rows`)."""
+    def run_one(i, img):
+        if hints is None:
+            return detector.detect(img, min_score=0.01)
+        return detector.detect_region(img, hints[i][0], hints[i][1], min_score=0.01)
+
     dets, times = [], []
-    detector.detect(np.asarray(images[0]), min_score=0.01)     # compile / warm up
+    run_one(0, np.asarray(images[0]))     # compile / warm up
     for i in tqdm(range(len(labels)), desc=f"evaluate {name}", unit="frame", disable=not progress, leave=False):
         img = np.asarray(images[i])
         t0 = time.perf_counter()
-        d = detector.detect(img, min_score=0.01)
+        d = run_one(i, img)
         times.append(time.perf_counter() - t0)
         dets.append(d)
     gts = truths(labels)
@@ -320,7 +360,22 @@ def evaluate(detector, images, labels, cfg: DetectorConfig, min_score: float, pr
     # per distance band and target kind: recall at the operating point
     rows = target_rows(dets, labels, min_score, cfg.eval.iou_threshold)
     out["recall_by"] = _recall_by(rows, labels)
+    out["fps_mean"] = float(1.0 / np.mean(times))
+    out["empty_frames"] = _empty_frames(dets, labels, min_score)
     return out, dets, rows
+
+
+def _empty_frames(dets, labels, min_score: float) -> dict:
+    """On frames without a target (none drawn): the share with no detection scoring >=
+    ``min_score``, over all of them and over those showing UAVs (distractors, an occluder, an
+    onboard view)."""
+    empty = [i for i, lab in enumerate(labels) if lab["box"] is None]
+    uavs = [i for i in empty if labels[i]["meta"]["scene"] != "none"]
+
+    def clean(idx):
+        return None if not idx else float(np.mean([not any(d.score >= min_score for d in dets[i]) for i in idx]))
+
+    return {"frames": len(empty), "clean": clean(empty), "frames_with_uavs": len(uavs), "clean_with_uavs": clean(uavs)}
 
 
 def _recall_by(rows: list[dict], labels: list[dict]) -> dict:
@@ -398,7 +453,8 @@ def plot_misses(path: Path, images, rows: list[dict], n: int = 24, tile: int = 2
 
 def write_examples(folder: Path, images, labels, results: dict, n: int) -> None:
     """Frames (spheres and drones in turn, and one without a target) with the ground truth
-    (green), CNN (red) and baseline (blue) best boxes and scores."""
+    (green) and each detector's best box and score (in the order of ``results``: red, blue,
+    orange; BGR (0, 0, 255), (255, 80, 0), (0, 200, 255))."""
     folder.mkdir(parents=True, exist_ok=True)
     spheres = [i for i, lab in enumerate(labels) if lab["box"] is not None and lab["kind"] == "sphere"]
     drones = [i for i, lab in enumerate(labels) if lab["box"] is not None and lab["kind"] == "drone"]
@@ -410,7 +466,7 @@ def write_examples(folder: Path, images, labels, results: dict, n: int) -> None:
         if lab["box"] is not None:
             b = np.round(lab["box"]).astype(int)
             cv2.rectangle(img, (b[0], b[1]), (b[2], b[3]), (0, 200, 0), 1)
-        for colour, (name, dets) in zip(((0, 0, 255), (255, 80, 0)), results.items()):
+        for colour, (name, dets) in zip(((0, 0, 255), (255, 80, 0), (0, 200, 255)), results.items()):
             for d in dets[i][:1]:
                 if d.score < 0.3:
                     continue
@@ -441,11 +497,14 @@ def plot_pr(path: Path, curves: dict) -> None:
 
 
 def run(cfg: DetectorConfig, out: Path, progress: bool = True, cache: Path | None = None,
-        weights: Path | None = None, init: Path | None = None) -> dict:
+        weights: Path | None = None, init: Path | None = None, modes: tuple[str, ...] = ("full",)) -> dict:
     """Render, train, evaluate and write a run into ``out`` (see the module doc); returns the
     metrics. With ``weights`` (a detector.msgpack) nothing is trained: those weights are
     evaluated (and the training frames are not rendered). With ``init`` (a detector.msgpack of
-    the same ``model.widths``) training starts from those weights instead of a random init."""
+    the same ``model.widths``) training starts from those weights instead of a random init.
+    ``modes``: how the CNN is evaluated, ``"full"`` (the whole image, ``cnn/<set>``) and / or
+    ``"region"`` (around a tracker's hint, :func:`region_hints` with the evaluation seed,
+    ``cnn_region/<set>``)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "config.yaml").write_text(yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False))
@@ -501,15 +560,19 @@ def run(cfg: DetectorConfig, out: Path, progress: bool = True, cache: Path | Non
     curves = {}
     for set_name, (images, labels) in sets.items():
         results = {}
-        for det_name, det, thr in (("cnn", cnn, cfg.eval.min_score), ("baseline", baseline, 0.3)):
+        hints = region_hints(labels, spec_of(cfg, "eval_held_out").seed) if "region" in modes else None
+        runs = [("cnn", cnn, cfg.eval.min_score, None)] if "full" in modes else []
+        runs += [("cnn_region", cnn, cfg.eval.min_score, hints)] if "region" in modes else []
+        for det_name, det, thr, h in runs + [("baseline", baseline, 0.3, None)]:
             m, dets, rows = evaluate(det, images, labels, cfg, thr, progress=progress,
-                                     name=f"{det_name} {set_name}")
+                                     name=f"{det_name} {set_name}", hints=h)
             metrics[f"{det_name}/{set_name}"] = m
             results[det_name] = dets
-            if det_name == "cnn":     # per-target diagnostics: which targets are missed, and how
+            if det_name.startswith("cnn"):     # per-target diagnostics: which targets are missed, and how
                 (out / "targets").mkdir(exist_ok=True)
-                (out / "targets" / f"{set_name}.json").write_text(json.dumps(rows))
-                plot_misses(out / "targets" / f"misses_{set_name}.png", images, rows)
+                suffix = "" if det_name == "cnn" else "_region"
+                (out / "targets" / f"{set_name}{suffix}.json").write_text(json.dumps(rows))
+                plot_misses(out / "targets" / f"misses_{set_name}{suffix}.png", images, rows)
             curves[f"{det_name}, {set_name.replace('_', '-')}"] = pr_curve(match(dets, truths(labels), cfg.eval.iou_threshold))
         if cfg.eval.n_examples:
             write_examples(out / "examples" / set_name, images, labels, results, cfg.eval.n_examples)
