@@ -36,6 +36,9 @@ Sections (``--only`` takes their letters):
   h  rendering: frames per second of the camera renderer (mysim_jax/bench/render.py) at
      1920 x 1080 and 640 x 360, for an onboard and an observer view of a capture run and
      a ground-only view; writes an example frame to docs/bench/render_example.png.
+  k  target detection: frames per second of the learned detector at 640 x 360 on the whole
+     image and in region mode (what gimbal tracking runs), side by side
+     (mysim_jax/bench/detect.py).
 
 Timing method: every timed quantity is the median of repeats; variants that are compared
 with each other are timed round-robin (one call of each in turn, repeated) so that a busy
@@ -63,14 +66,15 @@ from typing import Any
 
 from tqdm.auto import tqdm
 
-from mysim_jax.bench import accuracy, environment, levels, mujoco_compare, render, throughput, training
+from mysim_jax.bench import accuracy, detect, environment, levels, mujoco_compare, render, throughput, training
 from mysim_jax.bench.accuracy_cases import accuracy_cases
 from mysim_jax.bench.report import ROOT, SECTIONS, BenchConfig, header_lines, output_paths, summary_lines, write_report
 from mysim_jax.bench.timing import load_average
 
 RUNNERS = {"a": throughput.section_a, "b": throughput.section_b, "c": mujoco_compare.section_c,
            "d": accuracy.section_d, "e": environment.section_e, "f": throughput.section_f,
-           "g": training.section_g, "h": render.section_h, "i": levels.section_i, "j": throughput.section_j}
+           "g": training.section_g, "h": render.section_h, "i": levels.section_i, "j": throughput.section_j,
+           "k": detect.section_k}
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -79,6 +79,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--no-cue", action="store_true", help="--track: no start cue; the cameras search")
     parser.add_argument("--pose-noise", type=float, nargs=2, metavar=("M", "RAD"), help="--track: also localise "
                         "with camera poses perturbed by these position and rotation standard deviations")
+    parser.add_argument("--pose-seeds", type=int, default=0, metavar="N", help="--track, with --pose-noise: also "
+                        "localise with N draws of the pose noise (seeds 0..N-1), from the detections and from the true "
+                        "boxes (what the pose errors alone cost; default 0: the one draw of --seed)")
     parser.add_argument("--pose-noise-time", type=float, default=0.0, metavar="S", help="--track: correlation "
                         "time of the pose noise (Gauss-Markov over the frames, as VIO errors; default 0: white)")
     parser.add_argument("--out", required=True, help="output folder (created if missing)")
@@ -164,6 +167,8 @@ def _track(args) -> int:
             args.range_sigma = RANGE_SIGMA[auto_target_style(config)]
         if not args.range_sigma > 0:
             raise PerceptionError(f"--range-sigma must be positive, got {args.range_sigma}")
+        if args.pose_seeds < 0 or (args.pose_seeds and args.pose_noise is None):
+            raise PerceptionError(f"--pose-seeds {args.pose_seeds}: a count >= 0, and only with --pose-noise")
         if not args.camera_rate > 0:
             raise PerceptionError(f"--camera-rate must be positive, got {args.camera_rate}")
         intr = intrinsics(width=args.size[0], height=args.size[1])
@@ -200,7 +205,7 @@ def _track(args) -> int:
         if hasattr(detector, "stats"):
             extra["detection_time"] = detector.stats()
         metrics = write_tracking_report(record, tmp, pose_noise=pose_noise, extra=extra, progress=not args.no_progress,
-                                        range_sigma=args.range_sigma)
+                                        range_sigma=args.range_sigma, pose_seeds=args.pose_seeds)
     print("\n".join(tracking_summary_lines(config.name, record, metrics, args.camera_rate, wall, out)))
     return 0
 

@@ -54,6 +54,7 @@ def test_summary_lines_judge_the_targets_and_name_their_sections():
         "env_rows": [ThroughputRow("4096", 4096, 1, [2.0], 1.0, 1.0)], "env_rate_level": (25.0, "full"),
         "d": rope, "g": {"iteration": 50.0, "env": 200.0},
         "f": {"library": 3.0e6, "floor": 9.0e6},
+        "k": {"whole image": 1.4, "region": 23.5, "region, first stage only": 60.0},
     }
     lines = report.summary_lines(results)
     assert lines[:2] == ["## Summary", ""] and lines[-1] == ""
@@ -64,6 +65,7 @@ def test_summary_lines_judge_the_targets_and_name_their_sections():
     assert "rk4 1e-04 float64: 2.0e-09 m at 0.500 s/sim-s" in text and "tsit5" not in text
     assert "({:.0%})".format(50 / 200) in text
     assert "gravity-only floor 9,000,000." in text and "`jax.vmap`" not in text.split("Profile (f)")[1]
+    assert "region mode (what tracking runs) **23.5**, the whole image 1.4 — target ≥ 20: **met**" in text
     # every line names a section, so that a splice can keep the lines of sections not rerun
     assert all(any(f"({s})" in ln for s in report.SECTIONS) for ln in lines if ln.startswith("- "))
     assert report.summary_lines({}) == ["## Summary", "", ""]

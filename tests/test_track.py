@@ -162,7 +162,9 @@ def test_bad_input(small_config, tmp_path):
                           "--detector", "learned", "--weights", str(tmp_path / "none.msgpack")]) == 2
     assert perceive.main(["--track", "configs/capture_falling_gimbals.yaml", "--out", str(tmp_path / "o4"),
                           "--weights", "docs/detector/detector.msgpack"]) == 2
-    assert not any((tmp_path / o).exists() for o in ("o", "o2", "o3", "o4"))
+    assert perceive.main(["--track", "configs/capture_falling_gimbals.yaml", "--out", str(tmp_path / "o5"),
+                          "--pose-seeds", "3"]) == 2          # draws of a pose noise that was not given
+    assert not any((tmp_path / o).exists() for o in ("o", "o2", "o3", "o4", "o5"))
 
 
 def test_record_roundtrip_and_single_camera_localisation(closed_loop, tmp_path):

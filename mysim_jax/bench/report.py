@@ -41,7 +41,7 @@ COLLISION_HEAVY = ROOT / "configs" / "collision_heavy.yaml"
 ROPE_NET_SLACK = ROOT / "configs" / "rope_net_slack.yaml"
 CAPTURE_FALLING = ROOT / "configs" / "capture_falling.yaml"
 CAPTURE_ENV = ROOT / "configs" / "capture_env_falling.yaml"
-SECTIONS = ("a", "b", "c", "d", "e", "f", "g", "h", "i", "j")
+SECTIONS = ("a", "b", "c", "d", "e", "f", "g", "h", "i", "j", "k")
 TRAIN_CAPTURE = ROOT / "configs" / "train_capture_falling.yaml"
 TRAIN_RUNS = ROOT / "docs" / "train"
 
@@ -246,7 +246,7 @@ def _order_summary(results) -> list[str]:
 
 
 def _other_summary(results) -> list[str]:
-    """Training (g), rendering (h) and the profile (f)."""
+    """Training (g), rendering (h), detection (k) and the profile (f)."""
     out = []
     if "g" in results:
         g = results["g"]
@@ -258,6 +258,11 @@ def _other_summary(results) -> list[str]:
         h = results["h"]
         rates = lambda size: ", ".join(f"{k.split()[0]} {v:.1f}" for k, v in h.items() if k.endswith(size))
         out.append(f"- Rendering (h), frames/s: 640 × 360: {rates('640x360')}; 1920 × 1080: {rates('1920x1080')}.")
+    if "k" in results:
+        k = results["k"]
+        out.append(f"- Target detection (k), 640 × 360, frames/s: region mode (what tracking runs) **{k['region']:.1f}**, "
+                   f"the whole image {k['whole image']:.1f} — target ≥ 20: "
+                   f"**{'met' if k['region'] >= 20 else 'NOT met'}**.")
     if "f" in results and "floor" in results["f"]:
         f = results["f"]
         out.append(f"- Profile (f), B = {HEADLINE_BATCH}: library (batch last) {f['library']:,.0f} env-steps/s; "
