@@ -41,6 +41,9 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--uav", nargs="+", required=True, metavar="METRICS", help="perceive.py VIO metrics.json, per UAV")
     fit.add_argument("--target", required=True, metavar="METRICS", help="perceive.py target localisation metrics.json")
     fit.add_argument("--out", required=True, help="YAML file to write")
+    fit.add_argument("--target-block", default="error_model", choices=("error_model", "error_model_draws"),
+                     help="which fit of the target's metrics.json: the run's pose-noise draw (error_model, default) "
+                     "or the draws of perceive.py --pose-seeds pooled (error_model_draws)")
     cmp_ = sub.add_parser("compare", help="the gap between two scripts/evaluate.py folders")
     cmp_.add_argument("true_dir", help="evaluation on true states")
     cmp_.add_argument("perceived_dir", help="the same episodes with --perception")
@@ -60,7 +63,8 @@ def main(argv=None) -> int:
 
             from mysim_jax.config.env import PerceptionConfig
 
-            block = perception_block([read_error_model(p) for p in args.uav], read_error_model(args.target))
+            block = perception_block([read_error_model(p) for p in args.uav],
+                                     read_error_model(args.target, key=args.target_block))
             PerceptionConfig(**block)                      # the block evaluate.py will read
             text = ("# env.perception: measured estimation errors as Gauss-Markov processes "
                     "(scripts/perception_gap.py fit)\n"

@@ -329,3 +329,20 @@ def test_drone_targets_fuse_with_loose_ranges():
     assert loose < 0.01 and tight > 0.03, (loose, tight)
     assert auto_target_style(SimpleNamespace(target=SimpleNamespace(behaviour="maneuvering"))) == "drone"
     assert auto_target_style(SimpleNamespace(target=SimpleNamespace(behaviour="falling"))) == "sphere"
+
+
+def test_error_models_of_several_pose_draws_pool_rms_sigma_and_mean_time():
+    from mysim_jax.perception.track_report import pooled_error_model
+
+    def model(ps, pt, vs, vt, e):
+        return {"method": "triples_weighted", "position_m": {"pooled": {"sigma": ps, "correlation_time_s": pt}},
+                "velocity_m_s": {"pooled": {"sigma": vs, "correlation_time_s": vt}},
+                "position_error_mean_m": e, "velocity_error_mean_m_s": 2 * e}
+
+    pooled = pooled_error_model([model(0.03, 1.0, 0.1, 0.1, 0.04), model(0.04, 3.0, 0.2, 0.3, 0.06),
+                                 {"skipped": "no track"}])
+    assert np.isclose(pooled["position_m"]["pooled"]["sigma"], np.sqrt((0.03 ** 2 + 0.04 ** 2) / 2))
+    assert np.isclose(pooled["position_m"]["pooled"]["correlation_time_s"], 2.0)
+    assert np.isclose(pooled["velocity_m_s"]["pooled"]["sigma"], np.sqrt((0.1 ** 2 + 0.2 ** 2) / 2))
+    assert np.isclose(pooled["position_error_mean_m"], 0.05) and "2 draws" in pooled["camera_poses"]
+    assert "skipped" in pooled_error_model([{"skipped": "x"}])

@@ -156,11 +156,13 @@ def pose_noise_seeds(record: TrackingRecord, pose_noise: PoseNoise, seeds: int, 
     1, ...), from the run's detections and, in the same frames, from the renderer's true
     boxes: what the camera-pose errors alone cost, whatever the detector. Per kind of box:
     the error mean and p95 (m) averaged over the draws, and the smallest and largest
-    draw's mean."""
+    draw's mean; ``error_model``: the team track's error model pooled over the draws
+    (:func:`pooled_error_model`)."""
     import dataclasses
 
     truth = dataclasses.replace(record, det_box=np.where(np.isfinite(record.det_box), record.true_box, np.nan))
     out = {"seeds": seeds, "method": method}
+    models = []
     for name, rec in (("detections", record), ("true_boxes", truth)):
         means, p95s = [], []
         for seed in range(seeds):
@@ -170,8 +172,30 @@ def pose_noise_seeds(record: TrackingRecord, pose_noise: PoseNoise, seeds: int, 
             e = e[np.isfinite(e)]
             means.append(float(e.mean()))
             p95s.append(float(np.percentile(e, 95)))
+            if name == "detections":
+                models.append(target_error_model(record, loc, poses="perturbed", method=method))
         out[name] = {"error_mean_m": float(np.mean(means)), "error_p95_m": float(np.mean(p95s)),
                      "draw_mean_range_m": [min(means), max(means)]}
+    out["error_model"] = pooled_error_model(models)
+    return out
+
+
+def pooled_error_model(models: list[dict]) -> dict:
+    """One error model from :func:`target_error_model` results of several pose-noise draws:
+    per quantity, the Gauss-Markov σ pooled as the root mean square of the draws' pooled σ
+    and the correlation time as their mean (the shape ``scripts/perception_gap.py fit``
+    reads, with ``--target-block error_model_draws``)."""
+    fitted = [m for m in models if "position_m" in m]
+    if not fitted:
+        return {"skipped": "no draw had a target track to fit"}
+    out = {"method": fitted[0]["method"], "camera_poses": f"perturbed, {len(fitted)} draws pooled"}
+    for key in ("position_m", "velocity_m_s"):
+        pooled = [m[key]["pooled"] for m in fitted]
+        out[key] = {"pooled": {"sigma": float(np.sqrt(np.mean([p["sigma"] ** 2 for p in pooled]))),
+                               "correlation_time_s": float(np.mean([p["correlation_time_s"] for p in pooled]))},
+                    "draws": [{"sigma": p["sigma"], "correlation_time_s": p["correlation_time_s"]} for p in pooled]}
+    out["position_error_mean_m"] = float(np.mean([m["position_error_mean_m"] for m in fitted]))
+    out["velocity_error_mean_m_s"] = float(np.mean([m["velocity_error_mean_m_s"] for m in fitted]))
     return out
 
 
@@ -180,7 +204,8 @@ def write_tracking_report(record: TrackingRecord, out: Path, pose_noise: PoseNoi
                           pose_seeds: int = 0) -> dict:
     """Write ``metrics.json``, ``tracking.npz``, ``localisation.csv`` and the plots into ``out``;
     returns the metrics. ``range_sigma``: the relative range noise the fusion assumes;
-    ``pose_seeds``: with ``pose_noise``, also :func:`pose_noise_seeds` over that many draws."""
+    ``pose_seeds``: with ``pose_noise``, also :func:`pose_noise_seeds` over that many draws
+    (``localisation.perturbed_poses_draws``, and the pooled ``error_model_draws``)."""
     out = Path(out)
     metrics = {"tracking": tracking_metrics(record)}
     loc = localize_record(record, progress=progress, range_sigma=range_sigma)
@@ -194,8 +219,9 @@ def write_tracking_report(record: TrackingRecord, out: Path, pose_noise: PoseNoi
             "correlation_time_s": pose_noise.correlation_time,
             **noisy.metrics()}
         if pose_seeds:
-            metrics["localisation"]["perturbed_poses_draws"] = pose_noise_seeds(record, pose_noise, pose_seeds,
-                                                                                range_sigma)
+            draws = pose_noise_seeds(record, pose_noise, pose_seeds, range_sigma)
+            metrics["error_model_draws"] = draws.pop("error_model")
+            metrics["localisation"]["perturbed_poses_draws"] = draws
     metrics["error_model"] = target_error_model(record, noisy if pose_noise is not None else loc,
                                                 poses="perturbed" if pose_noise is not None else "true")
     n_det = loc.n_detecting
@@ -264,6 +290,12 @@ def tracking_summary_lines(scene: str, record, metrics: dict, frame_rate: float,
                      f"{em['position_error_mean_m']:.4f} m, p95 {em['position_error_p95_m']:.4f} m; velocity error "
                      f"mean {em['velocity_error_mean_m_s']:.3f} m/s; range noise assumed "
                      f"{metrics['localisation']['range_sigma']:g}")
+    ed = metrics.get("error_model_draws", {})
+    if "position_m" in ed:
+        pp, vp = ed["position_m"]["pooled"], ed["velocity_m_s"]["pooled"]
+        lines.append(f"  team track, {ed['camera_poses']}: position error mean {ed['position_error_mean_m']:.4f} m "
+                     f"(Gauss-Markov sigma {pp['sigma']:.4f} m, {pp['correlation_time_s']:.2f} s), velocity sigma "
+                     f"{vp['sigma']:.3f} m/s ({vp['correlation_time_s']:.2f} s)")
     dt = metrics.get("detection_time")
     if dt is not None:
         lines.append(f"  detection: {dt['all']['frames_per_s']:.1f} frames/s over the camera frames looked at "
