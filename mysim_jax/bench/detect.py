@@ -26,6 +26,8 @@ from dataclasses import replace
 import numpy as np
 
 from mysim_jax.bench.timing import contention_note, median, spread, time_round_robin, wait_for_quiet
+from mysim_jax.perception.detect.dataset import DatasetSpec, render_sample
+from mysim_jax.perception.detect.model import load_detector
 
 FRAME_SEED = 2024           # held-out frames no evaluation of the detector draws (its seeds are small)
 N_FRAMES = 24
@@ -34,8 +36,6 @@ HINT_OFFSET_PX = (6.0, -4.0)
 
 def frames(n: int = N_FRAMES, seed: int = FRAME_SEED) -> list:
     """The first ``n`` held-out samples with a counted target."""
-    from mysim_jax.perception.detect.dataset import DatasetSpec, render_sample
-
     spec = DatasetSpec(split="held_out", n_images=4 * n, seed=seed, p_empty=0.0)
     out = []
     for i in range(4 * n):
@@ -56,8 +56,6 @@ def hint_of(sample) -> tuple[np.ndarray, float]:
 
 def measure(samples, repeats: int, section: str = "k") -> dict[str, list[float]]:
     """Seconds per frame of each variant (the counted rounds)."""
-    from mysim_jax.perception.detect.model import load_detector
-
     detector = load_detector()
     stage1 = replace(detector, refiner=None)
     hints = [hint_of(s) for s in samples]

@@ -679,6 +679,32 @@ def _hint(g, tracker, t, frame, last_side, max_age_s, team, cue, intr, radius) -
     return next((h for h in hints if h is not OUT_OF_VIEW), OUT_OF_VIEW if hints else None)
 
 
+class _RegionMemory:
+    """What the region hints of a tracking run remember between frames: each camera's last
+    target box side (px) and the cameras' last joint point of the target."""
+
+    def __init__(self, n_cameras: int, max_age_s: float, intr: Intrinsics, radius: float, range_sigma: float):
+        self.last_side: list[float | None] = [None] * n_cameras
+        self.team: tuple[float, np.ndarray] | None = None        # (t s, (3,) m)
+        self.max_age_s, self.intr, self.radius, self.range_sigma = max_age_s, intr, radius, range_sigma
+
+    def hint(self, g: int, tracker: GimbalTracker, t: float, frame: Frame, cue) -> RegionHint | None:
+        return _hint(g, tracker, t, frame, self.last_side[g], self.max_age_s, self.team, cue, self.intr, self.radius)
+
+    def update(self, t: float, frames, dets) -> None:
+        """Remember this frame's associated detections (best first per camera)."""
+        for g, d in enumerate(dets):
+            if d:
+                b = np.asarray(d[0].box, float)
+                self.last_side[g] = float(max(b[2] - b[0], b[3] - b[1]))
+        seen = [g for g in range(len(dets)) if dets[g]]
+        if seen:
+            point = _team_point([frames[g] for g in seen], [dets[g][0] for g in seen], self.intr, self.radius,
+                                self.range_sigma)
+            if point is not None:
+                self.team = (t, point)
+
+
 def _associate_all(dets, frames, ref_of, gate_deg, intr, radius):
     """Each camera's detections gated on the point the others agree on (two or more other
     cameras), else on ``ref_of(camera)`` (the start cue before a first detection)."""
@@ -755,6 +781,30 @@ def _start_cue(config, params, state, target_body: int):
     return cue_point
 
 
+def _tracking_scene(config, initial_cue: bool, frame_rate: float):
+    """``(config, scene, params, state, steps per frame)`` of a tracking run: the cameras
+    pointed at the target's start with ``initial_cue``, one environment, the gimbals' sine
+    commands zeroed (the trackers command them)."""
+    scene, params, state = build(config)
+    if initial_cue:
+        config = _point_at_start(config, scene, state)
+        scene, params, state = build(config)
+    scene = single_env_scene(scene)
+    qp = params.quadrotor
+    params = params.replace(quadrotor=qp.replace(gimbal_amplitude=0.0 * qp.gimbal_amplitude))
+    return config, scene, params, state, _steps_per_frame(scene, frame_rate)
+
+
+def _finite_poses(state, t: float) -> tuple[np.ndarray, np.ndarray]:
+    """The bodies' quaternions and positions; PerceptionError once the simulation is non-finite."""
+    bq = np.asarray(state.phys.body_quat, float)
+    bp = np.asarray(state.phys.body_pos, float)
+    if not (np.all(np.isfinite(bq)) and np.all(np.isfinite(bp))):
+        raise PerceptionError(f"the simulation turned non-finite at t = {t:g} s; simulate the scene with "
+                              f"scripts/simulate.py to see where")
+    return bq, bp
+
+
 def run_tracking(config, detector: FrameDetector | None = None, intr: Intrinsics | None = None,
                  frame_rate: float = 25.0, tracker_config: GimbalTrackerConfig = GimbalTrackerConfig(),
                  t_end: float | None = None, initial_cue: bool = True, cooperative_cue: bool = True,
@@ -784,12 +834,7 @@ def run_tracking(config, detector: FrameDetector | None = None, intr: Intrinsics
         raise PerceptionError(f"frame_rate must be positive, got {frame_rate}")
     intr = make_intrinsics(width=640, height=360) if intr is None else intr
     detector = OracleDetector() if detector is None else detector
-    scene, params, state = build(config)
-    if initial_cue:
-        config = _point_at_start(config, scene, state)
-        scene, params, state = build(config)
-    scene = single_env_scene(scene)
-    steps = _steps_per_frame(scene, frame_rate)
+    config, scene, params, state, steps = _tracking_scene(config, initial_cue, frame_rate)
     frame_dt = steps * scene.dt
     t_end = config.sim.t_end if t_end is None else float(t_end)
     n_frames = int(np.floor(t_end / frame_dt + 1e-9)) + 1
@@ -800,16 +845,14 @@ def run_tracking(config, detector: FrameDetector | None = None, intr: Intrinsics
     geoms = [GimbalGeometry(c) for _, c in cams]
     renderer = _SkyRenderer(config, intr, target_style=target_style)
     trackers = [GimbalTracker(g, intr, frame_dt, tracker_config, c.command.angle) for g, (_, c) in zip(geoms, cams)]
-    params = params.replace(quadrotor=params.quadrotor.replace(gimbal_amplitude=0.0 * params.quadrotor.gimbal_amplitude))
     advance = jax.jit(rollout, static_argnums=(0, 3, 4, 5))
     bi = {n: i for i, n in enumerate(scene.body_names)}
     target = config.target.name
 
     cue_point = _start_cue(config, params, state, bi[target])
-    last_side: list[float | None] = [None] * len(cams)      # px, each camera's last target box
-    team = None                                              # (t, (3,) m): the cameras' last joint point
     range_sigma = RANGE_SIGMA[auto_target_style(config)] if range_sigma is None else float(range_sigma)
-    region_max_age = (tracker_config.hold_frames + 1) * frame_dt
+    memory = _RegionMemory(len(cams), (tracker_config.hold_frames + 1) * frame_dt, intr, config.target.radius,
+                           range_sigma)
     rec = {k: [] for k in ("t", "camera_R", "camera_p", "angles", "command", "mode", "det_box", "true_box",
                            "true_centre", "true_depth", "visible_fraction", "target_pos", "target_vel")}
     rows = []
@@ -818,28 +861,14 @@ def run_tracking(config, detector: FrameDetector | None = None, intr: Intrinsics
         cols = _state_columns(scene, state)
         rows.append(cols)
         t = float(cols["time"][0])
-        bq = np.asarray(state.phys.body_quat, float)
-        bp = np.asarray(state.phys.body_pos, float)
-        if not (np.all(np.isfinite(bq)) and np.all(np.isfinite(bp))):
-            raise PerceptionError(f"the simulation turned non-finite at t = {t:g} s; simulate the scene with "
-                                  f"scripts/simulate.py to see where")
+        bq, bp = _finite_poses(state, t)
         cue_now = cue_point(t) if initial_cue else None
-        hint_of = lambda g, frame: _hint(g, trackers[g], t, frame, last_side[g], region_max_age, team,  # noqa: E731
-                                         cue_now, intr, config.target.radius)
+        hint_of = lambda g, frame: memory.hint(g, trackers[g], t, frame, cue_now)  # noqa: E731
         frames, dets, angles, uav_Rs = _detect(renderer, detector, cams, geoms, cols, bq, bi, t, force_loss, hint_of)
         if tracker_config.gate_deg is not None:
             ref_of = lambda g: cue_point(t) if initial_cue and trackers[g].last_seen_t is None else None  # noqa: E731
             dets = _associate_all(dets, frames, ref_of, tracker_config.gate_deg, intr, config.target.radius)
-        for g, d in enumerate(dets):
-            if d:
-                b = np.asarray(d[0].box, float)
-                last_side[g] = float(max(b[2] - b[0], b[3] - b[1]))
-        seen = [g for g in range(len(dets)) if dets[g]]
-        if seen:
-            point = _team_point([frames[g] for g in seen], [dets[g][0] for g in seen], intr, config.target.radius,
-                                range_sigma)
-            if point is not None:
-                team = (t, point)
+        memory.update(t, frames, dets)
         omegas = [np.asarray(state.phys.body_angvel[bi[u]], float) for u in uavs]
         commands = _steer(trackers, t, frames, dets, angles, uav_Rs, omegas, intr, config.target.radius,
                           cue_point(t) if initial_cue else None, cooperative_cue, range_sigma)
@@ -852,10 +881,9 @@ def run_tracking(config, detector: FrameDetector | None = None, intr: Intrinsics
         params = params.replace(quadrotor=qp.replace(gimbal_angle=jax.numpy.asarray(commands, qp.gimbal_angle.dtype)))
         state, _ = advance(scene, params, state, steps, steps, policy)
     bar.close()
-    columns = {key: np.concatenate([r[key] for r in rows]) for key in rows[0]}
-    arr = {k: np.asarray(v) for k, v in rec.items()}
     return TrackingRecord(cameras=names, uavs=uavs, intr=intr, target_radius=float(config.target.radius),
-                          columns=columns, **arr)
+                          columns={key: np.concatenate([r[key] for r in rows]) for key in rows[0]},
+                          **{k: np.asarray(v) for k, v in rec.items()})
 
 
 MOVING_SPEED = 0.5      # m/s: above this the target counts as moving (falling, evading), below as held

@@ -6,6 +6,7 @@ output folder (see there for the files).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -158,8 +159,6 @@ def pose_noise_seeds(record: TrackingRecord, pose_noise: PoseNoise, seeds: int, 
     the error mean and p95 (m) averaged over the draws, and the smallest and largest
     draw's mean; ``error_model``: the team track's error model pooled over the draws
     (:func:`pooled_error_model`)."""
-    import dataclasses
-
     truth = dataclasses.replace(record, det_box=np.where(np.isfinite(record.det_box), record.true_box, np.nan))
     out = {"seeds": seeds, "method": method}
     models = []

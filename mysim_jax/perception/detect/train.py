@@ -496,6 +496,33 @@ def plot_pr(path: Path, curves: dict) -> None:
     plt.close(fig)
 
 
+def _evaluate_sets(cfg: DetectorConfig, cnn, sets: dict, out: Path, modes, metrics: dict, progress: bool) -> dict:
+    """Evaluate the CNN (in each of ``modes``) and the colour-blob baseline on every set;
+    the metrics go into ``metrics`` (``<detector>/<set>``), per-target rows, misses and
+    examples into ``out``. Returns the precision-recall curves."""
+    baseline = ColourBlobDetector()
+    curves = {}
+    for set_name, (images, labels) in sets.items():
+        results = {}
+        hints = region_hints(labels, spec_of(cfg, "eval_held_out").seed) if "region" in modes else None
+        runs = [("cnn", cnn, cfg.eval.min_score, None)] if "full" in modes else []
+        runs += [("cnn_region", cnn, cfg.eval.min_score, hints)] if "region" in modes else []
+        for det_name, det, thr, h in runs + [("baseline", baseline, 0.3, None)]:
+            m, dets, rows = evaluate(det, images, labels, cfg, thr, progress=progress,
+                                     name=f"{det_name} {set_name}", hints=h)
+            metrics[f"{det_name}/{set_name}"] = m
+            results[det_name] = dets
+            if det_name.startswith("cnn"):     # per-target diagnostics: which targets are missed, and how
+                (out / "targets").mkdir(exist_ok=True)
+                suffix = "" if det_name == "cnn" else "_region"
+                (out / "targets" / f"{set_name}{suffix}.json").write_text(json.dumps(rows))
+                plot_misses(out / "targets" / f"misses_{set_name}{suffix}.png", images, rows)
+            curves[f"{det_name}, {set_name.replace('_', '-')}"] = pr_curve(match(dets, truths(labels), cfg.eval.iou_threshold))
+        if cfg.eval.n_examples:
+            write_examples(out / "examples" / set_name, images, labels, results, cfg.eval.n_examples)
+    return curves
+
+
 def run(cfg: DetectorConfig, out: Path, progress: bool = True, cache: Path | None = None,
         weights: Path | None = None, init: Path | None = None, modes: tuple[str, ...] = ("full",)) -> dict:
     """Render, train, evaluate and write a run into ``out`` (see the module doc); returns the
@@ -556,26 +583,7 @@ def run(cfg: DetectorConfig, out: Path, progress: bool = True, cache: Path | Non
                           flip_test=cfg.model.flip_test, refiner=refiner)   # inference settings: the config's
         metrics = dict(weights=str(weights), weights_bytes=Path(weights).stat().st_size,
                        refine=refiner is not None)
-    baseline = ColourBlobDetector()
-    curves = {}
-    for set_name, (images, labels) in sets.items():
-        results = {}
-        hints = region_hints(labels, spec_of(cfg, "eval_held_out").seed) if "region" in modes else None
-        runs = [("cnn", cnn, cfg.eval.min_score, None)] if "full" in modes else []
-        runs += [("cnn_region", cnn, cfg.eval.min_score, hints)] if "region" in modes else []
-        for det_name, det, thr, h in runs + [("baseline", baseline, 0.3, None)]:
-            m, dets, rows = evaluate(det, images, labels, cfg, thr, progress=progress,
-                                     name=f"{det_name} {set_name}", hints=h)
-            metrics[f"{det_name}/{set_name}"] = m
-            results[det_name] = dets
-            if det_name.startswith("cnn"):     # per-target diagnostics: which targets are missed, and how
-                (out / "targets").mkdir(exist_ok=True)
-                suffix = "" if det_name == "cnn" else "_region"
-                (out / "targets" / f"{set_name}{suffix}.json").write_text(json.dumps(rows))
-                plot_misses(out / "targets" / f"misses_{set_name}{suffix}.png", images, rows)
-            curves[f"{det_name}, {set_name.replace('_', '-')}"] = pr_curve(match(dets, truths(labels), cfg.eval.iou_threshold))
-        if cfg.eval.n_examples:
-            write_examples(out / "examples" / set_name, images, labels, results, cfg.eval.n_examples)
+    curves = _evaluate_sets(cfg, cnn, sets, out, modes, metrics, progress)
     plot_pr(out / "pr_curve.png", curves)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     return metrics
