@@ -270,13 +270,13 @@ def test_region_hints_project_the_prediction_and_the_team_point():
     np.testing.assert_allclose(ph.centre, hint.centre, atol=1e-6)
     np.testing.assert_allclose(ph.side, 2 * intr.fx * 0.15 / np.sqrt(d * d - 0.15 ** 2))
     lost = SimpleNamespace(last_bearing=None, bearing_rate=np.zeros(3), last_seen_t=None, intr=intr)
-    got = _hint(0, lost, 2.0, frame, None, 0.15, (1.95, x), None, intr, 0.15)
+    got = _hint(lost, 2.0, frame, None, 0.15, (1.95, x), None, intr, 0.15)
     np.testing.assert_allclose(got.centre, ph.centre)
-    assert _hint(0, lost, 2.0, frame, None, 0.15, (1.0, x), None, intr, 0.15) is None     # the team point is old
-    np.testing.assert_allclose(_hint(0, lost, 2.0, frame, None, 0.15, None, x, intr, 0.15).centre, ph.centre)
-    assert _hint(0, lost, 2.0, frame, None, 0.15, None, None, intr, 0.15) is None        # nothing known
-    assert _hint(0, lost, 2.0, behind, None, 0.15, (1.95, x), x, intr, 0.15) is OUT_OF_VIEW
-    own = _hint(0, tracker, 1.05, frame, 30.0, 0.15, (1.0, x + 1.0), None, intr, 0.15)   # own track first
+    assert _hint(lost, 2.0, frame, None, 0.15, (1.0, x), None, intr, 0.15) is None     # the team point is old
+    np.testing.assert_allclose(_hint(lost, 2.0, frame, None, 0.15, None, x, intr, 0.15).centre, ph.centre)
+    assert _hint(lost, 2.0, frame, None, 0.15, None, None, intr, 0.15) is None        # nothing known
+    assert _hint(lost, 2.0, behind, None, 0.15, (1.95, x), x, intr, 0.15) is OUT_OF_VIEW
+    own = _hint(tracker, 1.05, frame, 30.0, 0.15, (1.0, x + 1.0), None, intr, 0.15)   # own track first
     np.testing.assert_allclose(own.centre, hint.centre)
 
 
@@ -337,7 +337,7 @@ def test_error_models_of_several_pose_draws_pool_rms_sigma_and_mean_time():
     def model(ps, pt, vs, vt, e):
         return {"method": "triples_weighted", "position_m": {"pooled": {"sigma": ps, "correlation_time_s": pt}},
                 "velocity_m_s": {"pooled": {"sigma": vs, "correlation_time_s": vt}},
-                "position_error_mean_m": e, "velocity_error_mean_m_s": 2 * e}
+                "position_error_mean_m": e, "position_error_p95_m": 3 * e, "velocity_error_mean_m_s": 2 * e}
 
     pooled = pooled_error_model([model(0.03, 1.0, 0.1, 0.1, 0.04), model(0.04, 3.0, 0.2, 0.3, 0.06),
                                  {"skipped": "no track"}])
@@ -345,6 +345,7 @@ def test_error_models_of_several_pose_draws_pool_rms_sigma_and_mean_time():
     assert np.isclose(pooled["position_m"]["pooled"]["correlation_time_s"], 2.0)
     assert np.isclose(pooled["velocity_m_s"]["pooled"]["sigma"], np.sqrt((0.1 ** 2 + 0.2 ** 2) / 2))
     assert np.isclose(pooled["position_error_mean_m"], 0.05) and "2 draws" in pooled["camera_poses"]
+    assert np.isclose(pooled["position_error_p95_m"], 0.15) and np.isclose(pooled["velocity_error_mean_m_s"], 0.1)
     assert "skipped" in pooled_error_model([{"skipped": "x"}])
 
 

@@ -83,6 +83,13 @@ def sphere_range(size_px, radius: float, f_px: float) -> np.ndarray:
         return radius * np.sqrt(1.0 + (2.0 * f_px / s) ** 2)
 
 
+def sphere_size_px(distance, radius: float, f_px: float) -> np.ndarray:
+    """(...,) px: the image size of a sphere of ``radius`` (m) at ``distance`` (m, > radius)
+    from the camera; the inverse of :func:`sphere_range`."""
+    d = np.asarray(distance, float)
+    return 2.0 * f_px * radius / np.sqrt(d * d - radius * radius)
+
+
 def box_touches_border(intr: Intrinsics, boxes: np.ndarray, margin_px: float = 1.0) -> np.ndarray:
     """(...,) bool: a box within ``margin_px`` of the image border (cut: its size is not the target's)."""
     b = np.asarray(boxes, float)

@@ -66,11 +66,11 @@ from tqdm.auto import tqdm
 from mysim_jax.build import build
 from mysim_jax.control.build import R_Y_90, gimbal_marker_frames
 from mysim_jax.core.npgeom import quat_to_matrix
-from mysim_jax.perception.camera import Intrinsics, PerceptionError, intrinsics as make_intrinsics
+from mysim_jax.perception.camera import Intrinsics, PerceptionError, intrinsics as make_intrinsics, project
 from mysim_jax.perception.detect import Detection   # noqa: F401  (the detections this module handles)
 from mysim_jax.perception.detect.model import load_detector
 from mysim_jax.perception.localize import (RANGE_SIGMA, PoseNoise, box_size_px, box_touches_border, fuse,
-                                          pixel_bearings, sphere_range)
+                                          pixel_bearings, sphere_range, sphere_size_px)
 from mysim_jax.perception.render import Frame, Renderer, auto_target_style
 from mysim_jax.sim import rollout, single_env_scene
 from mysim_jax.tasks.scripted import team_policy
@@ -650,22 +650,22 @@ def point_hint(intr: Intrinsics, frame: Frame, point, radius: float) -> RegionHi
     dist = float(np.linalg.norm(d))
     if not dist > radius:
         return None
-    return _hint_along(intr, frame, d / dist, 2.0 * intr.fx * radius / np.sqrt(dist * dist - radius * radius))
+    return _hint_along(intr, frame, d / dist, float(sphere_size_px(dist, radius, intr.fx)))
 
 
-def _hint_along(intr: Intrinsics, frame: Frame, bearing, side: float) -> RegionHint | None:
-    c = np.asarray(frame.R, float).T @ np.asarray(bearing, float)
-    if c[2] <= 1e-6:
+def _hint_along(intr: Intrinsics, frame: Frame, bearing, side: float) -> RegionHint:
+    """The hint at world ``bearing`` from ``frame``'s camera, or :data:`OUT_OF_VIEW`."""
+    (u, v), depth = project(intr, np.asarray(frame.R, float), np.zeros(3), np.asarray(bearing, float))
+    if depth <= 1e-6:
         return OUT_OF_VIEW
-    u, v = intr.fx * c[0] / c[2] + intr.cx, intr.fy * c[1] / c[2] + intr.cy
     margin = max(side, 32.0)
     if not (-margin <= u <= intr.width + margin and -margin <= v <= intr.height + margin):
         return OUT_OF_VIEW
     return RegionHint(centre=np.array([u, v]), side=float(side))
 
 
-def _hint(g, tracker, t, frame, last_side, max_age_s, team, cue, intr, radius) -> RegionHint | None:
-    """Camera ``g``'s region hint: the first in view of its own track's prediction, the
+def _hint(tracker, t, frame, last_side, max_age_s, team, cue, intr, radius) -> RegionHint | None:
+    """A camera's region hint: the first in view of its own track's prediction, the
     teammates' last point (``team``: (t, point) or None) when recent, and the start cue
     before its first detection (``cue``: a world point or None); :data:`OUT_OF_VIEW` when
     every one of them puts the target outside the image; None when there is none (the
@@ -689,7 +689,7 @@ class _RegionMemory:
         self.max_age_s, self.intr, self.radius, self.range_sigma = max_age_s, intr, radius, range_sigma
 
     def hint(self, g: int, tracker: GimbalTracker, t: float, frame: Frame, cue) -> RegionHint | None:
-        return _hint(g, tracker, t, frame, self.last_side[g], self.max_age_s, self.team, cue, self.intr, self.radius)
+        return _hint(tracker, t, frame, self.last_side[g], self.max_age_s, self.team, cue, self.intr, self.radius)
 
     def update(self, t: float, frames, dets) -> None:
         """Remember this frame's associated detections (best first per camera)."""

@@ -140,12 +140,13 @@ def target_error_model(record: TrackingRecord, loc, poses: str = "true", method:
         return {"skipped": f"{int(ok.sum())} frames with a target track; the fit needs >= 3"}
     first = int(np.argmax(ok))
     t = loc.t[first:]
+    p_err = np.linalg.norm(p[first:] - record.target_pos[first:], axis=1)
     return {"method": method, "camera_poses": poses,
             "filter": {"kind": "constant acceleration", "position_sigma_m": position_sigma,
                        "jerk_sigma_m_s3": jerk_sigma},
             "first_fix_s": float(loc.t[first]),
-            "position_error_mean_m": float(np.linalg.norm(p[first:] - record.target_pos[first:], axis=1).mean()),
-            "position_error_p95_m": float(np.percentile(np.linalg.norm(p[first:] - record.target_pos[first:], axis=1), 95)),
+            "position_error_mean_m": float(p_err.mean()),
+            "position_error_p95_m": float(np.percentile(p_err, 95)),
             "velocity_error_mean_m_s": float(np.linalg.norm(v[first:] - record.target_vel[first:], axis=1).mean()),
             "position_m": gauss_markov_fit(t, p[first:] - record.target_pos[first:]),
             "velocity_m_s": gauss_markov_fit(t, v[first:] - record.target_vel[first:])}
@@ -193,8 +194,8 @@ def pooled_error_model(models: list[dict]) -> dict:
         out[key] = {"pooled": {"sigma": float(np.sqrt(np.mean([p["sigma"] ** 2 for p in pooled]))),
                                "correlation_time_s": float(np.mean([p["correlation_time_s"] for p in pooled]))},
                     "draws": [{"sigma": p["sigma"], "correlation_time_s": p["correlation_time_s"]} for p in pooled]}
-    out["position_error_mean_m"] = float(np.mean([m["position_error_mean_m"] for m in fitted]))
-    out["velocity_error_mean_m_s"] = float(np.mean([m["velocity_error_mean_m_s"] for m in fitted]))
+    for key in ("position_error_mean_m", "position_error_p95_m", "velocity_error_mean_m_s"):
+        out[key] = float(np.mean([m[key] for m in fitted]))
     return out
 
 
@@ -256,6 +257,16 @@ def write_tracking_report(record: TrackingRecord, out: Path, pose_noise: PoseNoi
     return metrics
 
 
+def _team_track_line(model: dict) -> str:
+    """One summary line of a team-track error model (:func:`target_error_model`, or
+    :func:`pooled_error_model` over pose-noise draws)."""
+    pp, vp = model["position_m"]["pooled"], model["velocity_m_s"]["pooled"]
+    return (f"  team track ({model['camera_poses']} poses, filtered): position error mean "
+            f"{model['position_error_mean_m']:.4f} m, p95 {model['position_error_p95_m']:.4f} m (Gauss-Markov sigma "
+            f"{pp['sigma']:.4f} m, {pp['correlation_time_s']:.2f} s); velocity error mean "
+            f"{model['velocity_error_mean_m_s']:.3f} m/s (sigma {vp['sigma']:.3f} m/s, {vp['correlation_time_s']:.2f} s)")
+
+
 def tracking_summary_lines(scene: str, record, metrics: dict, frame_rate: float, wall: float, out) -> list[str]:
     """What ``scripts/perceive.py --track`` prints: how often the target was in view and
     detected, the pointing error, the localisation errors, the size-range fits."""
@@ -283,18 +294,9 @@ def tracking_summary_lines(scene: str, record, metrics: dict, frame_rate: float,
                      f"(draws {d['draw_mean_range_m'][0]:.4f}-{d['draw_mean_range_m'][1]:.4f}), p95 "
                      f"{d['error_p95_m']:.4f} m; from the true boxes in the same frames: mean {tb['error_mean_m']:.4f} m, "
                      f"p95 {tb['error_p95_m']:.4f} m")
-    em = metrics.get("error_model", {})
-    if "position_error_mean_m" in em:
-        lines.append(f"  team track ({em['camera_poses']} poses, filtered): position error mean "
-                     f"{em['position_error_mean_m']:.4f} m, p95 {em['position_error_p95_m']:.4f} m; velocity error "
-                     f"mean {em['velocity_error_mean_m_s']:.3f} m/s; range noise assumed "
-                     f"{metrics['localisation']['range_sigma']:g}")
-    ed = metrics.get("error_model_draws", {})
-    if "position_m" in ed:
-        pp, vp = ed["position_m"]["pooled"], ed["velocity_m_s"]["pooled"]
-        lines.append(f"  team track, {ed['camera_poses']}: position error mean {ed['position_error_mean_m']:.4f} m "
-                     f"(Gauss-Markov sigma {pp['sigma']:.4f} m, {pp['correlation_time_s']:.2f} s), velocity sigma "
-                     f"{vp['sigma']:.3f} m/s ({vp['correlation_time_s']:.2f} s)")
+    for key in ("error_model", "error_model_draws"):
+        if "position_m" in metrics.get(key, {}):
+            lines.append(_team_track_line(metrics[key]))
     dt = metrics.get("detection_time")
     if dt is not None:
         lines.append(f"  detection: {dt['all']['frames_per_s']:.1f} frames/s over the camera frames looked at "

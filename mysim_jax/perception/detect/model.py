@@ -374,9 +374,9 @@ class CNNDetector:
         network pixels (within the scales of the pyramid), and the network runs on it once
         (with the flip test when the detector has it); the candidates go through the second
         stage on the full image as in :meth:`detect`. Boxes are in ``image``'s pixels, best
-        first. Far cheaper than :meth:`detect` (one small input instead of the pyramid);
-        a target outside the window is not found, so a tracker falls back to :meth:`detect`
-        when it has lost the target."""
+        first. Far cheaper than :meth:`detect` (one small input instead of the pyramid); a
+        target outside the window is not found, so a tracker without a usable hint uses
+        :meth:`detect`."""
         image = check_image(image)
         region = self.region if region is None else region
         if not (np.all(np.isfinite(np.asarray(centre, float))) and np.isfinite(side_px) and side_px > 0):
@@ -386,16 +386,15 @@ class CNNDetector:
         (x0, y0, side), scale = self.region_window(image.shape, centre, side_px, region)
         n = region.input_px
         # the window resized to n x n (window px j <-> edge coordinate x0 + (j + 0.5) / scale), the
-        # image's edge pixels repeated beyond it
-        M = np.array([[scale, 0.0, -x0 * scale + 0.5 * scale - 0.5], [0.0, scale, -y0 * scale + 0.5 * scale - 0.5]])
-        if scale < 1.0:       # shrinking: area-average the image first, as the pyramid does
-            small = cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
-            sx, sy = small.shape[1] / image.shape[1], small.shape[0] / image.shape[0]
-            M = np.array([[scale / sx, 0.0, 0.5 * scale / sx - x0 * scale - 0.5],
-                          [0.0, scale / sy, 0.5 * scale / sy - y0 * scale - 0.5]])
-            x = cv2.warpAffine(small, M, (n, n), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        else:
-            x = cv2.warpAffine(image, M, (n, n), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        # image's edge pixels repeated beyond it; when shrinking, the image is area-averaged first
+        # (as the pyramid does) and the map starts from that smaller image (sx, sy: its scale)
+        src, sx, sy = image, 1.0, 1.0
+        if scale < 1.0:
+            src = cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+            sx, sy = src.shape[1] / image.shape[1], src.shape[0] / image.shape[0]
+        M = np.array([[scale / sx, 0.0, 0.5 * scale / sx - x0 * scale - 0.5],
+                      [0.0, scale / sy, 0.5 * scale / sy - y0 * scale - 0.5]])
+        x = cv2.warpAffine(src, M, (n, n), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         x = x[None]
         if self.flip_test:
             scores, boxes = self._forward_flip(self.params, x, np.ascontiguousarray(x[:, :, ::-1]), n // STRIDE)
