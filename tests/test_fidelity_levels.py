@@ -34,6 +34,25 @@ def test_a_level_applies_its_values_and_later_overrides_win():
     assert again.level == "train" and again.sim.dt == pytest.approx(4e-3) and again.net.masses_per_edge == 0
     assert list(again.levels) == ["train"] and again.levels["train"].set == []
     assert again.model_dump(exclude={"levels"}) == train.model_dump(exclude={"levels"})
+    # a dump dumped again keeps one "(resolved: ...)" note
+    assert dump_config(again) == dump_config(train)
+
+
+def test_a_resolved_file_refuses_to_give_another_level(tmp_path):
+    """A run folder's scene.yaml holds the level train's values as its own: asking it for
+    the level full would run train's physics under full's name, so it is an error naming
+    the files to use; its own level (asked for or not) still loads."""
+    path = tmp_path / "scene.yaml"
+    path.write_text(dump_config(load_config(SCENE, ["level=train"])))
+    assert load_config(path).level == "train"
+    assert load_config(path, ["level=train", "sim.t_end=3"]).sim.t_end == 3.0
+    with pytest.raises(ConfigError, match=r"level=full: this file is resolved at the level 'train'.*scene_eval.yaml"):
+        load_config(path, ["level=full"])
+    # the committed run folders are marked the same way
+    run = CONFIGS.parent / "docs" / "train" / "maneuvering"
+    with pytest.raises(ConfigError, match="resolved at the level 'train'"):
+        load_config(run / "scene.yaml", ["level=full"])
+    assert load_config(run / "scene_eval.yaml").level == "full"
 
 
 def test_unknown_or_broken_levels_are_named():

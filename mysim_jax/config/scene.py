@@ -345,6 +345,9 @@ class LevelConfig(StrictModel):
     description: str = ""
     # empty in a resolved file (dump_config), whose own values are the level's already
     set: list[str]
+    # true in a resolved file: its own values are this level's, not the level full's, so
+    # no other level can be loaded from it
+    resolved: bool = False
 
 
 FULL_LEVEL = "full"
@@ -758,6 +761,7 @@ def _config_at_level(raw: dict, source: str, overrides) -> SceneConfig:
     level = chosen.get("level", FULL_LEVEL)
     if not isinstance(level, str):
         raise ConfigError(f"{source}: level: expected the name of a fidelity level, got {level!r}")
+    _check_not_resolved_elsewhere(raw, level, source)
     if level != FULL_LEVEL:
         levels = raw.get("levels") or {}
         if not isinstance(levels, dict) or level not in levels:
@@ -782,6 +786,20 @@ def _config_at_level(raw: dict, source: str, overrides) -> SceneConfig:
         raise ConfigError(f"{source}: invalid scene configuration\n{format_validation_error(err)}") from None
 
 
+def _check_not_resolved_elsewhere(raw: dict, level: str, source: str) -> None:
+    """A resolved file (``dump_config`` at a level other than ``full``: a run folder's
+    ``scene.yaml``) holds one level's values as its own; asking it for another level would
+    load those values under the other level's name, so it is an error."""
+    own = raw.get("level", FULL_LEVEL)
+    entry = (raw.get("levels") or {}).get(own) if isinstance(raw.get("levels"), dict) else None
+    if level != own and isinstance(entry, dict) and entry.get("resolved") is True:
+        raise ConfigError(
+            f"{source}: level={level}: this file is resolved at the level '{own}' (its own values are that "
+            f"level's, as a run folder's scene.yaml is), so it cannot give the level '{level}'. Load the "
+            f"original scene file with --set level={level}, or a run folder's scene_eval.yaml for the level "
+            "its evaluation ran at.")
+
+
 def load_config(path: str | Path, overrides: list[str] | tuple[str, ...] = ()) -> SceneConfig:
     """Read, override and validate a YAML scene file. Raises :class:`ConfigError` naming
     the file and the field (:mod:`mysim_jax.core.config_base` lists what a file may not be)."""
@@ -791,13 +809,14 @@ def load_config(path: str | Path, overrides: list[str] | tuple[str, ...] = ()) -
 def dump_config(config: SceneConfig) -> str:
     """The resolved config as YAML (round-trips through :func:`config_from_dict`). At a
     level other than ``full`` the level's values are the file's own values in the dump:
-    it keeps ``level: NAME`` with an empty ``levels.NAME.set`` (so it reloads as it is,
-    under the level's name) and drops the other levels, which were relative to the
-    original file."""
+    it keeps ``level: NAME`` with an empty ``levels.NAME.set`` and ``resolved: true`` (so it
+    reloads as it is, under the level's name, and refuses to give another level) and drops
+    the other levels, which were relative to the original file."""
     data = config.model_dump(mode="json")
     if data["level"] != FULL_LEVEL:
         name = data["level"]
         entry = data["levels"][name]
-        data["levels"] = {name: {"description": f"{entry['description']} (resolved: the values above are "
-                                                f"this level's)".strip(), "set": []}}
+        description = entry["description"] if entry["resolved"] else (
+            f"{entry['description']} (resolved: the values above are this level's)".strip())
+        data["levels"] = {name: {"description": description, "set": [], "resolved": True}}
     return yaml.safe_dump(data, sort_keys=False)
