@@ -14,7 +14,7 @@ from mysim_jax.config.scene import load_config
 from mysim_jax.io.trajectory import read_trajectory_csv
 from mysim_jax.config.env import FAILURES, REWARD_TERMS
 
-from conftest import CONFIGS, ROOT
+from conftest import CONFIGS, ROOT, only_array_ops, run_script_main
 
 SCRIPT = ROOT / "scripts" / "evaluate.py"
 CONFIG = CONFIGS / "capture_falling.yaml"
@@ -23,9 +23,12 @@ SMALL = ["net.knots=3", "net.tethers.n_masses=1", "sim.t_end=0.4", "sim.precisio
          "output.plot=[target,uav0]"]
 
 
+def _small_sets() -> list[str]:
+    return [a for s in SMALL for a in ("--set", s)]
+
+
 def _run(*args):
-    sets = [a for s in SMALL for a in ("--set", s)]
-    return subprocess.run([sys.executable, str(SCRIPT), *map(str, args), *sets, "--no-progress"],
+    return subprocess.run([sys.executable, str(SCRIPT), *map(str, args), *_small_sets(), "--no-progress"],
                           capture_output=True, text=True, cwd=ROOT)
 
 
@@ -85,7 +88,9 @@ def test_outputs_and_consistent_metrics(tmp_path):
 
 @pytest.mark.parametrize("case", ["missing_config", "missing_policy", "no_make_policy", "zero_episodes",
                                   "bad_override"])
-def test_bad_input_exits_2_and_writes_nothing(tmp_path, case):
+def test_bad_input_exits_2_and_writes_nothing(tmp_path, capsys, case):
+    """The script's main() in this process (conftest.run_script_main): exit code 2, one
+    error, nothing of the evaluation compiled (conftest.only_array_ops), nothing written."""
     out = tmp_path / "eval"
     no_function = tmp_path / "policy.py"
     no_function.write_text("def something_else(env, params):\n    return None\n")
@@ -98,20 +103,22 @@ def test_bad_input_exits_2_and_writes_nothing(tmp_path, case):
     }[case]
     message = {"missing_config": "no such config file", "missing_policy": "no such file",
                "no_make_policy": "make_policy", "zero_episodes": "--episodes 0", "bad_override": "policy_rate"}[case]
-    res = _run(*args, "--out", out)
-    assert res.returncode == 2, res.stderr
-    assert res.stderr.startswith("error:") and message in res.stderr, res.stderr
-    assert "Traceback" not in res.stderr
+    code, _, err, compiled = run_script_main("evaluate", [*args, "--out", out, *_small_sets(), "--no-progress"],
+                                             capsys)
+    assert code == 2, err
+    assert err.startswith("error:") and message in err, err
+    assert "Traceback" not in err and only_array_ops(compiled)
     assert not out.exists() and not list(tmp_path.glob(".eval*"))
 
 
-def test_a_batch_larger_than_the_episodes_is_said(tmp_path):
+def test_a_batch_larger_than_the_episodes_is_said(tmp_path, capsys):
     """Not an error (the batch becomes the episode count), but announced in one line; the
     missing scene then ends the run before anything loads."""
-    res = _run(tmp_path / "nope.yaml", "--policy", "scripted", "--episodes", 2, "--batch", 64, "--out", tmp_path / "o")
-    assert res.returncode == 2
-    assert "note: --batch 64 is more than --episodes 2: running 2 side by side" in res.stderr
-    assert "no such config file" in res.stderr and "Traceback" not in res.stderr
+    code, _, err, _ = run_script_main("evaluate", [tmp_path / "nope.yaml", "--policy", "scripted", "--episodes", 2,
+                                                   "--batch", 64, "--out", tmp_path / "o", *_small_sets()], capsys)
+    assert code == 2
+    assert "note: --batch 64 is more than --episodes 2: running 2 side by side" in err
+    assert "no such config file" in err and "Traceback" not in err
 
 
 def test_record_episode_stops_at_the_pre_reset_state():

@@ -32,7 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from conftest import ROOT
+from conftest import ROOT, TEST_XLA_FLAGS
 from mysim_jax.core import parallel
 from mysim_jax.mappo.config import reach_training_text
 
@@ -52,7 +52,8 @@ def child_env(**extra) -> dict:
     env.update(extra)
     # the code generator the suite compiles with (tests/conftest.py), so that children and
     # this process compile the same code
-    codegen = [f for f in os.environ.get("XLA_FLAGS", "").split() if "fusion_emitters" in f]
+    codegen = [f for f in os.environ.get("XLA_FLAGS", "").split()
+               if f.split("=")[0] in {t.split("=")[0] for t in TEST_XLA_FLAGS}]
     flags = " ".join([*env.get("XLA_FLAGS", "").split(), *codegen])
     if flags:
         env["XLA_FLAGS"] = flags

@@ -17,10 +17,9 @@ from mysim_jax.config.env import PerceptionConfig
 from mysim_jax.tasks.perception_gap import GapError, compare_evaluations, perception_block
 from mysim_jax.tasks.sweep import paired_difference_interval
 
-from conftest import CONFIGS, ROOT
+from conftest import CONFIGS, ROOT, only_array_ops, run_script_main
 
 GAP = ROOT / "scripts" / "perception_gap.py"
-EVALUATE = ROOT / "scripts" / "evaluate.py"
 SMALL = ["net.knots=3", "net.tethers.n_masses=1", "sim.t_end=0.4", "sim.precision=float32",
          "output.plot=[target,uav0]"]
 
@@ -113,13 +112,15 @@ def test_fit_writes_a_block_that_evaluate_accepts(tmp_path):
     ("uav_position: {sigma: -1}", "env.perception.uav_position.sigma"),
     ("uav_positon: {sigma: 0.1}", "uav_positon"),
 ])
-def test_evaluate_rejects_a_bad_perception_file_before_compiling(tmp_path, content, message):
+def test_evaluate_rejects_a_bad_perception_file_before_compiling(tmp_path, capsys, content, message):
+    """evaluate.py's main() in this process (conftest.run_script_main)."""
     path = tmp_path / "perception.yaml"
     if content is not None:
         path.write_text(content)
     sets = [a for s in SMALL for a in ("--set", s)]
-    proc = subprocess.run([sys.executable, str(EVALUATE), str(CONFIGS / "capture_falling.yaml"), "--policy", "scripted",
-                           "--episodes", "2", "--out", str(tmp_path / "out"), "--perception", str(path), *sets],
-                          capture_output=True, text=True, cwd=ROOT)
-    assert proc.returncode == 2 and message in proc.stderr, proc.stderr
+    code, _, err, compiled = run_script_main("evaluate", [CONFIGS / "capture_falling.yaml", "--policy", "scripted",
+                                                          "--episodes", 2, "--out", tmp_path / "out", "--perception",
+                                                          path, *sets], capsys)
+    assert code == 2 and message in err, err
+    assert only_array_ops(compiled)
     assert not (tmp_path / "out").exists()

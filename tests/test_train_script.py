@@ -21,6 +21,8 @@ import yaml
 
 from mysim_jax.mappo.config import reach_training_text
 
+from conftest import only_array_ops, run_script_main
+
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "scripts" / "train.py"
 
@@ -254,20 +256,24 @@ def test_resume_skips_a_damaged_checkpoint_and_refuses_when_none_is_usable(tmp_p
     ("name: t\nenv: {scene: ../configs/capture_env_falling.yaml}\nalgo: {num_envs: 16777216, num_steps: 64, "
      "num_minibatches: 4096, total_env_steps: 1073741824}\n", [], "lower algo.num_envs x algo.num_steps"),
 ])
-def test_bad_configs_exit_2_before_compiling_and_write_nothing(tmp_path, text, sets, message):
+def test_bad_configs_exit_2_before_compiling_and_write_nothing(tmp_path, capsys, text, sets, message):
+    """The script's main() in this process (conftest.run_script_main): exit code 2, the
+    message, nothing of the training compiled (conftest.only_array_ops), nothing written."""
     if "../configs" in text:
         text = text.replace("../configs", str(ROOT / "configs"))
     cfg = tmp_path / "t.yaml"
     cfg.write_text(text)
     out = tmp_path / "out"
-    res = _run([str(cfg), "--out", str(out), *[a for s in sets for a in ("--set", s)]])
-    assert res.returncode == 2
-    assert message in res.stderr
-    assert "Traceback" not in res.stderr
+    code, _, err, compiled = run_script_main("train", [cfg, "--out", out, *[a for s in sets for a in ("--set", s)]],
+                                             capsys)
+    assert code == 2
+    assert message in err
+    assert "Traceback" not in err
+    assert only_array_ops(compiled)
     assert not out.exists()
 
 
-def test_the_process_flags_go_together(tmp_path):
+def test_the_process_flags_go_together(tmp_path, capsys):
     """--coordinator, --num-processes and --process-id: all three or none, and an id in
     range; refused before anything starts."""
     cfg = tmp_path / "reach.yaml"
@@ -275,21 +281,21 @@ def test_the_process_flags_go_together(tmp_path):
     for flags, message in ((["--coordinator", "127.0.0.1:1234"], "go together"),
                            (["--coordinator", "127.0.0.1:1234", "--num-processes", "2", "--process-id", "2"],
                             "--process-id 2 with --num-processes 2")):
-        res = _run([str(cfg), "--out", str(tmp_path / "out"), *flags])
-        assert res.returncode == 2 and message in res.stderr and "Traceback" not in res.stderr
+        code, _, err, compiled = run_script_main("train", [cfg, "--out", tmp_path / "out", *flags], capsys)
+        assert code == 2 and message in err and "Traceback" not in err and only_array_ops(compiled)
         assert not (tmp_path / "out").exists()
 
 
-def test_an_existing_run_is_not_overwritten(tmp_path):
+def test_an_existing_run_is_not_overwritten(tmp_path, capsys):
     cfg = tmp_path / "reach.yaml"
     cfg.write_text(reach_text(2, 1))
     out = tmp_path / "run"
     out.mkdir()
     (out / "train.yaml").write_text("name: x\n")
-    res = _run([str(cfg), "--out", str(out)])
-    assert res.returncode == 2 and "--resume" in res.stderr
-    res = _run(["--resume", str(tmp_path / "nothing")])
-    assert res.returncode == 2 and "not a training run folder" in res.stderr
+    code, _, err, compiled = run_script_main("train", [cfg, "--out", out], capsys)
+    assert code == 2 and "--resume" in err and only_array_ops(compiled)
+    code, _, err, _ = run_script_main("train", ["--resume", tmp_path / "nothing"], capsys)
+    assert code == 2 and "not a training run folder" in err
 
 
 def test_capture_environment_end_to_end_tiny(tmp_path):
