@@ -165,12 +165,14 @@ def run_script_main(name: str, args, capsys) -> tuple[int, str, str, list[tuple[
         spec.loader.exec_module(module)
         _SCRIPTS[name] = module
     capsys.readouterr()
-    start = len(_COMPILED)
+    start, x64 = len(_COMPILED), jax.config.jax_enable_x64
     try:
         code = _SCRIPTS[name].main([str(a) for a in args])
     except SystemExit as exit_:
         code = exit_.code
     out, err = capsys.readouterr()
+    # a script that switched JAX to 64 bits would leak the switch into the tests after it
+    assert jax.config.jax_enable_x64 == x64, f"scripts/{name}.py {args}: changed jax_enable_x64 in the test process"
     return code, out, err, _COMPILED[start:]
 
 

@@ -283,12 +283,12 @@ def test_scripted_team_catches_the_falling_target_on_the_default_seed():
 # --- the script ---------------------------------------------------------------------------
 
 
-def test_simulate_script_writes_the_capture_outputs_and_refuses_a_bad_tether(tmp_path):
+def test_simulate_script_writes_the_capture_outputs_and_refuses_a_bad_tether(tmp_path, capsys):
     import json
     import subprocess
     import sys
 
-    from conftest import ROOT
+    from conftest import ROOT, only_array_ops, run_script_main
 
     script = ROOT / "scripts" / "simulate.py"
     out = tmp_path / "capture"
@@ -304,13 +304,14 @@ def test_simulate_script_writes_the_capture_outputs_and_refuses_a_bad_tether(tmp
     assert capture["caught"] is False and capture["at_end"]["above_ground"] is True
     assert set(capture["thrust_fraction_last_1s"]) == {"uav0", "uav1", "uav2", "uav3"}
     assert 0.3 < capture["thrust_fraction_last_1s"]["uav0"] < 0.6
-    # a tether to a UAV that does not exist: exit 2, a message naming the field, nothing written
+    # a tether to a UAV that does not exist: exit 2, a message naming the field, nothing
+    # compiled or written (the script's main() in this process: conftest.run_script_main)
     bad = tmp_path / "bad"
-    res = subprocess.run([sys.executable, str(script), str(FALLING), "--out", str(bad), "--no-progress",
-                          "--set", "net.tethers.uavs.3=uav7"], capture_output=True, text=True, cwd=ROOT)
-    assert res.returncode == 2
-    assert "net.tethers.uavs.3: 'uav7' is not a quadrotor body" in res.stderr
-    assert not bad.exists()
+    code, _, err, compiled = run_script_main("simulate", [FALLING, "--out", bad, "--no-progress",
+                                                          "--set", "net.tethers.uavs.3=uav7"], capsys)
+    assert code == 2
+    assert "net.tethers.uavs.3: 'uav7' is not a quadrotor body" in err
+    assert only_array_ops(compiled) and not bad.exists()
 
 
 def test_capture_sweep_draws_the_spawn_of_each_seed_as_build_does():

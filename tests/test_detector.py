@@ -146,8 +146,6 @@ def test_truncation_counts_the_silhouette_beyond_the_border():
     over 1 - truncation) matches the pixels whose rays hit the sphere in a widened image
     (NumPy ray test) within 2 %; a sphere inside the image has no truncation; and the
     counting rule ignores a target with less than min_visible_fraction of it in view."""
-    from mysim_jax.perception.render import Renderer
-
     spec = DatasetSpec(split="held_out", n_images=60, p_drone=0.0, p_empty=0.0, p_occluder=0.0, p_distractors=0.0,
                        width=320, height=180)
     intr = intrinsics(width=320, height=180)
@@ -395,12 +393,18 @@ def test_committed_weights_are_small():
     assert default_weights_path().stat().st_size < 4_000_000
 
 
-def test_committed_detector_finds_held_out_targets(detector, held_out_batch):
+@pytest.fixture(scope="module")
+def whole_image_detections(detector, held_out_batch):
+    """The committed detector's whole-image detections on each held-out frame (computed
+    once: the tests below compare against them)."""
+    return [detector.detect(s.image) for s in held_out_batch]
+
+
+def test_committed_detector_finds_held_out_targets(held_out_batch, whole_image_detections):
     """Recall at IoU 0.5 of the best detection per frame on 20 held-out frames (see RECALL_FLOOR;
     docs/detector.md has the numbers on the 300-frame held-out sets)."""
     found = 0
-    for s in held_out_batch:
-        dets = detector.detect(s.image)
+    for s, dets in zip(held_out_batch, whole_image_detections):
         found += bool(dets) and iou(dets[0].box, s.box) >= 0.5
     assert found / len(held_out_batch) >= RECALL_FLOOR
 
@@ -476,7 +480,7 @@ def test_flip_test_is_mirror_symmetric_and_saved(detector, held_out_batch, tmp_p
     assert CNNDetector.load(flip.save(tmp_path / "flip.msgpack")).flip_test
 
 
-def test_region_mode_finds_what_the_whole_image_finds(detector, held_out_batch):
+def test_region_mode_finds_what_the_whole_image_finds(detector, held_out_batch, whole_image_detections):
     """``detect_region`` around the target's true centre, shifted by a typical tracking
     prediction error (15 px), finds a box that matches the target (IoU >= 0.5) on the frames
     where the whole-image detector does, at least as often less one; its boxes are in the
@@ -486,10 +490,10 @@ def test_region_mode_finds_what_the_whole_image_finds(detector, held_out_batch):
 
     region = RegionSettings()
     full_hits = region_hits = 0
-    for s in held_out_batch:
+    for s, full in zip(held_out_batch, whole_image_detections):
         side = float(max(s.box[2] - s.box[0], s.box[3] - s.box[1]))
         centre = np.array([(s.box[0] + s.box[2]) / 2 + 15.0, (s.box[1] + s.box[3]) / 2 - 10.0])
-        full, roi = detector.detect(s.image), detector.detect_region(s.image, centre, side, region)
+        roi = detector.detect_region(s.image, centre, side, region)
         f_hit = bool(full) and iou(full[0].box, s.box) >= 0.5
         r_hit = bool(roi) and iou(roi[0].box, s.box) >= 0.5
         full_hits, region_hits = full_hits + f_hit, region_hits + r_hit
