@@ -53,6 +53,10 @@ def test_a_resolved_file_refuses_to_give_another_level(tmp_path):
     with pytest.raises(ConfigError, match="resolved at the level 'train'"):
         load_config(run / "scene.yaml", ["level=full"])
     assert load_config(run / "scene_eval.yaml").level == "full"
+    # a malformed own level is left to the usual checks (here the override replaces it)
+    raw = yaml.safe_load(path.read_text())
+    raw["level"] = [1, 2]
+    assert config_from_dict(raw, "scene", ["level=train"]).level == "train"
 
 
 def test_unknown_or_broken_levels_are_named():

@@ -790,8 +790,10 @@ def _check_not_resolved_elsewhere(raw: dict, level: str, source: str) -> None:
     """A resolved file (``dump_config`` at a level other than ``full``: a run folder's
     ``scene.yaml``) holds one level's values as its own; asking it for another level would
     load those values under the other level's name, so it is an error."""
-    own = raw.get("level", FULL_LEVEL)
-    entry = (raw.get("levels") or {}).get(own) if isinstance(raw.get("levels"), dict) else None
+    own, levels = raw.get("level", FULL_LEVEL), raw.get("levels")
+    if not (isinstance(own, str) and isinstance(levels, dict)):     # malformed: validation names it
+        return
+    entry = levels.get(own)
     if level != own and isinstance(entry, dict) and entry.get("resolved") is True:
         raise ConfigError(
             f"{source}: level={level}: this file is resolved at the level '{own}' (its own values are that "
