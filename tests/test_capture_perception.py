@@ -74,7 +74,7 @@ def test_observations_and_scripted_team_use_the_estimates(envs):
     # a step advances the errors by one Gauss-Markov period and observes the new ones
     key = jax.random.PRNGKey(2)
     obs, after, *_ = jax.jit(env.step)(key, state, env.scripted_actions(state, params), params)
-    expected = env._step_errors(jax.random.fold_in(key, 2), state.perception, params, jnp.float32)
+    expected = env._step_errors(jax.random.fold_in(key, 2), state.perception, params, jnp.float32, state.sim)
     for name in ("uav_pos", "uav_vel", "target_pos", "target_vel"):
         np.testing.assert_allclose(np.asarray(getattr(after.perception, name)), np.asarray(getattr(expected, name)),
                                    rtol=0, atol=1e-7)                    # jit vs eager float32 round-off
@@ -82,17 +82,54 @@ def test_observations_and_scripted_team_use_the_estimates(envs):
                                atol=1e-6)
 
 
+def test_the_target_estimate_lags_by_its_latency(envs):
+    """env.perception.target_latency: the team sees the target where it was that long ago,
+    linear between the true states of the last two policy steps (plus the errors), in the
+    observations and in what the scripted team sees; at an episode's first step there is no
+    earlier state, so the first observation is the undelayed one."""
+    _, _, (env, params) = envs
+    assert float(params.target_delay) == 0.0
+    half = params.replace(target_delay=jnp.asarray(0.5, jnp.float32))       # traced: no new compile
+    key = jax.random.PRNGKey(4)
+    (obs0, state), (obs0_half, state_half) = jax.jit(env.reset)(key, params), jax.jit(env.reset)(key, half)
+    np.testing.assert_array_equal(np.asarray(obs0), np.asarray(obs0_half))
+    action = env.scripted_actions(state, params)
+    _, after, *_ = jax.jit(env.step)(key, state, action, params)
+    obs, after_half, *_ = jax.jit(env.step)(key, state, action, half)
+    np.testing.assert_array_equal(np.asarray(after.sim.phys.body_pos), np.asarray(after_half.sim.phys.body_pos))
+    t = env.target_body
+    e = after_half.perception
+    for cols, field, err in ((slice(13, 16), "body_pos", e.target_pos), (slice(16, 19), "body_vel", e.target_vel)):
+        now = np.asarray(getattr(after_half.sim.phys, field))[t]
+        before = np.asarray(getattr(state.sim.phys, field))[t]
+        assert np.abs(now - before).max() > 0.01                               # the target moved
+        own = obs[:, 0:3] if field == "body_pos" else obs[:, 3:6]
+        np.testing.assert_allclose(obs[:, cols] + own, np.tile(0.5 * (now + before) + np.asarray(err), (4, 1)),
+                                   atol=2e-5)
+    # the scripted team sees the same lagging target
+    lagged = after_half.replace(perception=e.replace(target_pos=e.target_pos + 0.5 * (
+        state.sim.phys.body_pos[t] - after_half.sim.phys.body_pos[t]), target_vel=e.target_vel + 0.5 * (
+        state.sim.phys.body_vel[t] - after_half.sim.phys.body_vel[t])))
+    np.testing.assert_allclose(env.scripted_actions(after_half, half), env.scripted_actions(lagged, params), atol=1e-5)
+    # the file's latency, as a fraction of the 25 Hz policy period
+    _, p = make_env(load_config("configs/capture_falling.yaml", SMALL + ["env.perception={target_latency: 0.03}"]))
+    assert float(p.target_delay) == pytest.approx(0.75)
+    with pytest.raises(ConfigError, match=r"target_latency 0.05 s is more than one policy period"):
+        load_config("configs/capture_falling.yaml", SMALL + ["env.perception={target_latency: 0.05}"])
+
+
 def test_errors_are_gauss_markov_with_the_configured_statistics(envs):
     """The error processes alone, 20,000 episodes for 10 policy steps: their spread stays at
     sigma (they start stationary) and their step-to-step correlation is exp(-dt / tau) (0
     when white). Measured: sigma within 0.07 %, correlation within 0.003."""
     _, _, (env, params) = envs
+    start = params.start
 
     def episode(key):
         def body(e, k):
-            e = env._step_errors(k, e, params, jnp.float32)
+            e = env._step_errors(k, e, params, jnp.float32, start)
             return e, e
-        first = env._draw_errors(key, params, jnp.float32)
+        first = env._draw_errors(key, params, jnp.float32, start)
         return first, jax.lax.scan(body, first, jax.random.split(jax.random.fold_in(key, 1), 10))[1]
 
     first, steps = jax.jit(jax.vmap(episode))(jax.random.split(jax.random.PRNGKey(0), 20_000))

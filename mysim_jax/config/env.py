@@ -172,12 +172,18 @@ class PerceptionConfig(StrictModel):
     teammates' positions are their own estimates, shared), and the target's position and
     velocity as the team's fused localisation gives them (one estimate shared by every
     UAV). Both the observations and the scripted team (a residual policy's base) use them;
-    attitudes, body rates and the net's centre stay true. ``noise`` is added on top."""
+    attitudes, body rates and the net's centre stay true. ``noise`` is added on top.
+
+    ``target_latency``: the target estimate's age (camera exposure, detection and fusion
+    take time): the team sees the target's position and velocity of that long ago (linear
+    between the true states of the last two policy steps, so at most one policy period),
+    plus the estimation errors. The UAVs' own estimates have no latency."""
 
     uav_position: GaussMarkov = GaussMarkov()       # m
     uav_velocity: GaussMarkov = GaussMarkov()       # m/s
     target_position: GaussMarkov = GaussMarkov()    # m
     target_velocity: GaussMarkov = GaussMarkov()    # m/s
+    target_latency: NonNegFloat = 0.0               # s, at most one policy period
 
 
 class RandomizeConfig(StrictModel):
@@ -234,6 +240,14 @@ class EnvConfig(StrictModel):
             raise ValueError(f"unknown reward term(s) {', '.join(repr(u) for u in unknown)}: the terms are "
                              f"{', '.join(REWARD_TERMS)}")
         return v
+
+    @model_validator(mode="after")
+    def _latency_within_a_period(self):
+        if self.perception is not None and self.perception.target_latency > 1.0 / self.policy_rate:
+            raise ValueError(f"perception.target_latency {self.perception.target_latency:g} s is more than one policy "
+                             f"period (1 / policy_rate = {1.0 / self.policy_rate:g} s): the estimate is interpolated "
+                             "between the last two policy steps; lower the latency or the policy rate")
+        return self
 
     def weights(self) -> dict[str, float]:
         """Every term's weight: the file's, else the paper's (outcomes: OUTCOME_WEIGHTS)."""

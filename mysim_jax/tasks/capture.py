@@ -83,6 +83,7 @@ from mysim_jax.config.env import (COST_TERMS, CRASHES, MISSES, OUTCOME_TERMS, RE
                                   SHAPING_TERMS, NoiseConfig)
 from mysim_jax.control.setpoint import setpoint_from_action
 from mysim_jax.core import rng
+from mysim_jax.core.config_base import ConfigError
 from mysim_jax.core.types import Params, State
 from mysim_jax.dynamics.quaternion import quat_rotate
 from mysim_jax.effects.target import spawn_target
@@ -127,17 +128,22 @@ class EnvParams:
     # velocity [m/s], target position, target velocity (env.perception; rho = exp(-policy_dt
     # / correlation_time)); zeros when the team sees true states
     perception: jnp.ndarray
+    target_delay: jnp.ndarray     # () the target estimate's latency over the policy period, in [0, 1]
 
 
 @struct.dataclass
 class PerceptionErrors:
     """The current estimation errors (estimate minus truth) when the team flies on
-    estimates (``env.perception``); each a first-order Gauss-Markov process per axis."""
+    estimates (``env.perception``); each a first-order Gauss-Markov process per axis. With
+    the target's true state one policy step ago, which the estimate's latency interpolates
+    towards (at an episode's start: its first state)."""
 
     uav_pos: jnp.ndarray          # (n_agents, 3) m, each UAV's own position estimate
     uav_vel: jnp.ndarray          # (n_agents, 3) m/s
     target_pos: jnp.ndarray       # (3,) m, the team's fused target estimate
     target_vel: jnp.ndarray       # (3,) m/s
+    target_pos_before: jnp.ndarray   # (3,) m, true, one policy step ago
+    target_vel_before: jnp.ndarray   # (3,) m/s
 
 
 @struct.dataclass
@@ -304,7 +310,7 @@ class CaptureEnv:
             before, now = state.sim.effects["capsule_broad_phase"], sim.effects["capsule_broad_phase"]
             info["broad_phase_overflow"] = now.overflow - before.overflow
             info["broad_phase_missed"] = now.missed - before.missed
-        errors = (self._step_errors(jax.random.fold_in(key, 2), state.perception, params, dtype)
+        errors = (self._step_errors(jax.random.fold_in(key, 2), state.perception, params, dtype, state.sim)
                   if self.perception else state.perception)
         after = EnvState(sim=sim, episode=state.episode, steps=steps, held=flags.held, held_time=held_time,
                          touched=touched, returns=returns, potential=potential, perception=errors)
@@ -375,7 +381,7 @@ class CaptureEnv:
         sim_params = self.episode_params(params, episode)
         sim = spawn_target(self.scene, sim_params, params.start, k_spawn)
         dtype = sim.phys.body_pos.dtype
-        errors = self._draw_errors(jax.random.fold_in(key, 5), params, dtype) if self.perception else None
+        errors = self._draw_errors(jax.random.fold_in(key, 5), params, dtype, sim) if self.perception else None
         snap = self.snapshot(sim, sim_params)
         flags = self.flags(snap)
         potential = self.potential(snap, flags, flags.touching, sim_params, params)
@@ -419,27 +425,36 @@ class CaptureEnv:
         n = self.n_agents
         return {"uav_pos": (n, 3), "uav_vel": (n, 3), "target_pos": (3,), "target_vel": (3,)}
 
-    def _draw_errors(self, key, params: EnvParams, dtype) -> PerceptionErrors:
-        """Errors drawn from their stationary distributions (an episode's first)."""
+    def _target_now(self, sim: State):
+        phys = sim.phys
+        return {"target_pos_before": phys.body_pos[self.target_body],
+                "target_vel_before": phys.body_vel[self.target_body]}
+
+    def _draw_errors(self, key, params: EnvParams, dtype, sim: State) -> PerceptionErrors:
+        """Errors drawn from their stationary distributions (an episode's first state ``sim``)."""
         keys = jax.random.split(key, 4)
         sigma = params.perception[:, 0].astype(dtype)
         shapes = self._error_shapes()
         xi = rng.normal_each(keys, list(shapes.values()), dtype)
-        return PerceptionErrors(**{name: sigma[i] * xi[i] for i, name in enumerate(shapes)})
+        return PerceptionErrors(**{name: sigma[i] * xi[i] for i, name in enumerate(shapes)}, **self._target_now(sim))
 
-    def _step_errors(self, key, errors: PerceptionErrors, params: EnvParams, dtype) -> PerceptionErrors:
-        """One policy period of every Gauss-Markov error: ``e' = rho e + sigma √(1 - rho²) ξ``."""
+    def _step_errors(self, key, errors: PerceptionErrors, params: EnvParams, dtype, before: State
+                     ) -> PerceptionErrors:
+        """One policy period of every Gauss-Markov error: ``e' = rho e + sigma √(1 - rho²) ξ``;
+        ``before``: the state the period started from (the target's, for the latency)."""
         keys = jax.random.split(key, 4)
         sigma, rho = params.perception[:, 0].astype(dtype), params.perception[:, 1].astype(dtype)
         drive = sigma * jnp.sqrt(jnp.maximum(1.0 - rho * rho, 0.0))
         shapes = self._error_shapes()
         xi = rng.normal_each(keys, list(shapes.values()), dtype)
         return PerceptionErrors(**{name: (rho[i] * getattr(errors, name) + drive[i] * xi[i]).astype(dtype)
-                                   for i, name in enumerate(shapes)})
+                                   for i, name in enumerate(shapes)}, **self._target_now(before))
 
-    def estimates(self, state: EnvState):
+    def estimates(self, state: EnvState, params: EnvParams | None = None):
         """``(uav_pos (n, 3), uav_vel (n, 3), target_pos (3,), target_vel (3,))`` as the team
-        knows them: the true values, plus the estimation errors under ``env.perception``."""
+        knows them: the true values, plus the estimation errors under ``env.perception``;
+        the target's of ``perception.target_latency`` ago (``params.target_delay`` of the
+        way back to the previous policy step; ``params`` None: no latency)."""
         phys = state.sim.phys
         quads = np.asarray(self.quad_bodies, dtype=np.int32)
         values = (phys.body_pos[quads], phys.body_vel[quads], phys.body_pos[self.target_body],
@@ -447,6 +462,10 @@ class CaptureEnv:
         if state.perception is None:
             return values
         e = state.perception
+        if params is not None:
+            f = params.target_delay.astype(values[2].dtype)
+            values = (*values[:2], values[2] + f * (e.target_pos_before - values[2]),
+                      values[3] + f * (e.target_vel_before - values[3]))
         return tuple(v + d for v, d in zip(values, (e.uav_pos, e.uav_vel, e.target_pos, e.target_vel)))
 
     def snapshot(self, sim: State, sim_params: Params) -> Snapshot:
@@ -481,7 +500,7 @@ class CaptureEnv:
         quads = np.asarray(self.quad_bodies, dtype=np.int32)
         knots = np.asarray(self.knot_points, dtype=np.int32)
         sigma = state.episode.noise.astype(dtype)
-        est_pos, est_vel, est_tpos, est_tvel = self.estimates(state)
+        est_pos, est_vel, est_tpos, est_tvel = self.estimates(state, params)
         if self.observation_noise:
             xi = rng.normal_each(jax.random.split(key, 4), [(n, 3)] * 4, dtype)
             pos = est_pos + sigma[0] * xi[0]
@@ -543,7 +562,7 @@ class CaptureEnv:
         sim = state.sim
         if state.perception is not None:
             quads = np.asarray(self.quad_bodies, dtype=np.int32)
-            pos, vel, tpos, tvel = self.estimates(state)
+            pos, vel, tpos, tvel = self.estimates(state, params)
             phys = sim.phys
             phys = phys.replace(body_pos=phys.body_pos.at[quads].set(pos).at[self.target_body].set(tpos),
                                 body_vel=phys.body_vel.at[quads].set(vel).at[self.target_body].set(tvel))
@@ -677,7 +696,9 @@ def make_env(config) -> tuple[CaptureEnv, EnvParams]:
                            discount=jnp.asarray(env_cfg.discount, scene.dtype),
                            ranges=_ranges(config, scene.dtype),
                            perception=jnp.asarray(_perception(env_cfg.perception, control_steps * config.sim.dt),
-                                                  scene.dtype))
+                                                  scene.dtype),
+                           target_delay=jnp.asarray(_target_delay(env_cfg.perception, control_steps * config.sim.dt),
+                                                    scene.dtype))
     return env, env_params
 
 
@@ -692,6 +713,16 @@ def _perception(config, policy_dt: float) -> list:
         tau = gm.correlation_time
         out.append((float(gm.sigma), float(np.exp(-policy_dt / tau)) if tau > 0 else 0.0))
     return out
+
+
+def _target_delay(config, policy_dt: float) -> float:
+    """``env.perception.target_latency`` over the policy period (0 without perception)."""
+    if config is None or config.target_latency == 0.0:
+        return 0.0
+    if config.target_latency > policy_dt * (1 + 1e-9):
+        raise ConfigError(f"env.perception.target_latency {config.target_latency:g} s is more than the policy period "
+                          f"{policy_dt:g} s (control steps x sim.dt): lower it or the policy rate")
+    return min(config.target_latency / policy_dt, 1.0)
 
 
 def _default_team():

@@ -1,0 +1,366 @@
+"""A declared stress suite: a capture team flown under one-factor shifts beyond its
+training ranges, paired against another team on the same episodes.
+
+A stress file (``configs/stress/*.yaml``, :class:`StressConfig`) names the team's scene,
+the team (``policy``) and the team it is compared with (``compare``), the fidelity level,
+the episodes and their seed, and the factors. Each factor is one quantity the episodes
+draw, shifted one at a time with every other draw at its training range:
+
+* ``draw``: a per-episode draw of ``env.randomize`` (:class:`~mysim_jax.config.env.RandomizeConfig`)
+  fixed at each value, ``{low: v, high: v}`` (target mass, the evader's top speed, ...);
+* ``box``: a box draw of ``env.randomize`` (the wind force) widened to ``±v`` on the
+  factor's ``axes``: ``{low: -v axes, high: v axes}``;
+* ``perception_scale``: the team flies on perceived states, ``env.perception`` set to the
+  stress file's ``perception`` block (a fitted error model, ``scripts/perception_gap.py
+  fit``) with every ``sigma`` multiplied by ``v`` (0: true states, the nominal);
+* ``latency``: the target estimate is ``v`` seconds old (``env.perception.target_latency``,
+  true states otherwise; at most one policy period).
+
+The nominal point is the scene as the team trained on it (every draw at its training
+range, true states). Every point flies the same episodes (episode ``i`` of seed ``seed``,
+as ``scripts/evaluate.py --seed`` draws it), so a point differs from the nominal and from
+the other team only in what was shifted (:mod:`mysim_jax.tasks.grid` runs the points).
+
+The file also states the criterion a shift is judged by, at the value ``judged_at`` of
+each factor: the policy's success at least ``fraction_of_nominal`` of its own nominal
+success, its paired difference to the compared team at least ``lead_points``, and that
+difference's 95 % interval's lower end at least ``lead_low95_points`` (each optional).
+
+Validating a stress file imports no JAX (:func:`load_stress`); :func:`plan_stress` then
+checks every point's scene and the output folder before anything compiles.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Literal
+
+from pydantic import Field, ValidationError, model_validator
+
+from mysim_jax.core.config_base import (ConfigError, Finite, NonNegFloat, StrictModel, format_validation_error,
+                                        read_yaml_file)
+
+SLUG = re.compile(r"^[a-z][a-z0-9_]*$")
+NOMINAL = "nominal"
+
+
+class StressFactor(StrictModel):
+    """One shifted quantity (module docstring)."""
+
+    name: Annotated[str, Field(pattern=SLUG.pattern, max_length=48)]   # also its output folder
+    label: str                                  # axis label, with the unit
+    kind: Literal["draw", "box", "perception_scale", "latency"]
+    draw: str | None = None                     # env.randomize field (draw, box)
+    axes: tuple[Finite, Finite, Finite] = (1.0, 1.0, 0.0)   # box: the axes the half-width spans
+    values: Annotated[list[NonNegFloat], Field(min_length=1)]   # the shifted values, in the draw's unit
+    judged_at: NonNegFloat                      # the value the criterion is judged at (one of values)
+
+    @model_validator(mode="after")
+    def _consistent(self):
+        from mysim_jax.config.env import RandomizeConfig
+
+        if self.kind in ("draw", "box"):
+            if self.draw is None:
+                raise ValueError(f"kind {self.kind} needs draw: the env.randomize field it shifts "
+                                 f"({', '.join(RandomizeConfig.model_fields)})")
+            if self.draw not in RandomizeConfig.model_fields:
+                raise ValueError(f"draw {self.draw!r} is not an env.randomize field; the fields are "
+                                 f"{', '.join(RandomizeConfig.model_fields)}")
+            box = self.draw == "wind_force"
+            if box != (self.kind == "box"):
+                raise ValueError(f"draw {self.draw} is a {'box' if box else 'scalar'} range: write kind "
+                                 f"{'box' if box else 'draw'}")
+        elif self.draw is not None:
+            raise ValueError(f"kind {self.kind} sets env.perception and takes no draw")
+        if self.judged_at not in self.values:
+            raise ValueError(f"judged_at {self.judged_at:g} is not one of values {self.values}")
+        if len(set(self.values)) != len(self.values):
+            raise ValueError(f"values repeat: {self.values}")
+        return self
+
+
+class StressCriterion(StrictModel):
+    """What a shift must keep, at each factor's ``judged_at`` (module docstring); unset: not judged."""
+
+    fraction_of_nominal: Annotated[float, Field(gt=0, le=1)] | None = None
+    lead_points: Finite | None = None           # paired difference policy - compare, points
+    lead_low95_points: Finite | None = None     # its 95 % interval's lower end, points
+
+
+class StressConfig(StrictModel):
+    """A stress file (module docstring)."""
+
+    name: Annotated[str, Field(pattern=SLUG.pattern, max_length=48)]
+    scene: str                                  # the team's scene file (its training ranges)
+    policy: str
+    compare: str = "scripted"
+    level: str = "train"
+    episodes: Annotated[int, Field(ge=1)]
+    batch: Annotated[int, Field(ge=1)] = 250
+    seed: Annotated[int, Field(ge=0)]
+    perception: str | None = None               # env.perception block file, for perception_scale
+    criterion: StressCriterion = StressCriterion()
+    factors: Annotated[list[StressFactor], Field(min_length=1)]
+
+    @model_validator(mode="after")
+    def _consistent(self):
+        names = [f.name for f in self.factors]
+        if len(set(names)) != len(names) or NOMINAL in names:
+            raise ValueError(f"factor names must be distinct and not {NOMINAL!r}: {names}")
+        if any(f.kind == "perception_scale" for f in self.factors) and self.perception is None:
+            raise ValueError("a perception_scale factor needs perception: the env.perception block file it scales")
+        return self
+
+
+def load_stress(path) -> StressConfig:
+    """The validated stress file; ConfigError naming the file and every problem. No JAX."""
+    data = read_yaml_file(path, "stress file")
+    try:
+        return StressConfig.model_validate(data)
+    except ValidationError as err:
+        raise ConfigError(f"{path}: {format_validation_error(err)}") from None
+
+
+def _flow(value) -> str:
+    """A value as one line of YAML (JSON is YAML's flow style), numbers as Python prints them."""
+    return json.dumps(value)
+
+
+def perception_block(path) -> dict:
+    """The env.perception block of a file (``scripts/perception_gap.py fit``'s output), validated."""
+    from mysim_jax.config.env import PerceptionConfig
+
+    data = read_yaml_file(path, "perception block")
+    try:
+        return PerceptionConfig.model_validate(data).model_dump()
+    except ValidationError as err:
+        raise ConfigError(f"{path}: {format_validation_error(err)}") from None
+
+
+def factor_override(factor: StressFactor, value: float, perception: dict | None = None) -> str:
+    """The scene override (``KEY=VALUE``) that sets ``factor`` to ``value``."""
+    if factor.kind == "draw":
+        return f"env.randomize.{factor.draw}={_flow({'low': value, 'high': value})}"
+    if factor.kind == "box":
+        half = [value * a for a in factor.axes]
+        return f"env.randomize.{factor.draw}={_flow({'low': [-h for h in half], 'high': half})}"
+    if factor.kind == "latency":
+        return f"env.perception={_flow({'target_latency': value})}"
+    if value == 0:
+        return "env.perception=null"
+    scaled = {k: {**v, "sigma": v["sigma"] * value} for k, v in perception.items() if isinstance(v, dict)}
+    if perception.get("target_latency"):
+        scaled["target_latency"] = perception["target_latency"]          # the block's own latency, unscaled
+    return f"env.perception={_flow(scaled)}"
+
+
+def training_range(config, factor: StressFactor) -> tuple[float, float] | None:
+    """The factor's training range in the scene ``config`` (low, high in the factor's
+    unit): the draw's range (a box: its largest half-width on the factor's axes), ``(0,
+    0)`` for perception (trained on true states, or the scene's own perception scale 1);
+    None when the scene does not draw it."""
+    if factor.kind == "perception_scale":
+        return (0.0, 0.0) if config.env.perception is None else (1.0, 1.0)
+    if factor.kind == "latency":
+        p = config.env.perception
+        return (0.0, 0.0) if p is None else (p.target_latency, p.target_latency)
+    r = getattr(config.env.randomize, factor.draw)
+    if r is None:
+        return None
+    if factor.kind == "box":
+        half = max(max(abs(lo), abs(hi)) for lo, hi, a in zip(r.low, r.high, factor.axes) if a != 0)
+        return (0.0, half)
+    return (r.low, r.high)
+
+
+@dataclass(frozen=True)
+class StressPlan:
+    """The checked plan: the stress file, its sweeps (the nominal first, then one per
+    factor, in the file's order) and the output folder."""
+
+    config: StressConfig
+    source: str
+    sweeps: tuple                                # (name, SweepPlan)
+    out: Path
+    ranges: dict                                 # factor name -> training range or None
+
+
+def plan_stress(path, out, episodes: int | None = None) -> StressPlan:
+    """Load the stress file and plan its sweeps (every point's scene loaded and checked,
+    the output folders checked); ``episodes`` overrides the file's (a smaller run). No JAX
+    work. ConfigError or OutputError, one line each."""
+    from mysim_jax.config.scene import load_config
+    from mysim_jax.io.output import check_output_dir
+    from mysim_jax.tasks.grid import plan_sweep
+
+    cfg = load_stress(path)
+    n = cfg.episodes if episodes is None else episodes
+    if n < 1:
+        raise ConfigError(f"episodes {n}: must be at least 1")
+    out = check_output_dir(out)
+    sets = [f"level={cfg.level}"]
+    base = load_config(cfg.scene, sets)
+    if getattr(base, "env", None) is None:
+        raise ConfigError(f"{cfg.scene}: a stress suite needs a capture scene with an env: block")
+    block = perception_block(cfg.perception) if cfg.perception is not None else None
+    common = dict(seed=None, episodes=n, batch=cfg.batch, policy=cfg.policy, compare=cfg.compare)
+    sweeps = [(NOMINAL, plan_sweep(cfg.scene, sets, [f"seed={cfg.seed}"], **common, out=out / NOMINAL))]
+    ranges = {}
+    for f in cfg.factors:
+        ranges[f.name] = training_range(base, f)
+        if ranges[f.name] is None:
+            raise ConfigError(f"{path}: factor {f.name}: {cfg.scene} does not draw env.randomize.{f.draw}, so it has "
+                              "no training range to shift beyond")
+        texts = [factor_override(f, v, block).partition("=")[2] for v in f.values]
+        key = factor_override(f, f.values[0], block).partition("=")[0]
+        sweep = plan_sweep(cfg.scene, sets, [f"{key}={','.join(texts)}"], seed=cfg.seed, episodes=n,
+                           batch=cfg.batch, policy=cfg.policy, compare=cfg.compare, out=out / f.name)
+        sweeps.append((f.name, sweep))
+    return StressPlan(cfg, str(path), tuple(sweeps), out, ranges)
+
+
+# --- results ---------------------------------------------------------------------------
+
+
+def _pair(rows: list[dict], point: int) -> tuple[dict, dict]:
+    mine = [r for r in rows if r["point"] == point]
+    return next(r for r in mine if r["team"] == "policy"), next(r for r in mine if r["team"] == "compare")
+
+
+def stress_rows(plan: StressPlan, records: dict) -> list[dict]:
+    """One row per point (the nominal first): factor, value, both teams' success with
+    intervals, the paired difference with its interval, the policy's success as a fraction
+    of its nominal, and at each factor's ``judged_at`` whether the criterion holds.
+    ``records``: sweep name -> the sweep's record (its ``rows``)."""
+    c = plan.config
+    nominal_p, nominal_c = _pair(records[NOMINAL]["rows"], 0)
+    out = []
+
+    def row(factor, value, p, q, judged):
+        frac = p["success_rate"] / nominal_p["success_rate"] if nominal_p["success_rate"] > 0 else math.nan
+        r = {"factor": factor, "value": value, "episodes": p["episodes"],
+             "policy_success": p["success_rate"], "policy_low95": p["success_low95"],
+             "policy_high95": p["success_high95"],
+             "compare_success": q["success_rate"], "compare_low95": q["success_low95"],
+             "compare_high95": q["success_high95"],
+             "difference_points": 100 * p["difference"], "difference_low95_points": 100 * p["difference_low95"],
+             "difference_high95_points": 100 * p["difference_high95"], "fraction_of_nominal": frac,
+             "judged": judged, "passes": None, "failing": ""}
+        if judged:
+            failing = []
+            k = c.criterion
+            if k.fraction_of_nominal is not None and not frac >= k.fraction_of_nominal:
+                failing.append(f"{frac:.2f} of nominal < {k.fraction_of_nominal:g}")
+            if k.lead_points is not None and not r["difference_points"] >= k.lead_points:
+                failing.append(f"difference {r['difference_points']:+.1f} < {k.lead_points:+g} points")
+            if k.lead_low95_points is not None and not r["difference_low95_points"] >= k.lead_low95_points:
+                failing.append(f"difference's lower end {r['difference_low95_points']:+.1f} < "
+                               f"{k.lead_low95_points:+g} points")
+            r["passes"] = not failing
+            r["failing"] = "; ".join(failing)
+        return r
+
+    out.append(row(NOMINAL, None, nominal_p, nominal_c, False))
+    for f in c.factors:
+        rows = records[f.name]["rows"]
+        for i, v in enumerate(f.values):
+            p, q = _pair(rows, i)
+            out.append(row(f.name, v, p, q, v == f.judged_at))
+    return out
+
+
+STRESS_COLUMNS = ("factor", "value", "episodes", "policy_success", "policy_low95", "policy_high95",
+                  "compare_success", "compare_low95", "compare_high95", "difference_points",
+                  "difference_low95_points", "difference_high95_points", "fraction_of_nominal", "judged", "passes",
+                  "failing")
+
+
+def table_markdown(plan: StressPlan, rows: list[dict]) -> str:
+    """The results as a Markdown table (the docs' table): per point both teams' success
+    with intervals, the paired difference, the fraction of nominal, the verdict where judged."""
+    c = plan.config
+    labels = {f.name: f.label for f in c.factors}
+    lines = [f"| shift | value | training range | '{c.policy}' | '{c.compare}' | difference [points] | "
+             "of nominal | judged |", "|---|---:|---:|---:|---:|---:|---:|---|"]
+    for r in rows:
+        if r["factor"] == NOMINAL:
+            shift, value, rng = "nominal (training ranges)", "–", "–"
+        else:
+            lo_hi = plan.ranges[r["factor"]]
+            shift, value, rng = labels[r["factor"]], f"{r['value']:g}", f"{lo_hi[0]:g}–{lo_hi[1]:g}"
+        verdict = "" if not r["judged"] else ("**meets**" if r["passes"] else f"**fails**: {r['failing']}")
+        lines.append(f"| {shift} | {value} | {rng} | {r['policy_success']:.1%} ({r['policy_low95']:.1%}–"
+                     f"{r['policy_high95']:.1%}) | {r['compare_success']:.1%} ({r['compare_low95']:.1%}–"
+                     f"{r['compare_high95']:.1%}) | {r['difference_points']:+.1f} ({r['difference_low95_points']:+.1f}"
+                     f" to {r['difference_high95_points']:+.1f}) | {r['fraction_of_nominal']:.2f} | {verdict} |")
+    return "\n".join(lines) + "\n"
+
+
+def plot_stress(plan: StressPlan, rows: list[dict], path) -> Path:
+    """One panel per factor: both teams' success (95 % Wilson bars) against the factor's
+    value, the training range shaded, the nominal success as horizontal lines, the judged
+    value marked."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    c = plan.config
+    nominal = rows[0]
+    n = len(c.factors)
+    cols = min(3, n)
+    fig, axes = plt.subplots(math.ceil(n / cols), cols, figsize=(4.2 * cols, 3.3 * math.ceil(n / cols)),
+                             squeeze=False)
+    for ax in axes.flat[n:]:
+        ax.set_visible(False)
+    for ax, f in zip(axes.flat, c.factors):
+        mine = [r for r in rows if r["factor"] == f.name]
+        lo, hi = plan.ranges[f.name]
+        xs = [lo if lo == hi else (lo + hi) / 2] + [r["value"] for r in mine]
+        for team, colour, ls in (("policy", "C0", "-"), ("compare", "C1", "--")):
+            pts = [nominal] + mine
+            y = [r[f"{team}_success"] for r in pts]
+            err = [[r[f"{team}_success"] - r[f"{team}_low95"] for r in pts],
+                   [r[f"{team}_high95"] - r[f"{team}_success"] for r in pts]]
+            ax.errorbar(xs, y, yerr=err, color=colour, ls=ls, marker="o", capsize=3,
+                        label=f"{team} '{c.policy if team == 'policy' else c.compare}'")
+            ax.axhline(nominal[f"{team}_success"], color=colour, lw=0.8, ls=":")
+        if hi > lo:
+            ax.axvspan(lo, hi, color="0.85", zorder=0, label="training range")
+        ax.axvline(f.judged_at, color="0.4", lw=0.8, ls="-.")
+        ax.set_xlabel(f.label)
+        ax.set_ylim(-0.03, 1.03)
+        ax.grid(alpha=0.3)
+    axes.flat[0].set_ylabel("success (95 % interval)")
+    axes.flat[0].legend(fontsize=7, loc="lower left")
+    fig.suptitle(f"{c.name}: {nominal['episodes']} episodes per point (seed {c.seed}, level {c.level}); "
+                 "first point = nominal; dash-dot: judged value", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return Path(path)
+
+
+def write_stress(plan: StressPlan, records: dict, command: str = "") -> dict:
+    """``stress.csv``, ``stress.json``, ``table.md`` and ``stress.png`` into the plan's
+    folder (beside each sweep's own folder); returns the JSON record."""
+    rows = stress_rows(plan, records)
+    with (plan.out / "stress.csv").open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=STRESS_COLUMNS)
+        writer.writeheader()
+        writer.writerows(rows)
+    (plan.out / "table.md").write_text(table_markdown(plan, rows))
+    plot_stress(plan, rows, plan.out / "stress.png")
+    judged = [r for r in rows if r["judged"]]
+    record = {"stress_file": plan.source, "command": command, "config": plan.config.model_dump(),
+              "training_ranges": plan.ranges, "rows": rows,
+              "judged": {"shifts": len(judged), "met": sum(bool(r["passes"]) for r in judged),
+                         "failing": [r["factor"] for r in judged if not r["passes"]]},
+              "wall_s": {name: records[name].get("wall_s") for name in records}}
+    (plan.out / "stress.json").write_text(json.dumps(record, indent=2, default=str))
+    return record
