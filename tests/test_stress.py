@@ -46,6 +46,10 @@ def test_committed_stress_files_plan_the_shifts_they_declare(name, tmp_path):
             elif f.kind == "box":
                 assert tuple(env.randomize.wind_force.high) == (v, v, 0.0)
                 assert tuple(env.randomize.wind_force.low) == (-v, -v, 0.0)
+            elif f.kind == "thrust_loss":
+                t = env.randomize.thrust_loss
+                assert t.fraction.low == t.fraction.high == pytest.approx(1.0 - v, abs=1e-12)
+                assert (t.time.low, t.time.high) == f.fault_time
             elif f.kind == "latency":
                 assert env.perception.target_latency == v and env.perception.target_position.sigma == 0.0
             else:
@@ -56,7 +60,9 @@ def test_committed_stress_files_plan_the_shifts_they_declare(name, tmp_path):
                     assert getattr(env.perception, k).correlation_time == b["correlation_time"]
             # every other draw keeps its training range
             for other in type(env.randomize).model_fields:
-                if f.kind in ("perception_scale", "latency") or other != f.draw:
+                if f.kind == "thrust_loss" and other == "thrust_loss":
+                    continue
+                if f.kind in ("perception_scale", "latency", "thrust_loss") or other != f.draw:
                     assert getattr(env.randomize, other) == getattr(scene.env.randomize, other), other
             if f.kind not in ("perception_scale", "latency"):
                 assert env.perception is None
@@ -85,7 +91,10 @@ def _file(tmp_path, **changes) -> str:
     ({"factor": {"draw": "wind_force"}}, "draw wind_force is a box range: write kind box"),
     ({"factor": {"kind": "perception_scale", "draw": None}}, "needs perception: the env.perception block file"),
     ({"factor": {"values": [0.2, 0.2], "judged_at": 0.2}}, "values repeat"),
-    ({"factor": {"kind": "latency"}}, "kind latency sets env.perception and takes no draw"),
+    ({"factor": {"kind": "latency"}}, "kind latency takes no draw"),
+    ({"factor": {"kind": "thrust_loss", "draw": None}}, "fault_time [low, high] (s) goes with kind thrust_loss"),
+    ({"factor": {"kind": "thrust_loss", "draw": None, "fault_time": [0.5, 1], "values": [1.5], "judged_at": 1.5}},
+     "at most 1"),
     ({"factor": {"name": "nominal"}}, "not 'nominal'"),
     ({"factor": {"values": [-0.1], "judged_at": -0.1}}, "values"),
     ({"episodes": 0}, "episodes"),

@@ -186,13 +186,31 @@ class PerceptionConfig(StrictModel):
     target_latency: NonNegFloat = 0.0               # s, at most one policy period
 
 
+class ThrustLossConfig(StrictModel):
+    """A motor fault: one UAV, drawn per episode, keeps only ``fraction`` of its rotors'
+    maximum thrust from ``time`` on (its rotors' top speed falls to √fraction of the
+    nominal; 0: its rotors stop). The fault starts at the first policy step at or after
+    ``time``; the other UAVs are not told."""
+
+    fraction: Range                     # of the nominal maximum thrust, 0 to 1
+    time: Range                         # s after the episode's start
+
+    @field_validator("fraction")
+    @classmethod
+    def _at_most_one(cls, v):
+        if v.high > 1.0:
+            raise ValueError(f"a fraction of the nominal thrust is at most 1 (high = {v.high:g})")
+        return v
+
+
 class RandomizeConfig(StrictModel):
     """Per-episode draws beyond the target's spawn (which ``target.spawn`` ranges give).
     ``None`` keeps the scene's value; a range replaces it (:data:`REPLACED_BY_DRAWS`).
     ``uav_mass_scale`` multiplies every UAV's mass and inertia (the controller keeps
     assuming the nominal mass); ``wind_force`` is one force [N] on every UAV for the
     episode, added to the quadrotors' own ``wind.force`` (a force, not a wind speed); the
-    evasive ranges apply to a maneuvering target."""
+    evasive ranges apply to a maneuvering target; ``thrust_loss`` is a motor fault of one
+    UAV (:class:`ThrustLossConfig`)."""
 
     target_mass: Range | None = None               # kg (inertia scales with it)
     uav_mass_scale: Range | None = None            # -
@@ -200,6 +218,7 @@ class RandomizeConfig(StrictModel):
     flee_acceleration: Range | None = None         # m/s^2
     jink_acceleration: Range | None = None         # m/s^2
     max_speed: Range | None = None                 # m/s
+    thrust_loss: ThrustLossConfig | None = None    # one UAV's motor fault
 
     @model_validator(mode="before")
     @classmethod

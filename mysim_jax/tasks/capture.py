@@ -105,6 +105,9 @@ class Episode:
     jink_acceleration: jnp.ndarray  # () m/s^2
     max_speed: jnp.ndarray        # () m/s
     noise: jnp.ndarray            # (4,) sigma of UAV position [m], UAV velocity [m/s], target position, velocity
+    thrust_fraction: jnp.ndarray  # () of the faulty UAV's nominal maximum thrust (1: no fault)
+    thrust_loss_time: jnp.ndarray  # () s, when the fault starts
+    thrust_loss_uav: jnp.ndarray  # () in [0, n_agents): the faulty UAV is its integer part
 
 
 @struct.dataclass
@@ -212,6 +215,7 @@ class CaptureEnv:
     observation_noise: bool = True       # env.noise has a nonzero range (else no noise is drawn)
     scene_name: str = ""                 # the scene file's name: (recorded with a trained policy)
     level: str = "full"                  # the scene's fidelity level (recorded with a trained policy)
+    thrust_loss: bool = False            # env.randomize.thrust_loss: one UAV's motor fault per episode
 
     # --- sizes ------------------------------------------------------------------------
     @property
@@ -274,6 +278,8 @@ class CaptureEnv:
         actions = self.clean_actions(actions, dtype)
         sim_params = self.episode_params(params, state.episode)
         setpoint = setpoint_from_action(self.scene, sim_params, actions)
+        if self.thrust_loss:
+            sim_params = self.faulted(sim_params, state.episode, state.steps)
 
         def control_period(_, s):
             return sim_step(self.scene, sim_params, s, setpoint)
@@ -374,6 +380,18 @@ class CaptureEnv:
             qp = sim.quadrotor
             sim = sim.replace(quadrotor=qp.replace(wind_force=qp.wind_force + ep.wind_force[None, :]))
         return sim
+
+    def faulted(self, sim_params: Params, ep: Episode, steps) -> Params:
+        """``sim_params`` with the episode's motor fault (``env.randomize.thrust_loss``) in
+        force for the policy step that starts after ``steps`` steps: from the first step
+        at or after the fault's time, the faulty UAV's rotor top speed is √fraction of the
+        nominal (its maximum thrust ``fraction`` of the nominal)."""
+        qp = sim_params.quadrotor
+        dtype = qp.omega_max.dtype
+        started = steps.astype(dtype) * self.policy_dt >= ep.thrust_loss_time
+        faulty = jnp.arange(self.n_agents) == jnp.minimum(jnp.floor(ep.thrust_loss_uav), self.n_agents - 1)
+        scale = jnp.where(started & faulty, jnp.sqrt(ep.thrust_fraction), 1.0).astype(dtype)
+        return sim_params.replace(quadrotor=qp.replace(omega_max=qp.omega_max * scale))
 
     def _reset_state(self, key, params: EnvParams) -> EnvState:
         k_episode, k_spawn = jax.random.split(key)
@@ -602,7 +620,7 @@ def scaled_target_ranges(ranges: Ranges, fraction) -> Ranges:
     return Ranges(low=scale(ranges.low), high=scale(ranges.high))
 
 
-def _ranges(config, dtype) -> Ranges:
+def _ranges(config, dtype, n_agents: int) -> Ranges:
     env, target = config.env, config.target
     r = env.randomize
     prop = target.propulsion_or_default()
@@ -622,6 +640,10 @@ def _ranges(config, dtype) -> Ranges:
         "noise": tuple(jnp.asarray([getattr(getattr(env.noise, f), side) for f in
                                     ("uav_position", "uav_velocity", "target_position", "target_velocity")], dtype)
                        for side in ("low", "high")),
+        "thrust_fraction": rng(None if r.thrust_loss is None else r.thrust_loss.fraction, 1.0),
+        "thrust_loss_time": rng(None if r.thrust_loss is None else r.thrust_loss.time, 0.0),
+        # the faulty UAV: uniform over [0, n_agents), its integer part (no fault: UAV 0 at fraction 1)
+        "thrust_loss_uav": (jnp.asarray(0.0, dtype), jnp.asarray(0.0 if r.thrust_loss is None else n_agents, dtype)),
     }
     return Ranges(low=Episode(**{k: v[0] for k, v in pairs.items()}),
                   high=Episode(**{k: v[1] for k, v in pairs.items()}))
@@ -685,6 +707,7 @@ def make_env(config) -> tuple[CaptureEnv, EnvParams]:
         slots=tuple(map(tuple, slots.tolist())), control_steps=control_steps, max_steps=max_steps,
         policy_dt=control_steps * config.sim.dt, success=env_cfg.success, failure=env_cfg.failure,
         scales=env_cfg.reward_scales, randomized_wind=env_cfg.randomize.wind_force is not None, scripted=team,
+        thrust_loss=env_cfg.randomize.thrust_loss is not None,
         falling=config.target.behaviour == "falling",
         target_drag_per_mass=float(config.target.drag_constant / config.target.mass),
         gravity=tuple(float(g) for g in config.gravity),
@@ -694,7 +717,7 @@ def make_env(config) -> tuple[CaptureEnv, EnvParams]:
     env_params = EnvParams(sim=params, start=state,
                            weights=jnp.asarray([weights[k] for k in REWARD_TERMS], scene.dtype),
                            discount=jnp.asarray(env_cfg.discount, scene.dtype),
-                           ranges=_ranges(config, scene.dtype),
+                           ranges=_ranges(config, scene.dtype, len(quads)),
                            perception=jnp.asarray(_perception(env_cfg.perception, control_steps * config.sim.dt),
                                                   scene.dtype),
                            target_delay=jnp.asarray(_target_delay(env_cfg.perception, control_steps * config.sim.dt),

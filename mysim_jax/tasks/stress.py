@@ -14,7 +14,10 @@ draw, shifted one at a time with every other draw at its training range:
   stress file's ``perception`` block (a fitted error model, ``scripts/perception_gap.py
   fit``) with every ``sigma`` multiplied by ``v`` (0: true states, the nominal);
 * ``latency``: the target estimate is ``v`` seconds old (``env.perception.target_latency``,
-  true states otherwise; at most one policy period).
+  true states otherwise; at most one policy period);
+* ``thrust_loss``: one UAV (drawn per episode) loses the fraction ``v`` of its maximum
+  thrust at a time drawn from the factor's ``fault_time`` (``env.randomize.thrust_loss``;
+  1: its rotors stop).
 
 The nominal point is the scene as the team trained on it (every draw at its training
 range, true states). Every point flies the same episodes (episode ``i`` of seed ``seed``,
@@ -54,11 +57,12 @@ class StressFactor(StrictModel):
 
     name: Annotated[str, Field(pattern=SLUG.pattern, max_length=48)]   # also its output folder
     label: str                                  # axis label, with the unit
-    kind: Literal["draw", "box", "perception_scale", "latency"]
+    kind: Literal["draw", "box", "perception_scale", "latency", "thrust_loss"]
     draw: str | None = None                     # env.randomize field (draw, box)
     axes: tuple[Finite, Finite, Finite] = (1.0, 1.0, 0.0)   # box: the axes the half-width spans
     values: Annotated[list[NonNegFloat], Field(min_length=1)]   # the shifted values, in the draw's unit
     judged_at: NonNegFloat                      # the value the criterion is judged at (one of values)
+    fault_time: tuple[NonNegFloat, NonNegFloat] | None = None   # s, thrust_loss: when the fault starts
 
     @model_validator(mode="after")
     def _consistent(self):
@@ -76,7 +80,11 @@ class StressFactor(StrictModel):
                 raise ValueError(f"draw {self.draw} is a {'box' if box else 'scalar'} range: write kind "
                                  f"{'box' if box else 'draw'}")
         elif self.draw is not None:
-            raise ValueError(f"kind {self.kind} sets env.perception and takes no draw")
+            raise ValueError(f"kind {self.kind} takes no draw")
+        if (self.kind == "thrust_loss") != (self.fault_time is not None):
+            raise ValueError("fault_time [low, high] (s) goes with kind thrust_loss, and only with it")
+        if self.kind == "thrust_loss" and max(self.values) > 1.0:
+            raise ValueError(f"thrust_loss values are the fraction of the thrust lost, at most 1: {self.values}")
         if self.judged_at not in self.values:
             raise ValueError(f"judged_at {self.judged_at:g} is not one of values {self.values}")
         if len(set(self.values)) != len(self.values):
@@ -151,6 +159,11 @@ def factor_override(factor: StressFactor, value: float, perception: dict | None 
         return f"env.randomize.{factor.draw}={_flow({'low': [-h for h in half], 'high': half})}"
     if factor.kind == "latency":
         return f"env.perception={_flow({'target_latency': value})}"
+    if factor.kind == "thrust_loss":
+        lo, hi = factor.fault_time
+        left = round(1.0 - value, 12)
+        return (f"env.randomize.thrust_loss="
+                f"{_flow({'fraction': {'low': left, 'high': left}, 'time': {'low': lo, 'high': hi}})}")
     if value == 0:
         return "env.perception=null"
     scaled = {k: {**v, "sigma": v["sigma"] * value} for k, v in perception.items() if isinstance(v, dict)}
@@ -169,6 +182,9 @@ def training_range(config, factor: StressFactor) -> tuple[float, float] | None:
     if factor.kind == "latency":
         p = config.env.perception
         return (0.0, 0.0) if p is None else (p.target_latency, p.target_latency)
+    if factor.kind == "thrust_loss":
+        t = config.env.randomize.thrust_loss
+        return (0.0, 0.0) if t is None else (1.0 - t.fraction.high, 1.0 - t.fraction.low)
     r = getattr(config.env.randomize, factor.draw)
     if r is None:
         return None
