@@ -23,7 +23,6 @@ Every input is checked before anything compiles: a problem is a one-line error, 
 from __future__ import annotations
 
 import argparse
-import json
 import shlex
 import sys
 
@@ -43,19 +42,6 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _done(plan, path) -> dict | None:
-    """The record of a sweep already written with the same plan, else None."""
-    try:
-        record = json.loads((path / "sweep.json").read_text())
-    except (OSError, ValueError):
-        return None
-    same = (record.get("episodes") == plan.episodes and record.get("policy") == plan.policy
-            and record.get("compare") == plan.compare
-            and [(p["overrides"], p["seed"]) for p in record.get("points", [])]
-            == [(list(p.overrides), p.seed) for p in plan.points])
-    return record if same else None
-
-
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     from mysim_jax.config.scene import ConfigError
@@ -72,26 +58,16 @@ def main(argv=None) -> int:
         return _error(one_line(str(err)))
 
     from mysim_jax.mappo.policies import make_checked_policy
-    from mysim_jax.tasks.grid import run_sweep
-    from mysim_jax.tasks.stress import write_stress
+    from mysim_jax.tasks.stress import run_stress
 
     def make_policy(env, params, spec, flag):
         return make_checked_policy(env, params, spec, flag, False)
 
     command = shlex.join(["python", *(sys.argv if argv is None else ["scripts/stress.py", *argv])])
-    records = {}
-    for i, (name, sweep) in enumerate(plan.sweeps):
-        done = _done(sweep, sweep.out)
-        if done is not None:
-            print(f"[{i + 1}/{len(plan.sweeps)}] {name}: read {sweep.out / 'sweep.json'} (already run)")
-            records[name] = done
-            continue
-        print(f"[{i + 1}/{len(plan.sweeps)}] {name}: {len(sweep.points)} point(s) x {sweep.episodes} episodes")
-        try:
-            records[name] = run_sweep(sweep, make_policy, progress=not args.no_progress, command=command)
-        except SweepError as err:
-            return _error(f"{name}: {err}")
-    record = write_stress(plan, records, command)
+    try:
+        record = run_stress(plan, make_policy, progress=not args.no_progress, command=command)
+    except SweepError as err:
+        return _error(str(err))
     j = record["judged"]
     print(f"{plan.config.name}: {j['met']} of {j['shifts']} judged shifts meet the criterion"
           + (f" (failing: {', '.join(j['failing'])})" if j["failing"] else "")

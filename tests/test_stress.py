@@ -178,7 +178,7 @@ def test_the_criterion_the_table_and_the_figure(tmp_path):
 def test_the_script_runs_every_sweep_then_resumes_from_them(tmp_path, capsys, monkeypatch):
     """The script's loop with a stand-in for the sweep (which writes sweep.json as the
     real one does): every sweep runs once; run again, each is read, none runs."""
-    import mysim_jax.tasks.grid as grid
+    import mysim_jax.tasks.stress as stress
 
     path = _file(tmp_path)
     ran = []
@@ -194,7 +194,7 @@ def test_the_script_runs_every_sweep_then_resumes_from_them(tmp_path, capsys, mo
         (plan.out / "sweep.json").write_text(json.dumps(record))
         return record
 
-    monkeypatch.setattr(grid, "run_sweep", fake_run_sweep)
+    monkeypatch.setattr(stress, "run_sweep", fake_run_sweep)
     out = tmp_path / "out"
     code, stdout, stderr, _ = run_script_main("stress", [path, "--out", out], capsys)
     assert code == 0, stderr

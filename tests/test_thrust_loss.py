@@ -76,6 +76,15 @@ def test_a_uav_without_thrust_falls_and_the_others_fly_on(faulty):
     assert np.abs(np.delete(drop, 2)).max() < 0.5 * drop[2], drop
 
 
+def test_a_scene_without_the_fault_draws_nothing_for_it():
+    """Without env.randomize.thrust_loss the episode holds no fault fields (no draws, the
+    environment state of a scene without the effect) and the step has no fault code."""
+    env, params = make_env(load_config("configs/capture_falling.yaml", SMALL))
+    assert not env.thrust_loss
+    for ep in (params.ranges.low, params.ranges.high):
+        assert ep.thrust_fraction is None and ep.thrust_loss_time is None and ep.thrust_loss_uav is None
+
+
 def test_bad_fault_ranges_are_refused():
     with pytest.raises(ConfigError, match="a fraction of the nominal thrust is at most 1"):
         load_config("configs/capture_falling.yaml",

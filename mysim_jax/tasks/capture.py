@@ -105,9 +105,10 @@ class Episode:
     jink_acceleration: jnp.ndarray  # () m/s^2
     max_speed: jnp.ndarray        # () m/s
     noise: jnp.ndarray            # (4,) sigma of UAV position [m], UAV velocity [m/s], target position, velocity
-    thrust_fraction: jnp.ndarray  # () of the faulty UAV's nominal maximum thrust (1: no fault)
-    thrust_loss_time: jnp.ndarray  # () s, when the fault starts
-    thrust_loss_uav: jnp.ndarray  # () in [0, n_agents): the faulty UAV is its integer part
+    # env.randomize.thrust_loss only (None otherwise: no draws, the same state as without the effect)
+    thrust_fraction: jnp.ndarray | None = None   # () of the faulty UAV's nominal maximum thrust
+    thrust_loss_time: jnp.ndarray | None = None  # () s, when the fault starts
+    thrust_loss_uav: jnp.ndarray | None = None   # () in [0, n_agents): the faulty UAV is its integer part
 
 
 @struct.dataclass
@@ -468,11 +469,11 @@ class CaptureEnv:
         return PerceptionErrors(**{name: (rho[i] * getattr(errors, name) + drive[i] * xi[i]).astype(dtype)
                                    for i, name in enumerate(shapes)}, **self._target_now(before))
 
-    def estimates(self, state: EnvState, params: EnvParams | None = None):
+    def estimates(self, state: EnvState, params: EnvParams):
         """``(uav_pos (n, 3), uav_vel (n, 3), target_pos (3,), target_vel (3,))`` as the team
         knows them: the true values, plus the estimation errors under ``env.perception``;
         the target's of ``perception.target_latency`` ago (``params.target_delay`` of the
-        way back to the previous policy step; ``params`` None: no latency)."""
+        way back to the previous policy step)."""
         phys = state.sim.phys
         quads = np.asarray(self.quad_bodies, dtype=np.int32)
         values = (phys.body_pos[quads], phys.body_vel[quads], phys.body_pos[self.target_body],
@@ -480,10 +481,9 @@ class CaptureEnv:
         if state.perception is None:
             return values
         e = state.perception
-        if params is not None:
-            f = params.target_delay.astype(values[2].dtype)
-            values = (*values[:2], values[2] + f * (e.target_pos_before - values[2]),
-                      values[3] + f * (e.target_vel_before - values[3]))
+        f = params.target_delay.astype(values[2].dtype)
+        values = (*values[:2], values[2] + f * (e.target_pos_before - values[2]),
+                  values[3] + f * (e.target_vel_before - values[3]))
         return tuple(v + d for v, d in zip(values, (e.uav_pos, e.uav_vel, e.target_pos, e.target_vel)))
 
     def snapshot(self, sim: State, sim_params: Params) -> Snapshot:
@@ -640,11 +640,13 @@ def _ranges(config, dtype, n_agents: int) -> Ranges:
         "noise": tuple(jnp.asarray([getattr(getattr(env.noise, f), side) for f in
                                     ("uav_position", "uav_velocity", "target_position", "target_velocity")], dtype)
                        for side in ("low", "high")),
-        "thrust_fraction": rng(None if r.thrust_loss is None else r.thrust_loss.fraction, 1.0),
-        "thrust_loss_time": rng(None if r.thrust_loss is None else r.thrust_loss.time, 0.0),
-        # the faulty UAV: uniform over [0, n_agents), its integer part (no fault: UAV 0 at fraction 1)
-        "thrust_loss_uav": (jnp.asarray(0.0, dtype), jnp.asarray(0.0 if r.thrust_loss is None else n_agents, dtype)),
     }
+    if r.thrust_loss is not None:
+        t = r.thrust_loss
+        pairs["thrust_fraction"] = rng(t.fraction, 1.0)
+        pairs["thrust_loss_time"] = rng(t.time, 0.0)
+        # the faulty UAV: uniform over [0, n_agents), its integer part
+        pairs["thrust_loss_uav"] = (jnp.asarray(0.0, dtype), jnp.asarray(n_agents, dtype))
     return Ranges(low=Episode(**{k: v[0] for k, v in pairs.items()}),
                   high=Episode(**{k: v[1] for k, v in pairs.items()}))
 

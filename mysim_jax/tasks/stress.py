@@ -52,10 +52,11 @@ from mysim_jax.config.stress import (NOMINAL, StressConfig, factor_override, loa
                                      perception_block, training_range)
 from mysim_jax.core.config_base import ConfigError  # noqa: E402
 from mysim_jax.io.output import check_output_dir  # noqa: E402
-from mysim_jax.tasks.grid import plan_sweep  # noqa: E402
+from mysim_jax.tasks.grid import SweepError, plan_sweep, run_sweep  # noqa: E402
 
 __all__ = ["NOMINAL", "StressConfig", "StressPlan", "factor_override", "load_stress", "perception_block",
-           "plan_stress", "plot_stress", "stress_rows", "table_markdown", "training_range", "write_stress"]
+           "plan_stress", "plot_stress", "run_stress", "stress_rows", "table_markdown", "training_range",
+           "write_stress"]
 
 
 @dataclass(frozen=True)
@@ -235,3 +236,38 @@ def write_stress(plan: StressPlan, records: dict, command: str = "") -> dict:
               "wall_s": {name: records[name].get("wall_s") for name in records}}
     (plan.out / "stress.json").write_text(json.dumps(record, indent=2, default=str))
     return record
+
+
+def written_sweep(sweep) -> dict | None:
+    """The record of ``sweep`` already written in its folder with the same points, seeds,
+    episodes and teams (an interrupted suite's finished factor), else None."""
+    try:
+        record = json.loads((sweep.out / "sweep.json").read_text())
+    except (OSError, ValueError):
+        return None
+    same = (record.get("episodes") == sweep.episodes and record.get("policy") == sweep.policy
+            and record.get("compare") == sweep.compare
+            and [(p["overrides"], p["seed"]) for p in record.get("points", [])]
+            == [(list(p.overrides), p.seed) for p in sweep.points])
+    return record if same else None
+
+
+def run_stress(plan: StressPlan, make_policy, *, progress: bool = True, command: str = "", log=print) -> dict:
+    """Run every sweep of the plan in order (a finished one already written is read
+    instead: :func:`written_sweep`), then write the suite's outputs (:func:`write_stress`)
+    and return its record. ``make_policy``: as :func:`mysim_jax.tasks.grid.run_sweep`'s.
+    SweepError (naming the factor) when a point cannot be evaluated."""
+    records = {}
+    for i, (name, sweep) in enumerate(plan.sweeps):
+        head = f"[{i + 1}/{len(plan.sweeps)}] {name}:"
+        done = written_sweep(sweep)
+        if done is not None:
+            log(f"{head} read {sweep.out / 'sweep.json'} (already run)")
+            records[name] = done
+            continue
+        log(f"{head} {len(sweep.points)} point(s) x {sweep.episodes} episodes")
+        try:
+            records[name] = run_sweep(sweep, make_policy, progress=progress, command=command)
+        except SweepError as err:
+            raise SweepError(f"{name}: {err}") from None
+    return write_stress(plan, records, command)
