@@ -74,7 +74,8 @@ def test_observations_and_scripted_team_use_the_estimates(envs):
     # a step advances the errors by one Gauss-Markov period and observes the new ones
     key = jax.random.PRNGKey(2)
     obs, after, *_ = jax.jit(env.step)(key, state, env.scripted_actions(state, params), params)
-    expected = env._step_errors(jax.random.fold_in(key, 2), state.perception, params, jnp.float32, state.sim)
+    expected = env._step_errors(jax.random.fold_in(key, 2), state.perception, params, jnp.float32, state.sim,
+                                after.sim)
     for name in ("uav_pos", "uav_vel", "target_pos", "target_vel"):
         np.testing.assert_allclose(np.asarray(getattr(after.perception, name)), np.asarray(getattr(expected, name)),
                                    rtol=0, atol=1e-7)                    # jit vs eager float32 round-off
@@ -127,7 +128,7 @@ def test_errors_are_gauss_markov_with_the_configured_statistics(envs):
 
     def episode(key):
         def body(e, k):
-            e = env._step_errors(k, e, params, jnp.float32, start)
+            e = env._step_errors(k, e, params, jnp.float32, start, start)
             return e, e
         first = env._draw_errors(key, params, jnp.float32, start)
         return first, jax.lax.scan(body, first, jax.random.split(jax.random.fold_in(key, 1), 10))[1]
@@ -140,6 +141,67 @@ def test_errors_are_gauss_markov_with_the_configured_statistics(envs):
         assert e.std() == pytest.approx(sigma, rel=0.01), name
         lag1 = np.sum(e[:, 1:] * e[:, :-1]) / np.sum(e[:, :-1] ** 2)
         assert lag1 == pytest.approx(rho, abs=0.03), name
+
+
+def test_target_dropouts_have_the_declared_statistics_and_coast(envs):
+    """env.perception.target_dropout: the loss chain alone over 4,000 episodes of 150 policy
+    steps lost the declared fraction of the time (after its start, seen, has faded) with
+    losses of the declared mean duration; while lost, the observations and the scripted team
+    see the last estimate coasted under gravity (the falling target), and the estimate
+    returns when the target is seen again. The rates are traced: no new compile."""
+    _, _, (env, params) = envs
+    _, p = make_env(load_config("configs/capture_falling.yaml", SMALL + [
+        "env.perception={target_dropout: {fraction: 0.2, mean_duration: 0.2}}"]))
+    dt = env.policy_dt
+    p_regain = 1 - np.exp(-dt / 0.2)
+    np.testing.assert_allclose(np.asarray(p.target_dropout), (p_regain * 0.25, p_regain), rtol=1e-6)
+    lossy = params.replace(target_dropout=p.target_dropout)
+    start = params.start
+
+    def episode(key):
+        def body(e, k):
+            e = env._step_errors(k, e, lossy, jnp.float32, start, start)
+            return e, e.target_lost
+        first = env._draw_errors(key, lossy, jnp.float32, start)
+        return jax.lax.scan(body, first, jax.random.split(jax.random.fold_in(key, 1), 150))[1]
+
+    lost = np.asarray(jax.jit(jax.vmap(episode))(jax.random.split(jax.random.PRNGKey(0), 4_000)))
+    assert lost[:, 75:].mean() == pytest.approx(0.2, abs=0.01)
+    ended = np.sum(lost[:, :-1] & ~lost[:, 1:])
+    assert dt / (ended / np.sum(lost[:, :-1])) == pytest.approx(dt / p_regain, rel=0.03)   # mean loss, s
+    # in an episode: lost at the first step (p_lose = 1), regained at the second (p_regain = 1)
+    reset, step = jax.jit(env.reset), jax.jit(env.step)
+    _, state = reset(jax.random.PRNGKey(5), params)
+    always = params.replace(target_dropout=jnp.asarray([1.0, 0.0], jnp.float32))
+    key = jax.random.PRNGKey(6)
+    obs, after, *_ = step(key, state, env.scripted_actions(state, params), always)
+    e0, e = state.perception, after.perception
+    assert bool(e.target_lost) and int(e.target_lost_steps) == 1
+    np.testing.assert_array_equal(np.asarray(e.target_last_pos), np.asarray(e0.target_last_pos))
+    t = np.float32(dt)
+    g = np.asarray(env.gravity, np.float32)
+    coast_pos = np.asarray(e0.target_last_pos) + np.asarray(e0.target_last_vel) * t + 0.5 * g * t * t
+    coast_vel = np.asarray(e0.target_last_vel) + g * t
+    np.testing.assert_allclose(obs[:, 13:16] + obs[:, 0:3], np.tile(coast_pos, (4, 1)), atol=1e-5)
+    np.testing.assert_allclose(obs[:, 16:19] + obs[:, 3:6], np.tile(coast_vel, (4, 1)), atol=1e-5)
+    seen = np.asarray(after.sim.phys.body_pos)[env.target_body] + np.asarray(e.target_pos)
+    assert np.abs(coast_pos - seen).max() > 1e-3                   # the coasted estimate is not the seen one
+    phys = after.sim.phys
+    # the scripted team sees the coasted target: as if it were seen there
+    coasted = after.replace(perception=e.replace(target_lost=jnp.zeros((), bool),
+                                                 target_pos=jnp.asarray(coast_pos) - phys.body_pos[env.target_body],
+                                                 target_vel=jnp.asarray(coast_vel) - phys.body_vel[env.target_body]))
+    np.testing.assert_allclose(env.scripted_actions(after, always), env.scripted_actions(coasted, params), atol=1e-5)
+    regain = params.replace(target_dropout=jnp.asarray([0.0, 1.0], jnp.float32))
+    obs2, again, *_ = step(key, after, env.scripted_actions(after, regain), regain)
+    assert not bool(again.perception.target_lost) and int(again.perception.target_lost_steps) == 0
+    seen2 = np.asarray(again.sim.phys.body_pos)[env.target_body] + np.asarray(again.perception.target_pos)
+    np.testing.assert_allclose(obs2[:, 13:16] + obs2[:, 0:3], np.tile(seen2, (4, 1)), atol=1e-5)
+    np.testing.assert_allclose(np.asarray(again.perception.target_last_pos), seen2, atol=1e-6)
+    assert step._cache_size() == 1
+    with pytest.raises(ConfigError, match=r"target_dropout.*lengthen mean_duration"):
+        load_config("configs/capture_falling.yaml", SMALL + [
+            "env.perception={target_dropout: {fraction: 0.6, mean_duration: 0.01}}"])
 
 
 @pytest.mark.parametrize("override, message", [

@@ -27,6 +27,7 @@ Pydantic only: validating a file never imports JAX.
 
 from __future__ import annotations
 
+import math
 from typing import Annotated, Any
 
 import yaml
@@ -166,6 +167,33 @@ class GaussMarkov(StrictModel):
     correlation_time: NonNegFloat = 0.0    # s
 
 
+class DropoutConfig(StrictModel):
+    """Losses of the target estimate (the cameras lose the target: occlusion, a missed
+    detection, the target out of view): a two-state Markov chain per policy step, lost a
+    ``fraction`` of the time on average, each loss lasting ``mean_duration`` on average
+    (geometrically distributed in policy steps). While lost the team's target estimate
+    coasts from the last one it had, as a track's prediction does: at the last velocity
+    (a falling target: ballistically, under gravity). Each episode starts with the target
+    seen."""
+
+    fraction: Annotated[float, Field(ge=0, lt=1, allow_inf_nan=False)] = 0.0   # of the time lost
+    mean_duration: PosFloat = 0.2                                              # s, of one loss
+
+
+def dropout_per_step(dropout: DropoutConfig, policy_dt: float, where: str) -> tuple[float, float]:
+    """``(p_lose, p_regain)`` per policy step of ``dropout`` at the policy period
+    ``policy_dt`` (s): a loss ends with probability ``1 - exp(-policy_dt / mean_duration)``
+    per step, and starts with the probability that keeps the lost fraction ``fraction``;
+    ``ValueError`` naming ``where`` when no such probability exists."""
+    p_regain = 1.0 - math.exp(-policy_dt / dropout.mean_duration)
+    p_lose = p_regain * dropout.fraction / (1.0 - dropout.fraction)
+    if p_lose > 1.0:
+        raise ValueError(f"{where}: losses of mean_duration {dropout.mean_duration:g} s at a policy period of "
+                         f"{policy_dt:g} s cannot fill a fraction {dropout.fraction:g} of the time (the target would "
+                         "have to be lost again at every step); lengthen mean_duration or lower fraction")
+    return p_lose, p_regain
+
+
 class PerceptionConfig(StrictModel):
     """The team flies on estimates instead of true states: each UAV's own position and
     velocity as its visual-inertial odometry gives them (errors independent per UAV; the
@@ -177,13 +205,17 @@ class PerceptionConfig(StrictModel):
     ``target_latency``: the target estimate's age (camera exposure, detection and fusion
     take time): the team sees the target's position and velocity of that long ago (linear
     between the true states of the last two policy steps, so at most one policy period),
-    plus the estimation errors. The UAVs' own estimates have no latency."""
+    plus the estimation errors. The UAVs' own estimates have no latency.
+
+    ``target_dropout``: the target estimate is lost at times and coasts meanwhile
+    (:class:`DropoutConfig`)."""
 
     uav_position: GaussMarkov = GaussMarkov()       # m
     uav_velocity: GaussMarkov = GaussMarkov()       # m/s
     target_position: GaussMarkov = GaussMarkov()    # m
     target_velocity: GaussMarkov = GaussMarkov()    # m/s
     target_latency: NonNegFloat = 0.0               # s, at most one policy period
+    target_dropout: DropoutConfig | None = None     # None: the target estimate is never lost
 
 
 class ThrustLossConfig(StrictModel):
@@ -266,6 +298,8 @@ class EnvConfig(StrictModel):
             raise ValueError(f"perception.target_latency {self.perception.target_latency:g} s is more than one policy "
                              f"period (1 / policy_rate = {1.0 / self.policy_rate:g} s): the estimate is interpolated "
                              "between the last two policy steps; lower the latency or the policy rate")
+        if self.perception is not None and self.perception.target_dropout is not None:
+            dropout_per_step(self.perception.target_dropout, 1.0 / self.policy_rate, "perception.target_dropout")
         return self
 
     def weights(self) -> dict[str, float]:

@@ -80,7 +80,7 @@ from flax import struct
 from mysim_jax.build import build
 from mysim_jax.config.capture import TeamConfig
 from mysim_jax.config.env import (COST_TERMS, CRASHES, MISSES, OUTCOME_TERMS, REWARD_TERMS,
-                                  SHAPING_TERMS, NoiseConfig)
+                                  SHAPING_TERMS, NoiseConfig, dropout_per_step)
 from mysim_jax.control.setpoint import setpoint_from_action
 from mysim_jax.core import rng
 from mysim_jax.core.config_base import ConfigError
@@ -133,6 +133,9 @@ class EnvParams:
     # / correlation_time)); zeros when the team sees true states
     perception: jnp.ndarray
     target_delay: jnp.ndarray     # () the target estimate's latency over the policy period, in [0, 1]
+    # (2,) per policy step: the probability of losing the target estimate while it is seen,
+    # and of regaining it while lost (env.perception.target_dropout); zeros: never lost
+    target_dropout: jnp.ndarray
 
 
 @struct.dataclass
@@ -140,7 +143,8 @@ class PerceptionErrors:
     """The current estimation errors (estimate minus truth) when the team flies on
     estimates (``env.perception``); each a first-order Gauss-Markov process per axis. With
     the target's true state one policy step ago, which the estimate's latency interpolates
-    towards (at an episode's start: its first state)."""
+    towards (at an episode's start: its first state), and whether the target estimate is
+    lost (``perception.target_dropout``) with the last one the team had."""
 
     uav_pos: jnp.ndarray          # (n_agents, 3) m, each UAV's own position estimate
     uav_vel: jnp.ndarray          # (n_agents, 3) m/s
@@ -148,6 +152,10 @@ class PerceptionErrors:
     target_vel: jnp.ndarray       # (3,) m/s
     target_pos_before: jnp.ndarray   # (3,) m, true, one policy step ago
     target_vel_before: jnp.ndarray   # (3,) m/s
+    target_lost: jnp.ndarray         # () bool, the target estimate is lost (it coasts)
+    target_last_pos: jnp.ndarray     # (3,) m, the target estimate when last seen
+    target_last_vel: jnp.ndarray     # (3,) m/s
+    target_lost_steps: jnp.ndarray   # () int32, policy steps since it was last seen
 
 
 @struct.dataclass
@@ -317,7 +325,7 @@ class CaptureEnv:
             before, now = state.sim.effects["capsule_broad_phase"], sim.effects["capsule_broad_phase"]
             info["broad_phase_overflow"] = now.overflow - before.overflow
             info["broad_phase_missed"] = now.missed - before.missed
-        errors = (self._step_errors(jax.random.fold_in(key, 2), state.perception, params, dtype, state.sim)
+        errors = (self._step_errors(jax.random.fold_in(key, 2), state.perception, params, dtype, state.sim, sim)
                   if self.perception else state.perception)
         after = EnvState(sim=sim, episode=state.episode, steps=steps, held=flags.held, held_time=held_time,
                          touched=touched, returns=returns, potential=potential, perception=errors)
@@ -455,36 +463,68 @@ class CaptureEnv:
         sigma = params.perception[:, 0].astype(dtype)
         shapes = self._error_shapes()
         xi = rng.normal_each(keys, list(shapes.values()), dtype)
-        return PerceptionErrors(**{name: sigma[i] * xi[i] for i, name in enumerate(shapes)}, **self._target_now(sim))
+        e = {name: sigma[i] * xi[i] for i, name in enumerate(shapes)}
+        now = self._target_now(sim)
+        return PerceptionErrors(**e, **now, target_lost=jnp.zeros((), bool),
+                                target_last_pos=now["target_pos_before"] + e["target_pos"],
+                                target_last_vel=now["target_vel_before"] + e["target_vel"],
+                                target_lost_steps=jnp.zeros((), jnp.int32))
 
-    def _step_errors(self, key, errors: PerceptionErrors, params: EnvParams, dtype, before: State
-                     ) -> PerceptionErrors:
+    def _step_errors(self, key, errors: PerceptionErrors, params: EnvParams, dtype, before: State,
+                     after: State) -> PerceptionErrors:
         """One policy period of every Gauss-Markov error: ``e' = rho e + sigma √(1 - rho²) ξ``;
-        ``before``: the state the period started from (the target's, for the latency)."""
+        ``before``: the state the period started from (the target's, for the latency);
+        ``after``: the state it ended in. Then one step of the target estimate's losses: lost
+        (seen) it is regained (lost) with probability ``params.target_dropout[1]`` (``[0]``);
+        while seen, the estimate is remembered, while lost it ages."""
         keys = jax.random.split(key, 4)
         sigma, rho = params.perception[:, 0].astype(dtype), params.perception[:, 1].astype(dtype)
         drive = sigma * jnp.sqrt(jnp.maximum(1.0 - rho * rho, 0.0))
         shapes = self._error_shapes()
         xi = rng.normal_each(keys, list(shapes.values()), dtype)
-        return PerceptionErrors(**{name: (rho[i] * getattr(errors, name) + drive[i] * xi[i]).astype(dtype)
-                                   for i, name in enumerate(shapes)}, **self._target_now(before))
+        new = {name: (rho[i] * getattr(errors, name) + drive[i] * xi[i]).astype(dtype)
+               for i, name in enumerate(shapes)}
+        u = jax.random.uniform(jax.random.fold_in(key, 7), (), dtype)
+        p_lose, p_regain = params.target_dropout[0].astype(dtype), params.target_dropout[1].astype(dtype)
+        lost = jnp.where(errors.target_lost, u >= p_regain, u < p_lose)
+        fresh = PerceptionErrors(**new, **self._target_now(before), target_lost=lost,
+                                 target_last_pos=errors.target_last_pos, target_last_vel=errors.target_last_vel,
+                                 target_lost_steps=errors.target_lost_steps)
+        tpos, tvel = self._seen_target(after.phys, fresh, params)
+        return fresh.replace(target_last_pos=jnp.where(lost, errors.target_last_pos, tpos),
+                             target_last_vel=jnp.where(lost, errors.target_last_vel, tvel),
+                             target_lost_steps=jnp.where(lost, errors.target_lost_steps + 1, 0))
+
+    def _seen_target(self, phys, e: PerceptionErrors, params: EnvParams):
+        """The target estimate when the target is seen: its state of ``params.target_delay``
+        of the way back to the last policy step, plus the estimation errors."""
+        pos, vel = phys.body_pos[self.target_body], phys.body_vel[self.target_body]
+        f = params.target_delay.astype(pos.dtype)
+        return (pos + f * (e.target_pos_before - pos) + e.target_pos,
+                vel + f * (e.target_vel_before - vel) + e.target_vel)
+
+    def _coasted_target(self, e: PerceptionErrors):
+        """The target estimate while lost: the last one coasted over the time since, at its
+        velocity (a falling target: under gravity)."""
+        t = e.target_lost_steps.astype(e.target_last_pos.dtype) * self.policy_dt
+        g = jnp.asarray(self.gravity if self.falling else (0.0, 0.0, 0.0), e.target_last_pos.dtype)
+        return e.target_last_pos + e.target_last_vel * t + 0.5 * g * t * t, e.target_last_vel + g * t
 
     def estimates(self, state: EnvState, params: EnvParams):
         """``(uav_pos (n, 3), uav_vel (n, 3), target_pos (3,), target_vel (3,))`` as the team
         knows them: the true values, plus the estimation errors under ``env.perception``;
         the target's of ``perception.target_latency`` ago (``params.target_delay`` of the
-        way back to the previous policy step)."""
+        way back to the previous policy step), coasted from the last one while the target
+        estimate is lost (``perception.target_dropout``)."""
         phys = state.sim.phys
         quads = np.asarray(self.quad_bodies, dtype=np.int32)
-        values = (phys.body_pos[quads], phys.body_vel[quads], phys.body_pos[self.target_body],
-                  phys.body_vel[self.target_body])
         if state.perception is None:
-            return values
+            return (phys.body_pos[quads], phys.body_vel[quads], phys.body_pos[self.target_body],
+                    phys.body_vel[self.target_body])
         e = state.perception
-        f = params.target_delay.astype(values[2].dtype)
-        values = (*values[:2], values[2] + f * (e.target_pos_before - values[2]),
-                  values[3] + f * (e.target_vel_before - values[3]))
-        return tuple(v + d for v, d in zip(values, (e.uav_pos, e.uav_vel, e.target_pos, e.target_vel)))
+        seen, coasted = self._seen_target(phys, e, params), self._coasted_target(e)
+        tpos, tvel = (jnp.where(e.target_lost, c, s) for s, c in zip(seen, coasted))
+        return phys.body_pos[quads] + e.uav_pos, phys.body_vel[quads] + e.uav_vel, tpos, tvel
 
     def snapshot(self, sim: State, sim_params: Params) -> Snapshot:
         phys = sim.phys
@@ -723,7 +763,9 @@ def make_env(config) -> tuple[CaptureEnv, EnvParams]:
                            perception=jnp.asarray(_perception(env_cfg.perception, control_steps * config.sim.dt),
                                                   scene.dtype),
                            target_delay=jnp.asarray(_target_delay(env_cfg.perception, control_steps * config.sim.dt),
-                                                    scene.dtype))
+                                                    scene.dtype),
+                           target_dropout=jnp.asarray(_target_dropout(env_cfg.perception,
+                                                                      control_steps * config.sim.dt), scene.dtype))
     return env, env_params
 
 
@@ -748,6 +790,17 @@ def _target_delay(config, policy_dt: float) -> float:
         raise ConfigError(f"env.perception.target_latency {config.target_latency:g} s is more than the policy period "
                           f"{policy_dt:g} s (control steps x sim.dt): lower it or the policy rate")
     return min(config.target_latency / policy_dt, 1.0)
+
+
+def _target_dropout(config, policy_dt: float) -> tuple[float, float]:
+    """``(p_lose, p_regain)`` per policy step of ``env.perception.target_dropout`` ((0, 0):
+    never lost)."""
+    if config is None or config.target_dropout is None:
+        return 0.0, 0.0
+    try:
+        return dropout_per_step(config.target_dropout, policy_dt, "env.perception.target_dropout")
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
 
 
 def _default_team():
