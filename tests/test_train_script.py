@@ -15,10 +15,12 @@ import sys
 import time
 from pathlib import Path
 
+import jax
 import numpy as np
 import pytest
 import yaml
 
+from mysim_jax.core.config_base import ConfigError
 from mysim_jax.mappo.config import reach_training_text
 
 from conftest import only_array_ops, run_script_main
@@ -231,6 +233,41 @@ def test_resume_skips_a_damaged_checkpoint_and_refuses_when_none_is_usable(tmp_p
     assert sorted(str(p.relative_to(tmp_path)) for p in (tmp_path / "both").rglob("*")) == before
 
 
+def test_a_run_starts_from_a_saved_policy(tmp_path, whole_run):
+    """``algo.init: policy``: a reach run starts from the policy of ``whole_run``; with the
+    critic warming up through every iteration and the observation normalisation frozen,
+    the policy it saves is the one it started from, bit for bit (the exploration std aside,
+    set to ``bc.std``). The run folder keeps a copy of the starting policy and its
+    train.yaml points at it. A policy whose networks differ from the file's is refused
+    before anything compiles."""
+    from mysim_jax.mappo.checkpoint import load_policy
+    from mysim_jax.mappo.run import prepare, train_run
+
+    _, whole = whole_run
+    cfg = tmp_path / "fine.yaml"
+    raw = yaml.safe_load(reach_text(3, 3))
+    raw["algo"].update(init="policy", init_policy=str(whole / "policy"),
+                       bc={"std": 0.3, "critic_warmup": 10, "freeze_obs_norm": True})
+    cfg.write_text(yaml.safe_dump(raw))
+    out = tmp_path / "fine"
+    summary = train_run(prepare(str(cfg), [], str(out)), progress=False, evaluate=False, log=lambda *a: None)
+    assert summary["iterations"] == 3
+    written = yaml.safe_load((out / "train.yaml").read_text())
+    assert written["algo"]["init_policy"] == "init_policy" and (out / "init_policy" / "policy.json").is_file()
+    (_, start), (_, end) = load_policy(whole / "policy"), load_policy(out / "policy")
+    np.testing.assert_allclose(np.exp(end["actor"]["params"].pop("log_std")), 0.3, rtol=1e-6)
+    start["actor"]["params"].pop("log_std")
+    flat_start, flat_end = (jax.tree_util.tree_leaves_with_path(x) for x in (start, end))
+    assert [k for k, _ in flat_start] == [k for k, _ in flat_end]
+    for (k, a), (_, b) in zip(flat_start, flat_end):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=str(k))
+    # another network width than the policy's: refused, naming both
+    raw["algo"]["hidden"] = [64, 64]
+    cfg.write_text(yaml.safe_dump(raw))
+    with pytest.raises(ConfigError, match=r"hidden \[128, 128\] there, \[64, 64\] here"):
+        prepare(str(cfg), [], str(tmp_path / "other"))
+
+
 @pytest.mark.parametrize("text, sets, message", [
     ("name: t\nenv: {builtin: reach}\nalgo: {num_envs: 10, num_steps: 3, num_minibatches: 4}\n", [],
      "num_minibatches"),
@@ -240,6 +277,10 @@ def test_resume_skips_a_damaged_checkpoint_and_refuses_when_none_is_usable(tmp_p
     ("name: t\nenv: {scene: missing.yaml}\n", [], "env.scene: no such file"),
     ("name: t\nenv: {scene: ../configs/rope_net.yaml}\n", [], "not a capture environment"),
     ("name: t\nenv: {builtin: reach}\nrun: {checkpoint_every: 0}\n", [], "run.checkpoint_every"),
+    ("name: t\nenv: {builtin: reach}\nalgo: {init: policy, init_policy: nowhere}\n", [],
+     "algo.init_policy nowhere: no saved policy there"),
+    ("name: t\nenv: {builtin: reach}\nalgo: {init: policy}\n", [], "give its folder as init_policy"),
+    ("name: t\nenv: {builtin: reach}\nalgo: {init_policy: somewhere}\n", [], "is used only with init: policy"),
     ("name: t\nenv: {builtin: reach}\nrun: {devices: 64}\n", [], "run.devices 64: JAX sees"),
     ("name: t\nenv: [1, 2]\n", [], "env"),
     ("name: t\nenv: {builtin: reach\n", [], "t.yaml"),

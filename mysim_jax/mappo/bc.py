@@ -1,4 +1,5 @@
-"""Behaviour cloning of the scripted team: the warm start of ``algo.init: bc``.
+"""Warm starts of PPO: behaviour cloning of the scripted team (``algo.init: bc``), or a
+saved policy (``algo.init: policy``, :func:`from_policy`).
 
     demos = collect(trainer, key)                 # the vmapped environment, scripted team + noise
     state, report = fit(trainer, state, demos, key)
@@ -199,3 +200,41 @@ def clone(trainer, ts, key):
     if rounds:
         report["dagger"] = flown
     return state, report
+
+
+def from_policy(trainer, ts, meta: dict, arrays: dict, where: str):
+    """``ts`` starting from a saved policy (``algo.init: policy``; ``meta, arrays`` from
+    :func:`mysim_jax.mappo.checkpoint.load_policy`), as :func:`fit` starts from the clone:
+    its actor and observation normalisation, the exploration std ``bc.std``, the anchor on
+    it, the optimiser reset; the critic and the state normalisation are ``ts``'s (fresh).
+    A capture policy must have been trained on an environment whose observations and
+    actions mean what this one's do (:func:`mysim_jax.mappo.policies.check_environment`);
+    :class:`~mysim_jax.mappo.policies.PolicyError` naming ``where`` otherwise."""
+    from mysim_jax.mappo.policies import PolicyError, check_environment
+
+    env = trainer.env
+    if int(meta["obs_size"]) != env.obs_size or tuple(meta["action_shape"]) != tuple(env.action_shape):
+        raise PolicyError(f"{where}: trained on observations of size {meta['obs_size']} and actions "
+                          f"{tuple(meta['action_shape'])}; this environment has {env.obs_size} and "
+                          f"{tuple(env.action_shape)}")
+    if "environment" in meta or hasattr(env, "scene"):
+        check_environment(meta, env, trainer.env_params, where)
+    actor = jax.tree.map(jnp.asarray, arrays["actor"])
+    mine = ts.params["actor"]
+    if jax.tree.structure(actor) != jax.tree.structure(mine) or any(
+            a.shape != b.shape for a, b in zip(jax.tree.leaves(actor), jax.tree.leaves(mine))):
+        raise PolicyError(f"{where}: its actor's layers are not this trainer's (algo.hidden)")
+    bc = trainer.config.bc
+    actor = {**actor, "params": {**actor["params"], "log_std": jnp.full_like(actor["params"]["log_std"],
+                                                                            np.log(bc.std))}}
+    params = {**ts.params, "actor": actor}
+    obs_stats = ts.obs_stats.replace(mean=jnp.asarray(arrays["obs_mean"], jnp.float32),
+                                     var=jnp.asarray(arrays["obs_var"], jnp.float32),
+                                     count=jnp.asarray(STARTED_COUNT, jnp.float32))
+    anchor = {"actor": actor, "obs_mean": obs_stats.mean, "obs_var": obs_stats.var}
+    return ts.replace(params=params, opt_state=trainer.tx.init(params), obs_stats=obs_stats, anchor=anchor)
+
+
+# the observation statistics of a saved policy count as this many samples when they go on
+# being updated (bc.freeze_obs_norm false): a policy folder does not record how many it saw
+STARTED_COUNT = 1.0e6

@@ -34,6 +34,7 @@ naming the field.
 from __future__ import annotations
 
 import copy
+import json
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -146,7 +147,10 @@ class BCConfig(StrictModel):
     environments start in step, so the first iterations see only the episodes' first
     steps), and the updated statistics change what the unchanged actor does. Like the rest
     of ``bc:`` it applies with ``algo.init: bc`` only (a file that sets it can still be
-    run from scratch with ``--set algo.init=none``)."""
+    run from scratch with ``--set algo.init=none``), except the settings of the start
+    itself (``std``, ``critic_warmup``, ``anchor_coef``, ``anchor_iterations``,
+    ``freeze_obs_norm``), which ``algo.init: policy`` uses too, the saved policy in the
+    clone's place."""
 
     num_envs: PosInt = 128
     steps: PosInt = 48
@@ -199,7 +203,11 @@ class AlgoConfig(StrictModel):
     normalize_obs: bool = True             # running mean / std of observations and states
     value_norm: bool = True                # running mean / std of the value targets
     residual: bool = False                 # act = the scripted team's action + the policy's
-    init: Literal["none", "bc"] = "none"   # bc: clone the scripted team first (bc:)
+    # bc: clone the scripted team first (bc:); policy: start from the saved policy
+    # init_policy (fine-tuning it: the same networks, its observation normalisation, a
+    # fresh critic warmed up for bc.critic_warmup iterations, the anchor on it)
+    init: Literal["none", "bc", "policy"] = "none"
+    init_policy: str | None = None         # a policy folder (policy.json), relative to the training file
     bc: BCConfig = BCConfig()
 
     @model_validator(mode="after")
@@ -212,6 +220,10 @@ class AlgoConfig(StrictModel):
                              f"(num_envs x num_steps = {self.batch_size})")
         if not self.hidden:
             raise ValueError("hidden: give at least one layer width")
+        if (self.init == "policy") != (self.init_policy is not None):
+            raise ValueError("init: policy starts from a saved policy: give its folder as init_policy"
+                             if self.init == "policy" else
+                             f"init_policy {self.init_policy!r} is used only with init: policy (init is {self.init!r})")
         return self
 
     @property
@@ -301,6 +313,42 @@ class TrainConfig(StrictModel):
         return self
 
 
+def init_policy_path(config: TrainConfig, train_path: str | Path) -> Path | None:
+    """``algo.init_policy``'s folder, resolved relative to the training file's folder (None
+    without one)."""
+    if config.algo.init_policy is None:
+        return None
+    p = Path(config.algo.init_policy)
+    return p if p.is_absolute() else Path(train_path).parent / p
+
+
+def check_init_policy(config: TrainConfig, train_path: str | Path) -> None:
+    """ConfigError unless ``algo.init_policy`` (when given) is a saved MAPPO policy whose
+    networks are this file's (``algo.hidden``, ``activation``, ``normalize_obs``,
+    ``residual``); reads its ``policy.json`` only."""
+    path = init_policy_path(config, train_path)
+    if path is None:
+        return
+    where = f"{train_path}: algo.init_policy {config.algo.init_policy}"
+    if not (path / "policy.json").is_file():
+        raise ConfigError(f"{where}: no saved policy there (no {path / 'policy.json'}; paths are relative to the "
+                          "training file)")
+    try:
+        meta = json.loads((path / "policy.json").read_text())
+    except (OSError, ValueError) as exc:
+        raise ConfigError(f"{where}: cannot read policy.json: {exc}") from None
+    kind = meta.get("kind") if isinstance(meta, dict) else None
+    if kind != "mappo":
+        raise ConfigError(f"{where}: policy.json is not a MAPPO policy (kind {kind!r})")
+    a = config.algo
+    ours = {"hidden": list(a.hidden), "activation": a.activation, "normalize_obs": a.normalize_obs,
+            "residual": a.residual}
+    differ = [f"{k} {meta.get(k)!r} there, {v!r} here" for k, v in ours.items() if meta.get(k) != v]
+    if differ:
+        raise ConfigError(f"{where}: its networks differ from this file's algo settings ({'; '.join(differ)}): "
+                          "set them as the policy has them")
+
+
 def apply_overrides(raw: dict, overrides) -> dict:
     """``key=value`` overrides (``algo.lr=1e-3``) applied to a copy of a raw dict."""
     raw = copy.deepcopy(raw)
@@ -347,6 +395,7 @@ def load_train_config(path: str | Path, overrides=(), profile: str | None = None
     file; its scene file is checked too (:func:`load_scene`)."""
     config = train_config_from_dict(read_yaml_file(path, "training file"), str(path), overrides, profile)
     load_eval_scene(config, path, load_scene(config, path))
+    check_init_policy(config, path)
     return config
 
 

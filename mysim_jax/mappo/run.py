@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import csv
 import json
+import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -51,9 +52,9 @@ from mysim_jax.core.machine import machine
 from mysim_jax.core.config_base import ConfigError
 from mysim_jax.io.output import check_output_dir
 from mysim_jax.mappo import bc
-from mysim_jax.mappo.checkpoint import Checkpoints, save_policy
-from mysim_jax.mappo.config import (TrainConfig, check_memory, check_memory_needs, describe, load_eval_scene,
-                                    load_scene, load_train_config, train_config_from_dict)
+from mysim_jax.mappo.checkpoint import Checkpoints, load_policy, save_policy
+from mysim_jax.mappo.config import (TrainConfig, check_memory, check_memory_needs, describe, init_policy_path,
+                                    load_eval_scene, load_scene, load_train_config, train_config_from_dict)
 from mysim_jax.mappo.curriculum import Curriculum
 from mysim_jax.mappo.toy import ReachEnv
 from mysim_jax.mappo.trainer import Trainer, deterministic_policy, deterministic_policy_fn
@@ -64,6 +65,7 @@ from mysim_jax.tasks.report import comparison_line, summary_line, write_comparis
 from mysim_jax.tasks.sweep import wilson_interval
 
 TRAIN_FILE = "train.yaml"
+INIT_POLICY_DIR = "init_policy"      # a copy of algo.init_policy's folder
 SCENE_FILE = "scene.yaml"
 EVAL_SCENE_FILE = "scene_eval.yaml"
 CSV_FIELDS = ("iteration", "env_steps", "wall_s", "iteration_s", "episodes", "mean_return", "success_rate",
@@ -152,6 +154,12 @@ def _write_run_files(p: Prepared) -> None:
         if p.evaluates_elsewhere:
             (p.out / EVAL_SCENE_FILE).write_text(dump_config(p.eval_scene))
             data["env"]["eval_scene"] = EVAL_SCENE_FILE
+    if p.config.algo.init_policy is not None:
+        # the starting policy travels with the run (--resume needs nothing outside the folder)
+        start = init_policy_path(p.config, p.source)
+        if start.resolve() != (p.out / INIT_POLICY_DIR).resolve():
+            shutil.copytree(start, p.out / INIT_POLICY_DIR, dirs_exist_ok=True)
+        data["algo"]["init_policy"] = INIT_POLICY_DIR
     text = yaml.safe_dump(data, sort_keys=False)
     # the run folder is valid by construction; check it anyway before relying on it
     train_config_from_dict(yaml.safe_load(text), str(p.out / TRAIN_FILE))
@@ -468,9 +476,17 @@ def _start_curriculum_and_selection(s: _Session, rows: list[dict]) -> None:
 
 
 def _warm_start(s: _Session, state, k_bc, t_start: float, rows: list[dict]):
-    """A new run: clone the scripted team (``algo.init: bc``), fly the selection episodes
-    once before training, and checkpoint iteration 0. Returns ``(state, rows)``."""
+    """A new run: clone the scripted team (``algo.init: bc``) or start from a saved policy
+    (``algo.init: policy``), fly the selection episodes once before training, and
+    checkpoint iteration 0. Returns ``(state, rows)``."""
     c = s.c
+    if c.algo.init == "policy":
+        folder = init_policy_path(c, s.p.source)
+        meta, arrays = load_policy(folder)
+        state = bc.from_policy(s.trainer, state, meta, arrays, f"algo.init_policy {folder}")
+        s.log(f"starting from the policy {folder} (iteration {meta.get('selected_iteration')} of "
+              f"{meta.get('train')}): exploration std {c.algo.bc.std:g}, critic warm-up "
+              f"{c.algo.bc.critic_warmup} iterations")
     if c.algo.init == "bc":
         s.log(f"behaviour cloning the scripted team: {c.algo.bc.num_envs} environments x {c.algo.bc.steps} steps")
         state, report = bc.clone(s.trainer, state, k_bc)
@@ -483,7 +499,7 @@ def _warm_start(s: _Session, state, k_bc, t_start: float, rows: list[dict]):
         rows = [{"iteration": 0, "env_steps": 0, "wall_s": round(time.perf_counter() - t_start, 3),
                  **_selection_row(stats)}]
         s.log(f"selection episodes before training: success {stats.success.mean():.1%}")
-    if c.algo.init == "bc" or s.evaluator is not None:
+    if s.trainer.uses_anchor or s.evaluator is not None:
         if s.lead:
             _write_rows(s.p.out / "metrics.csv", rows)
         s.ckpt.save(0, s.trainer.place(state))
@@ -595,6 +611,7 @@ def _summary(s: _Session, run: _Trained, train_wall: float) -> dict:
         "env_steps_per_s_with_update": c.algo.batch_size / per_iteration if per_iteration else None,
         "final_train_success_rate": float(rows[-1]["success_rate"]) if rows and "success_rate" in rows[-1] else None,
         "init": c.algo.init,
+        "init_policy": c.algo.init_policy,
         "machine": machine(),              # what the wall times above were measured on
         "devices": 1 if s.trainer.mesh is None else s.trainer.mesh.size,
         "processes": jax.process_count(),

@@ -113,7 +113,7 @@ class TrainerState:
     global_state: jnp.ndarray    # (num_envs, state_size)
     key: jnp.ndarray
     iteration: jnp.ndarray       # () int32, iterations done
-    anchor: dict                 # the policy the anchor pulls towards (policy_arrays layout; algo.init: bc)
+    anchor: dict                 # the policy the anchor pulls towards (policy_arrays layout; algo.init: bc, policy)
     best: dict                   # the best policy so far by model selection (policy_arrays layout)
     best_score: jnp.ndarray      # (2,) its (successes, mean return) on the selection episodes; -inf: none yet
     best_iteration: jnp.ndarray  # () int32, the iteration it was taken after (-1: none yet)
@@ -387,12 +387,13 @@ class Trainer:
     # --- behaviour cloning and its anchor ----------------------------------------------
     @property
     def uses_anchor(self) -> bool:
-        return self.config.init == "bc"
+        """The run starts from a policy (the clone, or a saved one) and is anchored to it."""
+        return self.config.init in ("bc", "policy")
 
     @property
     def critic_warmup(self) -> int:
         """Iterations at the start that train only the critic."""
-        return self.config.bc.critic_warmup if self.config.init == "bc" else 0
+        return self.config.bc.critic_warmup if self.uses_anchor else 0
 
     def schedule(self, iteration, knobs: dict | None = None):
         """``(policy_coef, anchor_coef)`` of iteration ``iteration`` (0-based): the policy is
@@ -460,7 +461,7 @@ class Trainer:
         key, k_update = jax.random.split(key)
         (params, opt_state, _), aux = jax.lax.scan(epoch, (ts.params, ts.opt_state, jnp.bool_(False)),
                                                    jax.random.split(k_update, c.update_epochs))
-        frozen = c.init == "bc" and c.bc.freeze_obs_norm     # the actor keeps the clone's normalisation
+        frozen = self.uses_anchor and c.bc.freeze_obs_norm   # the actor keeps its start's normalisation
         obs_stats = ts.obs_stats.update(traj.raw_obs) if c.normalize_obs and not frozen else ts.obs_stats
         state_stats = ts.state_stats.update(traj.raw_state) if c.normalize_obs else ts.state_stats
 
