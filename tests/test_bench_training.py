@@ -52,13 +52,17 @@ def test_the_runs_list_pairs_runs_with_the_scripted_team_and_groups_seeds(tmp_pa
     _run(tmp_path, "a_seed1", 1, rows, summary=_summary(0.5, machine="CPU X (family 1), 2 cores"),
          episodes=[True, False, True, False])
     _run(tmp_path, "b_stopped", 0, rows)
+    no_eval = _summary(0.5)
+    for key in ("evaluation", "evaluation_wall_s"):
+        no_eval.pop(key)
+    _run(tmp_path, "c_no_eval", 0, rows, summary=no_eval)
     (tmp_path / "machines.yaml").write_text("b_stopped: an older machine\n")
     (tmp_path / "b_stopped" / "NOTE.md").write_text("Stopped by hand.\n")
     lines = training.training_runs_lines(tmp_path)
 
     assert lines[0] == "### Training runs"
     table = [ln for ln in lines if ln.startswith("| `")]
-    assert [ln.split("`")[1] for ln in table] == ["a_seed0", "a_seed1", "b_stopped"]
+    assert [ln.split("`")[1] for ln in table] == ["a_seed0", "a_seed1", "b_stopped", "c_no_eval"]
     # the machine: the summary's, else machines.yaml's entry, else not recorded
     assert table[0] == ("| `a_seed0` | bc | 0 | 1,024 (stopped by the time guard) | not recorded | 2.0 | 50 | 1.0 | "
                         "**75.0%** (25.0%–95.0%) of 4 | +1.0 (-2.0 to +4.0) | 1 target_ground |")
@@ -68,6 +72,9 @@ def test_the_runs_list_pairs_runs_with_the_scripted_team_and_groups_seeds(tmp_pa
     assert table[2] == ("| `b_stopped` | bc | 0 | 1,024 | an older machine | 2.0 | — | — | not evaluated (stopped "
                         "after training); "
                         "selection success 25% at 0 | — | — |")
+    # trained with --no-eval: a summary without an evaluation
+    assert table[3] == ("| `c_no_eval` | bc | 0 | 1,024 | not recorded | 2.0 | 50 | — | not evaluated (trained "
+                        "with --no-eval); selection success 25% at 0 | — | — |")
     seeds = next(ln for ln in lines if ln.startswith("**Over seeds**"))
     assert "(`a_seed0`, `a_seed1`: the same file and settings" in seeds and "mean **62.5%**" in seeds
     assert "![kept training runs side by side](docs/train/runs.png)" in lines

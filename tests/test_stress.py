@@ -23,7 +23,7 @@ from conftest import ROOT, run_script_main
 STRESS = ROOT / "configs" / "stress"
 
 
-@pytest.mark.parametrize("name", ["falling", "maneuvering"])
+@pytest.mark.parametrize("name", sorted(p.stem for p in STRESS.glob("*.yaml")))
 def test_committed_stress_files_plan_the_shifts_they_declare(name, tmp_path):
     cfg = load_stress(STRESS / f"{name}.yaml")
     plan = plan_stress(STRESS / f"{name}.yaml", tmp_path / "out")
@@ -54,7 +54,9 @@ def test_committed_stress_files_plan_the_shifts_they_declare(name, tmp_path):
                 assert env.perception.target_latency == v and env.perception.target_position.sigma == 0.0
             else:
                 for k, b in block.items():
-                    if k == "target_latency":
+                    if k in ("target_latency", "target_dropout"):       # the block's own, unscaled
+                        got = getattr(env.perception, k)
+                        assert (got.model_dump() if hasattr(got, "model_dump") else got) == b
                         continue
                     assert getattr(env.perception, k).sigma == pytest.approx(v * b["sigma"], rel=1e-12)
                     assert getattr(env.perception, k).correlation_time == b["correlation_time"]
@@ -126,6 +128,13 @@ def test_overrides_are_yaml_the_scene_loader_reads():
     assert load_config(ROOT / cfg.scene, [factor_override(latency, 0.1)]).env.perception.target_latency == 0.1
     with pytest.raises(ConfigError, match="more than one policy period"):
         load_config(ROOT / cfg.scene, [factor_override(latency, 0.15)])
+    # a block with its own latency and losses: the error levels scale, the latency and the losses do not
+    block = {"target_position": {"sigma": 0.1, "correlation_time": 1.0}, "target_latency": 0.03,
+             "target_dropout": {"fraction": 0.05, "mean_duration": 0.3}}
+    scaled = load_config(ROOT / cfg.scene, [factor_override(scale, 2.0, block)]).env.perception
+    assert scaled.target_position.sigma == pytest.approx(0.2) and scaled.target_position.correlation_time == 1.0
+    assert scaled.target_latency == 0.03 and scaled.target_dropout.model_dump() == block["target_dropout"]
+    assert scaled.uav_position.sigma == 0.0
 
 
 def _records(plan, rates: dict) -> dict:

@@ -212,14 +212,16 @@ def _run_row(run: Path, scripted: dict, groups: dict) -> str:
         fails = (fails + ", " if fails else "") + f"{ev['timeout']['count']} timeouts"
     succ = ev.get("success")
     succ_text = (f"**{succ['rate']:.1%}** ({succ['interval95'][0]:.1%}–{succ['interval95'][1]:.1%}) of "
-                 f"{ev['episodes']}" if succ else "—")
+                 f"{ev['episodes']}" if succ else f"not evaluated (trained with --no-eval); {_selection_text(run)}")
     versus = _versus(run, s, succ, scripted, eval_seed)
     stopped = " (stopped by the time guard)" if s.get("stopped_by_time_limit") else ""
     rate = s.get("env_steps_per_s_with_update")
     rate_text = "—" if rate is None else f"{rate:,.0f}"
+    eval_wall = s.get("evaluation_wall_s")
+    eval_text = "—" if eval_wall is None else f"{eval_wall / 60:.1f}"       # a run trained with --no-eval
     line = (f"| `{run.name}` | {init} | {seed} | {s['env_steps']:,}{stopped} | {run_machine(run, s)} | "
             f"{s['training_wall_s_total'] / 60:.1f} | {rate_text} | "
-            f"{s.get('evaluation_wall_s', float('nan')) / 60:.1f} | {succ_text} | {versus} | {fails or '—'} |")
+            f"{eval_text} | {succ_text} | {versus} | {fails or '—'} |")
     if succ:
         cfg.get("run", {}).pop("seed", None)
         groups.setdefault(json.dumps(cfg, sort_keys=True), []).append((run.name, succ["rate"]))
@@ -240,11 +242,17 @@ def _unevaluated_row(run: Path, seed, init) -> str:
     """The row of a run stopped before its evaluation: what its metrics.csv says."""
     rows = read_metrics(run)
     last = rows[-1]
-    selected = [r for r in rows if r.get("select_success") not in ("", None)]
-    sel = ", ".join(f"{float(r['select_success']):.0%} at {r['iteration']}" for r in selected)
     return (f"| `{run.name}` | {init} | {seed} | {int(last['env_steps']):,} | {run_machine(run)} | "
             f"{float(last['wall_s']) / 60:.1f} | — | — | not evaluated (stopped after training); "
-            f"selection success {sel or '—'} | — | — |")
+            f"{_selection_text(run, rows)} | — | — |")
+
+
+def _selection_text(run: Path, rows=None) -> str:
+    """``selection success 33% at 0, ...`` from a run's metrics.csv."""
+    rows = read_metrics(run) if rows is None else rows
+    selected = [r for r in rows if r.get("select_success") not in ("", None)]
+    sel = ", ".join(f"{float(r['select_success']):.0%} at {r['iteration']}" for r in selected)
+    return f"selection success {sel or '—'}"
 
 
 def _versus(run: Path, s: dict, succ, scripted: dict, eval_seed) -> str:

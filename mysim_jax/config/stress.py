@@ -104,11 +104,15 @@ def _flow(value) -> str:
     return json.dumps(value)
 
 
+# the env.perception blocks a perception_scale factor scales (their sigma)
+ERROR_BLOCKS = ("uav_position", "uav_velocity", "target_position", "target_velocity")
+
+
 def perception_block(path) -> dict:
     """The env.perception block of a file (``scripts/perception_gap.py fit``'s output), validated."""
     data = read_yaml_file(path, "perception block")
     try:
-        return PerceptionConfig.model_validate(data).model_dump()
+        return PerceptionConfig.model_validate(data).model_dump(exclude_none=True)
     except ValidationError as err:
         raise ConfigError(f"{path}: {format_validation_error(err)}") from None
 
@@ -129,9 +133,10 @@ def factor_override(factor: StressFactor, value: float, perception: dict | None 
                 f"{_flow({'fraction': {'low': left, 'high': left}, 'time': {'low': lo, 'high': hi}})}")
     if value == 0:
         return "env.perception=null"
-    scaled = {k: {**v, "sigma": v["sigma"] * value} for k, v in perception.items() if isinstance(v, dict)}
-    if perception.get("target_latency"):
-        scaled["target_latency"] = perception["target_latency"]          # the block's own latency, unscaled
+    scaled = {k: {**perception[k], "sigma": perception[k]["sigma"] * value} for k in ERROR_BLOCKS if k in perception}
+    for k in ("target_latency", "target_dropout"):      # the block's own latency and losses, unscaled
+        if perception.get(k):
+            scaled[k] = perception[k]
     return f"env.perception={_flow(scaled)}"
 
 

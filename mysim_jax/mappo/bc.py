@@ -33,6 +33,7 @@ from flax import struct
 
 from mysim_jax.core import batching
 from mysim_jax.mappo.losses import RunningStats
+from mysim_jax.mappo.policies import PolicyError, check_environment
 
 
 @struct.dataclass
@@ -210,8 +211,6 @@ def from_policy(trainer, ts, meta: dict, arrays: dict, where: str):
     A capture policy must have been trained on an environment whose observations and
     actions mean what this one's do (:func:`mysim_jax.mappo.policies.check_environment`);
     :class:`~mysim_jax.mappo.policies.PolicyError` naming ``where`` otherwise."""
-    from mysim_jax.mappo.policies import PolicyError, check_environment
-
     env = trainer.env
     if int(meta["obs_size"]) != env.obs_size or tuple(meta["action_shape"]) != tuple(env.action_shape):
         raise PolicyError(f"{where}: trained on observations of size {meta['obs_size']} and actions "
