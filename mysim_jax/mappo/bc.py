@@ -33,7 +33,7 @@ from flax import struct
 
 from mysim_jax.core import batching
 from mysim_jax.mappo.losses import RunningStats
-from mysim_jax.mappo.policies import PolicyError, check_environment
+from mysim_jax.mappo.policies import PolicyError, check_trained_on
 
 
 @struct.dataclass
@@ -210,14 +210,9 @@ def from_policy(trainer, ts, meta: dict, arrays: dict, where: str):
     it, the optimiser reset; the critic and the state normalisation are ``ts``'s (fresh).
     A capture policy must have been trained on an environment whose observations and
     actions mean what this one's do (:func:`mysim_jax.mappo.policies.check_environment`);
-    :class:`~mysim_jax.mappo.policies.PolicyError` naming ``where`` otherwise."""
-    env = trainer.env
-    if int(meta["obs_size"]) != env.obs_size or tuple(meta["action_shape"]) != tuple(env.action_shape):
-        raise PolicyError(f"{where}: trained on observations of size {meta['obs_size']} and actions "
-                          f"{tuple(meta['action_shape'])}; this environment has {env.obs_size} and "
-                          f"{tuple(env.action_shape)}")
-    if "environment" in meta or hasattr(env, "scene"):
-        check_environment(meta, env, trainer.env_params, where)
+    :class:`~mysim_jax.mappo.policies.PolicyError` naming ``where`` otherwise
+    (:func:`~mysim_jax.mappo.policies.check_trained_on`, which a run calls before compiling)."""
+    check_trained_on(meta, trainer.env, trainer.env_params, where)
     actor = jax.tree.map(jnp.asarray, arrays["actor"])
     mine = ts.params["actor"]
     if jax.tree.structure(actor) != jax.tree.structure(mine) or any(

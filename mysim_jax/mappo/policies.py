@@ -114,6 +114,19 @@ def check_environment(meta: dict, env, params, where: str) -> None:
                           "trained on (scene.yaml of its run folder), or pass --allow-mismatch to fly it here anyway")
 
 
+def check_trained_on(meta: dict, env, params, where: str, allow_mismatch: bool = False) -> None:
+    """Refuse ``env`` for a saved policy (``meta``: its policy.json) whose observation and
+    action shapes differ from ``env``'s, or, unless ``allow_mismatch``, whose recorded
+    environment means something else (:func:`check_environment`; capture environments).
+    ``where`` names the policy in the message."""
+    if int(meta["obs_size"]) != env.obs_size or tuple(meta["action_shape"]) != tuple(env.action_shape):
+        raise PolicyError(f"{where}: trained on observations of size {meta['obs_size']} and actions "
+                          f"{tuple(meta['action_shape'])}; this environment has {env.obs_size} and "
+                          f"{tuple(env.action_shape)} (another number of UAVs?)")
+    if not allow_mismatch and ("environment" in meta or hasattr(env, "scene")):
+        check_environment(meta, env, params, where)
+
+
 def _trained_policy_maker(path: Path, flag: str, allow_mismatch: bool = False):
     """``make_policy`` of a saved MAPPO policy; it checks that the environment's
     observation and action shapes are those the policy was trained on and, unless
@@ -126,12 +139,7 @@ def _trained_policy_maker(path: Path, flag: str, allow_mismatch: bool = False):
         raise PolicyError(f"{flag} {path}: policy.json kind {meta.get('kind')!r}, expected 'mappo'")
 
     def make_policy(env, params):
-        if int(meta["obs_size"]) != env.obs_size or tuple(meta["action_shape"]) != tuple(env.action_shape):
-            raise PolicyError(f"{flag} {path}: trained on observations of size {meta['obs_size']} and actions "
-                              f"{tuple(meta['action_shape'])}; this environment has {env.obs_size} and "
-                              f"{tuple(env.action_shape)} (another number of UAVs?)")
-        if not allow_mismatch:
-            check_environment(meta, env, params, f"{flag} {path}")
+        check_trained_on(meta, env, params, f"{flag} {path}", allow_mismatch)
         actor = Actor(int(meta["action_shape"][1]), tuple(meta["hidden"]), meta["activation"])
         base = env.scripted_actions if meta.get("residual") else None
         return deterministic_policy(actor, arrays, bool(meta["normalize_obs"]), base)

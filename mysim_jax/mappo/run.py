@@ -56,6 +56,7 @@ from mysim_jax.mappo.checkpoint import Checkpoints, load_policy, save_policy
 from mysim_jax.mappo.config import (TrainConfig, check_memory, check_memory_needs, describe, init_policy_path,
                                     load_eval_scene, load_scene, load_train_config, train_config_from_dict)
 from mysim_jax.mappo.curriculum import Curriculum
+from mysim_jax.mappo.policies import PolicyError, check_trained_on
 from mysim_jax.mappo.toy import ReachEnv
 from mysim_jax.mappo.trainer import Trainer, deterministic_policy, deterministic_policy_fn
 from mysim_jax.tasks.capture import make_env, scaled_target_ranges
@@ -699,6 +700,13 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
     c = s.c
     k_init, k_bc = jax.random.split(jax.random.PRNGKey(c.run.seed))
     t_compile = time.perf_counter()
+    if c.algo.init == "policy" and not p.resume:
+        # the starting policy must fit this environment: refused before anything compiles
+        folder = init_policy_path(c, p.source)
+        try:
+            check_trained_on(load_policy(folder)[0], s.env, s.env_params, f"{p.source}: algo.init_policy {folder}")
+        except PolicyError as err:
+            raise ConfigError(str(err)) from None
     state, start_iteration, restored, rows = _restore(s, s.trainer.init(k_init))
     previous_wall = float(rows[-1]["wall_s"]) if rows else 0.0
     _start_curriculum_and_selection(s, rows)
