@@ -268,6 +268,23 @@ def test_a_run_starts_from_a_saved_policy(tmp_path, whole_run):
         prepare(str(cfg), [], str(tmp_path / "other"))
 
 
+def test_a_starting_policy_of_another_environment_is_refused_before_anything_is_written(tmp_path, capsys):
+    """``algo.init: policy`` with the falling team's policy on the evading-drone scene: the
+    shapes agree (52 observations, (4, 3) actions) but the policy.json records another
+    scene, so the script exits 2 naming both, before the run folder is written (a second
+    try is not told the folder holds a run) and before anything of the training compiles."""
+    cfg = tmp_path / "t.yaml"
+    cfg.write_text(f"name: t\nenv: {{scene: {ROOT / 'configs' / 'capture_env_maneuvering.yaml'}}}\n"
+                   f"algo: {{init: policy, init_policy: {ROOT / 'docs' / 'train' / 'falling' / 'policy'}}}\n")
+    out = tmp_path / "out"
+    for _ in range(2):
+        code, _, err, compiled = run_script_main("train", [cfg, "--out", out], capsys)
+        assert code == 2, err
+        assert "algo.init_policy" in err and "trained on another environment (capture_env_falling" in err, err
+        assert "Traceback" not in err and only_array_ops(compiled)
+        assert not out.exists()
+
+
 @pytest.mark.parametrize("text, sets, message", [
     ("name: t\nenv: {builtin: reach}\nalgo: {num_envs: 10, num_steps: 3, num_minibatches: 4}\n", [],
      "num_minibatches"),

@@ -420,7 +420,7 @@ class _Session:
 
 def _open_session(p: Prepared, progress: bool, evaluate: bool, log) -> _Session:
     """Everything that can refuse the run, checked before the run folder is written and
-    before anything compiles: the environments, the devices, the memory."""
+    before anything compiles: the environments, a starting policy, the devices, the memory."""
     c = p.config
     lead = jax.process_index() == 0
     many = jax.process_count() > 1
@@ -434,6 +434,13 @@ def _open_session(p: Prepared, progress: bool, evaluate: bool, log) -> _Session:
         if c.run.eval_batch > c.run.eval_episodes:
             log(f"note: run.eval_batch {c.run.eval_batch} is more than run.eval_episodes {c.run.eval_episodes}: "
                 f"the final evaluation runs {c.run.eval_episodes} side by side")
+    if c.algo.init == "policy" and not p.resume:
+        # the starting policy must fit this environment (shapes and meaning)
+        folder = init_policy_path(c, p.source)
+        try:
+            check_trained_on(load_policy(folder)[0], env, env_params, f"{p.source}: algo.init_policy {folder}")
+        except PolicyError as err:
+            raise ConfigError(str(err)) from None
     trainer = Trainer(c.algo, env, env_params, mesh=training_mesh(c, p.source))
     check_memory_needs(trainer.memory_needs(), p.source)
     if not p.resume and lead:
@@ -700,13 +707,6 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
     c = s.c
     k_init, k_bc = jax.random.split(jax.random.PRNGKey(c.run.seed))
     t_compile = time.perf_counter()
-    if c.algo.init == "policy" and not p.resume:
-        # the starting policy must fit this environment: refused before anything compiles
-        folder = init_policy_path(c, p.source)
-        try:
-            check_trained_on(load_policy(folder)[0], s.env, s.env_params, f"{p.source}: algo.init_policy {folder}")
-        except PolicyError as err:
-            raise ConfigError(str(err)) from None
     state, start_iteration, restored, rows = _restore(s, s.trainer.init(k_init))
     previous_wall = float(rows[-1]["wall_s"]) if rows else 0.0
     _start_curriculum_and_selection(s, rows)
