@@ -17,10 +17,12 @@ from mysim_jax.tasks.sweep import paired_difference_interval
 METRICS = ("iteration", "env_steps", "wall_s", "episodes", "success_rate", "select_success")
 
 
-def _run(folder, name: str, seed: int, metrics, summary=None, episodes=None, scripted=None):
+def _run(folder, name: str, seed: int, metrics, summary=None, episodes=None, scripted=None, **more):
     run = folder / name
     (run / "eval").mkdir(parents=True)
-    (run / "train.yaml").write_text(yaml.safe_dump({"run": {"seed": seed, "eval_seed": 7}, "algo": {"init": "bc"}}))
+    (run / "train.yaml").write_text(yaml.safe_dump({"run": {"seed": seed, "eval_seed": 7, **more.get("run", {})},
+                                                    "algo": {"init": "bc", **more.get("algo", {})},
+                                                    **{k: v for k, v in more.items() if k not in ("run", "algo")}}))
     (run / "scene.yaml").write_text(yaml.safe_dump({"name": "falling"}))
     with (run / "metrics.csv").open("w", newline="") as f:
         w = csv.writer(f)
@@ -49,8 +51,11 @@ def test_the_runs_list_pairs_runs_with_the_scripted_team_and_groups_seeds(tmp_pa
     _run(tmp_path, "a_seed0", 0, rows, scripted=scripted, summary=_summary(
         0.75, stopped_by_time_limit=True,
         baseline={"seed": 7, "difference": {"estimate": 0.01, "interval95": [-0.02, 0.04]}}))
+    # seed 1 of the same file: its scripted team not run beside it, the file grown a profile
     _run(tmp_path, "a_seed1", 1, rows, summary=_summary(0.5, machine="CPU X (family 1), 2 cores"),
-         episodes=[True, False, True, False])
+         episodes=[True, False, True, False], run={"eval_baseline": False}, profiles={"p": ["algo.lr=1"]})
+    # another learning rate: not a seed of the same settings
+    _run(tmp_path, "a_other_lr", 2, rows, summary=_summary(0.25), algo={"lr": 0.5})
     _run(tmp_path, "b_stopped", 0, rows)
     no_eval = _summary(0.5)
     for key in ("evaluation", "evaluation_wall_s"):
@@ -62,7 +67,8 @@ def test_the_runs_list_pairs_runs_with_the_scripted_team_and_groups_seeds(tmp_pa
 
     assert lines[0] == "### Training runs"
     table = [ln for ln in lines if ln.startswith("| `")]
-    assert [ln.split("`")[1] for ln in table] == ["a_seed0", "a_seed1", "b_stopped", "c_no_eval"]
+    assert [ln.split("`")[1] for ln in table] == ["a_other_lr", "a_seed0", "a_seed1", "b_stopped", "c_no_eval"]
+    table = table[1:]
     # the machine: the summary's, else machines.yaml's entry, else not recorded
     assert table[0] == ("| `a_seed0` | bc | 0 | 1,024 (stopped by the time guard) | not recorded | 2.0 | 50 | 1.0 | "
                         "**75.0%** (25.0%–95.0%) of 4 | +1.0 (-2.0 to +4.0) | 1 target_ground |")
@@ -75,7 +81,7 @@ def test_the_runs_list_pairs_runs_with_the_scripted_team_and_groups_seeds(tmp_pa
     # trained with --no-eval: a summary without an evaluation
     assert table[3] == ("| `c_no_eval` | bc | 0 | 1,024 | not recorded | 2.0 | 50 | — | not evaluated (trained "
                         "with --no-eval); selection success 25% at 0 | — | — |")
-    seeds = next(ln for ln in lines if ln.startswith("**Over seeds**"))
+    [seeds] = [ln for ln in lines if ln.startswith("**Over seeds**")]
     assert "(`a_seed0`, `a_seed1`: the same file and settings" in seeds and "mean **62.5%**" in seeds
     assert "![kept training runs side by side](docs/train/runs.png)" in lines
     assert (tmp_path / "runs.png").is_file()

@@ -223,9 +223,18 @@ def _run_row(run: Path, scripted: dict, groups: dict) -> str:
             f"{s['training_wall_s_total'] / 60:.1f} | {rate_text} | "
             f"{eval_text} | {succ_text} | {versus} | {fails or '—'} |")
     if succ:
-        cfg.get("run", {}).pop("seed", None)
-        groups.setdefault(json.dumps(cfg, sort_keys=True), []).append((run.name, succ["rate"]))
+        groups.setdefault(_settings_key(cfg), []).append((run.name, succ["rate"]))
     return line
+
+
+def _settings_key(cfg: dict) -> str:
+    """A kept run's settings without what differs between seeds of one training file and
+    changes neither the trained team nor its evaluation: ``run.seed``, whether the scripted
+    team is evaluated beside it (``run.eval_baseline``; its outcomes on the same episodes
+    come from another run) and the file's ``profiles`` (other runs' overrides)."""
+    cfg = {k: v for k, v in cfg.items() if k != "profiles"}
+    cfg["run"] = {k: v for k, v in cfg.get("run", {}).items() if k not in ("seed", "eval_baseline")}
+    return json.dumps(cfg, sort_keys=True)
 
 
 def run_machine(run: Path, summary: dict | None = None) -> str:
@@ -279,7 +288,7 @@ def _seed_lines(groups: dict) -> list[str]:
         if len(members) > 1:
             rates = np.array([r for _, r in members])
             lines.append(f"**Over seeds** ({', '.join(f'`{n}`' for n, _ in members)}: the same file and settings, "
-                         f"`run.seed` alone differs): evaluation success mean **{rates.mean():.1%}**, "
+                         f"`run.seed` alone differs among the settings that shape the team and its evaluation): evaluation success mean **{rates.mean():.1%}**, "
                          f"range {rates.min():.1%}–{rates.max():.1%}, standard deviation {rates.std(ddof=1):.1%} "
                          f"over {len(rates)} seeds.")
             lines.append("")
