@@ -52,10 +52,15 @@ def test_the_runs_list_pairs_runs_with_the_scripted_team_and_groups_seeds(tmp_pa
         0.75, stopped_by_time_limit=True,
         baseline={"seed": 7, "difference": {"estimate": 0.01, "interval95": [-0.02, 0.04]}}))
     # seed 1 of the same file: its scripted team not run beside it, the file grown a profile
+    # and a field left unset (null)
     _run(tmp_path, "a_seed1", 1, rows, summary=_summary(0.5, machine="CPU X (family 1), 2 cores"),
-         episodes=[True, False, True, False], run={"eval_baseline": False}, profiles={"p": ["algo.lr=1"]})
-    # another learning rate: not a seed of the same settings
+         episodes=[True, False, True, False], run={"eval_baseline": False}, profiles={"p": ["algo.lr=1"]},
+         algo={"init_policy": None})
+    # another learning rate: not a seed of the same settings; two runs of one seed with the
+    # same settings (other code): not seeds of one experiment
     _run(tmp_path, "a_other_lr", 2, rows, summary=_summary(0.25), algo={"lr": 0.5})
+    _run(tmp_path, "d_code_a", 3, rows, summary=_summary(0.25), algo={"lr": 0.7})
+    _run(tmp_path, "d_code_b", 3, rows, summary=_summary(0.5), algo={"lr": 0.7})
     _run(tmp_path, "b_stopped", 0, rows)
     no_eval = _summary(0.5)
     for key in ("evaluation", "evaluation_wall_s"):
@@ -67,7 +72,8 @@ def test_the_runs_list_pairs_runs_with_the_scripted_team_and_groups_seeds(tmp_pa
 
     assert lines[0] == "### Training runs"
     table = [ln for ln in lines if ln.startswith("| `")]
-    assert [ln.split("`")[1] for ln in table] == ["a_other_lr", "a_seed0", "a_seed1", "b_stopped", "c_no_eval"]
+    assert [ln.split("`")[1] for ln in table] == ["a_other_lr", "a_seed0", "a_seed1", "b_stopped", "c_no_eval",
+                                                      "d_code_a", "d_code_b"]
     table = table[1:]
     # the machine: the summary's, else machines.yaml's entry, else not recorded
     assert table[0] == ("| `a_seed0` | bc | 0 | 1,024 (stopped by the time guard) | not recorded | 2.0 | 50 | 1.0 | "

@@ -201,7 +201,7 @@ def training_runs_lines(folder: Path = TRAIN_RUNS) -> list[str]:
 
 def _run_row(run: Path, scripted: dict, groups: dict) -> str:
     """One kept run's table row (``scripted``: :func:`_scripted_outcomes`); an evaluated run
-    adds ``(name, success rate)`` to ``groups`` under its settings without ``run.seed``."""
+    adds ``(name, success rate, seed)`` to ``groups`` under its settings without ``run.seed``."""
     cfg, seed, init, eval_seed = _run_settings(run)
     if not (run / "summary.json").is_file():
         return _unevaluated_row(run, seed, init)
@@ -223,7 +223,7 @@ def _run_row(run: Path, scripted: dict, groups: dict) -> str:
             f"{s['training_wall_s_total'] / 60:.1f} | {rate_text} | "
             f"{eval_text} | {succ_text} | {versus} | {fails or '—'} |")
     if succ:
-        groups.setdefault(_settings_key(cfg), []).append((run.name, succ["rate"]))
+        groups.setdefault(_settings_key(cfg), []).append((run.name, succ["rate"], seed))
     return line
 
 
@@ -231,10 +231,17 @@ def _settings_key(cfg: dict) -> str:
     """A kept run's settings without what differs between seeds of one training file and
     changes neither the trained team nor its evaluation: ``run.seed``, whether the scripted
     team is evaluated beside it (``run.eval_baseline``; its outcomes on the same episodes
-    come from another run) and the file's ``profiles`` (other runs' overrides)."""
+    come from another run) and the file's ``profiles`` (other runs' overrides). An unset
+    (null) setting counts as absent, as in the train.yaml of a run that predates the field."""
     cfg = {k: v for k, v in cfg.items() if k != "profiles"}
     cfg["run"] = {k: v for k, v in cfg.get("run", {}).items() if k not in ("seed", "eval_baseline")}
-    return json.dumps(cfg, sort_keys=True)
+    return json.dumps(_without_nulls(cfg), sort_keys=True)
+
+
+def _without_nulls(tree):
+    if isinstance(tree, dict):
+        return {k: _without_nulls(v) for k, v in tree.items() if v is not None}
+    return tree
 
 
 def run_machine(run: Path, summary: dict | None = None) -> str:
@@ -282,12 +289,15 @@ def _versus(run: Path, s: dict, succ, scripted: dict, eval_seed) -> str:
 
 
 def _seed_lines(groups: dict) -> list[str]:
-    """The spread over seeds of every group of more than one evaluated run."""
+    """The spread over seeds of every group of more than one evaluated run. A group where a
+    seed repeats is left out: the same settings and seed trained by other code (a level or a
+    default changed between the runs) are not seeds of one experiment."""
     lines = []
     for members in groups.values():
-        if len(members) > 1:
-            rates = np.array([r for _, r in members])
-            lines.append(f"**Over seeds** ({', '.join(f'`{n}`' for n, _ in members)}: the same file and settings, "
+        seeds = [seed for *_, seed in members]
+        if len(members) > 1 and len(set(seeds)) == len(seeds):
+            rates = np.array([r for _, r, _ in members])
+            lines.append(f"**Over seeds** ({', '.join(f'`{n}`' for n, *_ in members)}: the same file and settings, "
                          f"`run.seed` alone differs among the settings that shape the team and its evaluation): evaluation success mean **{rates.mean():.1%}**, "
                          f"range {rates.min():.1%}–{rates.max():.1%}, standard deviation {rates.std(ddof=1):.1%} "
                          f"over {len(rates)} seeds.")
