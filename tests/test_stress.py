@@ -24,16 +24,18 @@ STRESS = ROOT / "configs" / "stress"
 
 
 def test_every_committed_stress_file_loads_and_names_what_exists():
-    """Every stress file validates and names a scene, teams and a perception block that are
-    in the repository (the planning of the two tasks' own files is checked below; the
+    """Every stress file validates, names a scene, teams and a perception block that are
+    in the repository, and its scene loads at its level (a run folder's scene.yaml holds
+    the level train only; the planning of the two tasks' own files is checked below; the
     others reuse their scenes and factors)."""
     files = sorted(STRESS.glob("*.yaml"))
-    assert len(files) >= 4
+    assert len(files) >= 5
     for path in files:
         cfg = load_stress(path)
         for spec in (cfg.scene, cfg.policy, cfg.compare, cfg.perception):
             if spec is not None and spec not in ("scripted", "random"):
                 assert (ROOT / spec).exists(), (path.name, spec)
+        assert load_config(ROOT / cfg.scene, [f"level={cfg.level}"]).level == cfg.level, path.name
 
 
 @pytest.mark.parametrize("name", ["falling", "maneuvering"])
