@@ -239,6 +239,7 @@ def _settings_key(cfg: dict) -> str:
 
 
 def _without_nulls(tree):
+    """``tree`` (nested dicts) without its null entries."""
     if isinstance(tree, dict):
         return {k: _without_nulls(v) for k, v in tree.items() if v is not None}
     return tree
@@ -298,7 +299,8 @@ def _seed_lines(groups: dict) -> list[str]:
         if len(members) > 1 and len(set(seeds)) == len(seeds):
             rates = np.array([r for _, r, _ in members])
             lines.append(f"**Over seeds** ({', '.join(f'`{n}`' for n, *_ in members)}: the same file and settings, "
-                         f"`run.seed` alone differs among the settings that shape the team and its evaluation): evaluation success mean **{rates.mean():.1%}**, "
+                         "`run.seed` alone differs among the settings that shape the team and its evaluation): "
+                         f"evaluation success mean **{rates.mean():.1%}**, "
                          f"range {rates.min():.1%}–{rates.max():.1%}, standard deviation {rates.std(ddof=1):.1%} "
                          f"over {len(rates)} seeds.")
             lines.append("")
