@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import csv
 import json
-import math
 import os
 import subprocess
 import sys
@@ -69,32 +68,43 @@ def test_a_curriculum_needs_an_evading_target_and_a_scene():
 def test_the_stage_rule():
     cfg = CurriculumConfig(stages=[0.25, 0.5, 1.0], advance_success=0.8, window=3, max_iterations=10)
     cur = Curriculum(cfg)
-    assert cur.fraction == 0.25 and not cur.last_stage
+    cs = cur.start()
+    assert cur.fraction(cs) == 0.25 and not cur.last_stage(cs)
+
+    def feed(rates):
+        nonlocal cs
+        moved = []
+        for rate in rates:
+            cs, m = cur.update(cs, rate)
+            moved.append(m)
+        return moved
+
     # the window's mean must reach the threshold over `window` iterations; NaN (no episode
     # ended) is skipped, not counted as 0
-    assert [cur.update(x) for x in (0.9, float("nan"), 0.9)] == [False, False, False]
-    assert cur.update(0.7) is True and cur.stage == 1 and cur.fraction == 0.5      # (0.9 + 0.9 + 0.7) / 3
-    assert [cur.update(0.0) for _ in range(9)] == [False] * 9
-    assert cur.update(0.0) is True and cur.stage == 2                              # 10 iterations in the stage
-    assert cur.last_stage and cur.update(1.0) is False and cur.stage == 2          # stays at the full range
+    assert feed([0.9, float("nan"), 0.9]) == [False, False, False]
+    assert feed([0.7]) == [True] and int(cs.stage) == 1 and cur.fraction(cs) == 0.5     # (0.9 + 0.9 + 0.7) / 3
+    assert int(cs.iterations_in_stage) == 0 and int(cs.n_recent) == 0                   # the new stage starts afresh
+    assert feed([0.0] * 9) == [False] * 9
+    assert feed([0.0]) == [True] and int(cs.stage) == 2                                  # 10 iterations in the stage
+    assert cur.last_stage(cs) and feed([1.0]) == [False] and int(cs.stage) == 2          # stays at the full range
     # success only / iterations only
     only = Curriculum(CurriculumConfig(stages=[0.5, 1.0], advance_success=None, max_iterations=2))
-    assert [only.update(1.0), only.update(1.0)] == [False, True]
+    cs_only = only.start()
+    cs_only, first = only.update(cs_only, 1.0)
+    cs_only, second = only.update(cs_only, 1.0)
+    assert [first, second] == [False, True]
     never = Curriculum(CurriculumConfig(stages=[0.5, 1.0], advance_success=0.9, window=2))
-    assert not any(never.update(0.85) for _ in range(50)) and never.stage == 0
+    cs_never = never.start()
+    for _ in range(50):
+        cs_never, moved = never.update(cs_never, 0.85)
+        assert not moved
+    assert int(cs_never.stage) == 0 and int(cs_never.n_recent) == 2 and int(cs_never.iterations_in_stage) == 50
 
 
-def test_a_resumed_curriculum_continues_as_the_uninterrupted_one():
-    cfg = CurriculumConfig(stages=[0.25, 0.5, 1.0], advance_success=0.7, window=2, max_iterations=6)
-    rates = [0.1, 0.8, 0.9, 0.2, float("nan"), 0.3, 0.5, 0.1, 0.9, 0.9, 0.95]
-    whole, rows = Curriculum(cfg), [{"iteration": 0, "select_success": 0.5}]     # the selection row: skipped
-    for i, r in enumerate(rates):
-        rows.append({"iteration": i + 1, "success_rate": "" if math.isnan(r) else r, "curriculum_stage": whole.stage})
-        whole.update(r)
-        again = Curriculum.resumed(cfg, rows)
-        assert (again.stage, again.iterations_in_stage, again._recent) == \
-            (whole.stage, whole.iterations_in_stage, whole._recent)
-    assert whole.stage == 2
+def test_a_state_outside_the_stages_is_refused():
+    cur = Curriculum(CurriculumConfig(stages=[0.5, 1.0], max_iterations=2))
+    with pytest.raises(ValueError, match="curriculum stage 2 of 2"):
+        cur.fraction(cur.start().replace(stage=jax.numpy.int32(2)))
 
 
 def test_scaled_ranges_scale_the_target_s_difficulty_only_and_resets_draw_from_them():
@@ -115,21 +125,31 @@ def test_scaled_ranges_scale_the_target_s_difficulty_only_and_resets_draw_from_t
     assert speed.min() >= 0.25 * 2.0 - 1e-6 and speed.max() <= 0.25 * 3.5 + 1e-6 and np.ptp(speed) > 0.1
 
 
-def test_train_script_runs_a_curriculum_and_logs_it(tmp_path):
+CURRICULUM_RUN = ["algo.num_envs=4", "algo.num_steps=2", "algo.total_env_steps=24", "algo.num_minibatches=2",
+                  "algo.init=none", "run.selection=null", "run.checkpoint_every=1", "run.keep_checkpoints=3",
+                  "env.curriculum={stages: [0.25, 0.5, 1.0], advance_success: null, max_iterations: 1}"]
+
+
+@pytest.fixture(scope="module")
+def curriculum_run(tmp_path_factory):
     """Three iterations of 4 environments x 2 steps on the evading task, a curriculum of
-    three stages advanced every iteration: the stages and fractions logged per iteration,
-    the change announced, the summary's first full-range iteration, the curves drawn. No
-    final evaluation (``--no-eval``): the curriculum does not reach it, and tests/
-    test_train_script.py runs one on the capture environment."""
-    out = tmp_path / "run"
-    sets = ["algo.num_envs=4", "algo.num_steps=2", "algo.total_env_steps=24", "algo.num_minibatches=2",
-            "algo.init=none", "run.selection=null",
-            "env.curriculum={stages: [0.25, 0.5, 1.0], advance_success: null, max_iterations: 1}"]
+    three stages advanced every iteration, a checkpoint after each iteration; no final
+    evaluation (``--no-eval``): the curriculum does not reach it, and tests/
+    test_train_script.py runs one on the capture environment. ``(run folder, the
+    script's result)``."""
+    out = tmp_path_factory.mktemp("curriculum") / "run"
     env = {**os.environ, "JAX_LOG_COMPILES": "1"}
     res = subprocess.run([sys.executable, str(ROOT / "scripts" / "train.py"), str(TRAIN_FILE), "--out", str(out),
-                          "--no-progress", "--no-eval", *[a for s in sets for a in ("--set", s)]],
+                          "--no-progress", "--no-eval", *[a for s in CURRICULUM_RUN for a in ("--set", s)]],
                          capture_output=True, text=True, cwd=ROOT, env=env)
     assert res.returncode == 0, res.stderr
+    return out, res
+
+
+def test_train_script_runs_a_curriculum_and_logs_it(curriculum_run):
+    """The stages and fractions logged per iteration, the change announced, the summary's
+    first full-range iteration, the curves drawn."""
+    out, res = curriculum_run
     # the stage changes hand the compiled iteration new ranges: it is compiled once
     compiles = [ln for ln in res.stderr.splitlines() if "Compiling" in ln and "_iteration" in ln]
     assert len(compiles) == 1, compiles
@@ -142,3 +162,75 @@ def test_train_script_runs_a_curriculum_and_logs_it(tmp_path):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["curriculum"] == {"stages": [0.25, 0.5, 1.0], "final_stage": 2, "full_range_from_iteration": 3}
     assert (out / "curves.png").stat().st_size > 10_000
+
+
+def test_a_curriculum_run_resumes_from_its_checkpoint_alone(curriculum_run, tmp_path, capsys):
+    """The run above cut back to its checkpoint of iteration 1, its metrics.csv deleted:
+    resumed, it continues the curriculum at stage 2 (the checkpoint holds the stage and the
+    episode ranges) and ends bit for bit where the uninterrupted run ended."""
+    import shutil
+
+    from conftest import run_script_main
+    from mysim_jax.mappo.checkpoint import Checkpoints
+    from mysim_jax.mappo.run import make_environment, prepare
+    from mysim_jax.mappo.trainer import Trainer
+
+    whole, _ = curriculum_run
+    cut = tmp_path / "cut"
+    shutil.copytree(whole, cut)
+    for step in (2, 3):
+        shutil.rmtree(cut / "checkpoints" / str(step))
+        (cut / "checkpoints" / f"{step}.sha256.json").unlink()
+    for name in ("metrics.csv", "summary.json"):
+        (cut / name).unlink()
+    shutil.rmtree(cut / "policy")
+    code, out, err, _ = run_script_main("train", ["--resume", cut, "--no-eval", "--no-progress"], capsys)
+    assert code == 0, err
+    assert "resuming" in out and "at iteration 1 of 3" in out
+    assert "curriculum: stage 2 of 3 (the target's speed, jink and flee ranges x 0.5)" in out
+    assert "curriculum: stage 3 of 3 from iteration 3 (ranges x 1)" in out
+    assert (cut / "policy" / "policy.msgpack").read_bytes() == (whole / "policy" / "policy.msgpack").read_bytes()
+    # every leaf of the last checkpoint: networks, optimiser, environments, key, curriculum, ranges
+    p = prepare(None, [], None, str(whole), None)
+    env, env_params = make_environment(p)
+    like = Trainer(p.config.algo, env, env_params).init(jax.random.PRNGKey(0))
+    like = like.replace(curriculum=like.curriculum.replace(recent=jax.numpy.zeros((5,), jax.numpy.float32)))
+    states = []
+    for run in (whole, cut):
+        ckpt = Checkpoints(run / "checkpoints")
+        states.append(ckpt.restore(3, like))
+        ckpt.close()
+    a, b = (jax.tree.leaves(s) for s in states)
+    assert len(a) == len(b) and all(np.array_equal(np.asarray(x), np.asarray(y)) for x, y in zip(a, b))
+    assert int(states[1].curriculum.stage) == 2 and int(states[1].iteration) == 3
+    speeds = np.asarray(states[1].ranges.high.max_speed), np.asarray(env_params.ranges.high.max_speed)
+    np.testing.assert_array_equal(*speeds)                  # the last stage draws from the full ranges
+
+
+def test_a_checkpoint_of_an_earlier_state_layout_is_refused_and_kept(curriculum_run, tmp_path):
+    """A checkpoint without the curriculum's fields (as an earlier version wrote them) is a
+    clear error naming them; it is not taken for damage, so nothing is renamed."""
+    import orbax.checkpoint as ocp
+    from flax import serialization
+
+    from mysim_jax.mappo.checkpoint import CheckpointError, Checkpoints
+    from mysim_jax.mappo.run import make_environment, prepare
+    from mysim_jax.mappo.trainer import Trainer
+
+    whole, _ = curriculum_run
+    p = prepare(None, [], None, str(whole), None)
+    env, env_params = make_environment(p)
+    state = Trainer(p.config.algo, env, env_params).init(jax.random.PRNGKey(0))
+    old = {k: v for k, v in serialization.to_state_dict(state).items() if k not in ("curriculum", "ranges")}
+    manager = ocp.CheckpointManager(tmp_path / "checkpoints", options=ocp.CheckpointManagerOptions(
+        create=True, enable_async_checkpointing=False))
+    manager.save(4, args=ocp.args.StandardSave(old), force=True)
+    manager.wait_until_finished()
+    manager.close()
+    before = sorted(p.name for p in (tmp_path / "checkpoints").iterdir())
+    ckpt = Checkpoints(tmp_path / "checkpoints")
+    with pytest.raises(CheckpointError, match=r"checkpoint 4 was written by an earlier version of mysim_jax "
+                                              r"\(it has no curriculum, ranges\)"):
+        ckpt.restore_newest(state, log=lambda _: None)
+    ckpt.close()
+    assert sorted(p.name for p in (tmp_path / "checkpoints").iterdir()) == before

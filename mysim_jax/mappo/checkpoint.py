@@ -1,7 +1,8 @@
 """Checkpoints of a training run (orbax) and the saved policy.
 
 **Checkpoints** (:class:`Checkpoints`): the whole :class:`~mysim_jax.mappo.trainer.TrainerState`
-(networks, optimiser, normalisers, every environment's state, the PRNG key) under
+(networks, optimiser, normalisers, every environment's state, the PRNG key, the
+curriculum's stage and the episode ranges it draws from) under
 ``RUN/checkpoints/<iteration>/``, written synchronously through an orbax
 ``CheckpointManager``. Orbax writes each checkpoint into a temporary folder and renames it
 when complete, so a run killed at any moment (SIGKILL included) leaves its last complete
@@ -13,7 +14,8 @@ ones it skipped and why (files changed or missing, or the restore failing; a che
 without a checksum file, as left by a run stopped between the two writes, is first
 restored in a child process, where a failure cannot leave orbax's reads behind); the skipped ones are renamed ``damaged-<iteration>``, so the resumed run writes
 those iterations again. When none is usable it raises :class:`CheckpointError` and
-changes nothing. Restoring gives the state bit for bit, so a resumed run continues exactly where
+changes nothing; so it does, naming the fields, for a checkpoint of an earlier layout of the
+state (one written by an earlier version), which is not damaged and is not renamed. Restoring gives the state bit for bit, so a resumed run continues exactly where
 the checkpoint was taken.
 
 **Policy** (:func:`save_policy`, :func:`load_policy`): the deterministic policy alone, for
@@ -115,6 +117,12 @@ class Checkpoints:
             if reason is None and not self._sums(step).is_file():
                 reason = self._trial_restore(step)
             if reason is None:
+                # intact: its metadata can be read here without leaving orbax's reads behind
+                missing = self._missing_fields(step, like)
+                if missing:
+                    raise CheckpointError(f"{self.folder}: checkpoint {step} was written by an earlier version of "
+                                          f"mysim_jax (it has no {', '.join(missing)}): resume it with that version, "
+                                          "or start the run again")
                 try:
                     state = self.restore(step, like)
                 except Exception as exc:          # noqa: BLE001: any failure of a damaged checkpoint
@@ -136,6 +144,19 @@ class Checkpoints:
             raise CheckpointError(f"{self.folder}: none of the {len(steps)} checkpoints can be resumed from: "
                                   + "; ".join(reasons))
         return None, like
+
+    def _missing_fields(self, step: int, like) -> list[str]:
+        """The fields of ``like``'s state that the intact checkpoint ``step`` does not hold (a
+        checkpoint of an earlier layout of the state); empty when they match or when its
+        metadata cannot be read (the restore that follows then names the failure)."""
+        try:
+            reader = self._ocp.Checkpointer(self._ocp.StandardCheckpointHandler())
+            meta = reader.metadata(self.folder / str(int(step)) / "default")
+            reader.close()
+            have = set(meta.item_metadata.keys())
+        except Exception:                          # noqa: BLE001: unreadable metadata is damage, named later
+            return []
+        return sorted(set(serialization.to_state_dict(like)) - have)
 
     def _sums(self, step: int) -> Path:
         return self.folder / f"{int(step)}.sha256.json"

@@ -1,9 +1,12 @@
 """The training curriculum's stage, advanced between iterations (``env.curriculum``).
 
-:class:`Curriculum` is plain Python: the run loop (:func:`mysim_jax.mappo.run.train_run`)
-feeds it each iteration's training success rate and, when it moves to the next stage,
-hands the trainer that stage's episode ranges
-(:meth:`~mysim_jax.mappo.trainer.Trainer.set_episode_ranges` with
+Where a run's curriculum stands is a :class:`CurriculumState`, a field of the trainer's
+:class:`~mysim_jax.mappo.trainer.TrainerState`: it is checkpointed with the rest of the
+run, so a resumed run continues the curriculum from its checkpoint alone. The rule is
+:class:`Curriculum`'s, plain Python run between iterations by the run loop
+(:func:`mysim_jax.mappo.run.train_run`), which feeds it each iteration's training success
+rate and, when it moves to the next stage, gives the trainer that stage's episode ranges
+(:meth:`~mysim_jax.mappo.trainer.Trainer.with_episode_ranges` with
 :func:`~mysim_jax.tasks.capture.scaled_target_ranges`). The rule is
 :class:`~mysim_jax.mappo.config.CurriculumConfig`'s: advance once the mean success rate over
 the last ``window`` iterations of the stage (iterations in which no episode ended are
@@ -15,56 +18,70 @@ from __future__ import annotations
 
 import math
 
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
 
-class Curriculum:
-    """Stage bookkeeping of one run (``config``: a CurriculumConfig)."""
 
-    def __init__(self, config, stage: int = 0, iterations_in_stage: int = 0):
-        if not 0 <= stage < len(config.stages):
-            raise ValueError(f"curriculum stage {stage} of {len(config.stages)}")
-        self.config = config
-        self.stage = stage
-        self.iterations_in_stage = iterations_in_stage
-        self._recent: list[float] = []
+@struct.dataclass
+class CurriculumState:
+    """Where a run's curriculum stands (all zeros for a run without one)."""
 
-    @property
-    def fraction(self) -> float:
-        """The current stage's fraction of the full ranges."""
-        return float(self.config.stages[self.stage])
-
-    @property
-    def last_stage(self) -> bool:
-        return self.stage == len(self.config.stages) - 1
-
-    def update(self, success_rate: float) -> bool:
-        """Count one iteration of the current stage with its training success rate (NaN
-        when no episode ended); returns True when the curriculum moved to the next stage
-        (from the next iteration on)."""
-        c = self.config
-        self.iterations_in_stage += 1
-        if success_rate is not None and math.isfinite(success_rate):
-            self._recent = (self._recent + [float(success_rate)])[-c.window:]
-        if self.last_stage:
-            return False
-        by_success = (c.advance_success is not None and len(self._recent) == c.window
-                      and sum(self._recent) / c.window >= c.advance_success)
-        by_count = c.max_iterations is not None and self.iterations_in_stage >= c.max_iterations
-        if by_success or by_count:
-            self.stage += 1
-            self.iterations_in_stage = 0
-            self._recent = []
-            return True
-        return False
+    stage: jnp.ndarray                # () int32, index into env.curriculum.stages
+    iterations_in_stage: jnp.ndarray  # () int32, training iterations counted in this stage
+    recent: jnp.ndarray               # (window,) float32, the stage's latest finite success rates, oldest first
+    n_recent: jnp.ndarray             # () int32, how many of ``recent`` hold a rate (the last n_recent)
 
     @classmethod
-    def resumed(cls, config, rows: list[dict]) -> "Curriculum":
-        """The curriculum where a run's ``metrics.csv`` rows left it: every training
-        iteration's row (those with a ``curriculum_stage``) replayed through
-        :meth:`update`, so a resumed run advances as the uninterrupted one would."""
-        cur = cls(config)
-        for r in rows:
-            if r.get("curriculum_stage") in ("", None):
-                continue
-            rate = r.get("success_rate")
-            cur.update(float(rate) if rate not in ("", None) else float("nan"))
-        return cur
+    def start(cls, window: int = 1) -> "CurriculumState":
+        """The first stage, nothing counted yet, a window of ``window`` rates."""
+        return cls(stage=jnp.int32(0), iterations_in_stage=jnp.int32(0),
+                   recent=jnp.zeros((window,), jnp.float32), n_recent=jnp.int32(0))
+
+
+class Curriculum:
+    """The stage rule of ``config`` (a CurriculumConfig), applied to a :class:`CurriculumState`."""
+
+    def __init__(self, config):
+        self.config = config
+
+    def start(self) -> CurriculumState:
+        return CurriculumState.start(self.config.window)
+
+    def fraction(self, cs: CurriculumState) -> float:
+        """The stage's fraction of the full ranges."""
+        return float(self.config.stages[self.stage(cs)])
+
+    def stage(self, cs: CurriculumState) -> int:
+        stage = int(cs.stage)
+        if not 0 <= stage < len(self.config.stages):
+            raise ValueError(f"curriculum stage {stage} of {len(self.config.stages)}")
+        return stage
+
+    def last_stage(self, cs: CurriculumState) -> bool:
+        return self.stage(cs) == len(self.config.stages) - 1
+
+    def update(self, cs: CurriculumState, success_rate: float) -> tuple[CurriculumState, bool]:
+        """Count one iteration of the current stage with its training success rate (NaN
+        when no episode ended): ``(new state, whether the curriculum moved to the next
+        stage)``, the move taking effect from the next iteration on."""
+        c = self.config
+        stage, count = self.stage(cs), int(cs.iterations_in_stage) + 1
+        recent = np.asarray(cs.recent, np.float32)
+        n = int(cs.n_recent)
+        if success_rate is not None and math.isfinite(success_rate):
+            recent = np.append(recent[1:], np.float32(success_rate))
+            n = min(n + 1, c.window)
+        if self.last_stage(cs):
+            return self._state(stage, count, recent, n), False
+        by_success = (c.advance_success is not None and n == c.window
+                      and float(np.sum(recent.astype(np.float64))) / c.window >= c.advance_success)
+        by_count = c.max_iterations is not None and count >= c.max_iterations
+        if by_success or by_count:
+            return self._state(stage + 1, 0, np.zeros_like(recent), 0), True
+        return self._state(stage, count, recent, n), False
+
+    @staticmethod
+    def _state(stage: int, count: int, recent: np.ndarray, n: int) -> CurriculumState:
+        return CurriculumState(stage=jnp.int32(stage), iterations_in_stage=jnp.int32(count),
+                               recent=jnp.asarray(recent, jnp.float32), n_recent=jnp.int32(n))

@@ -151,7 +151,9 @@ def _write_run_files(p: Prepared) -> None:
         data["description"] = f"{data['description']} (profile {p.profile})".lstrip()
     if p.scene is not None:
         (p.out / SCENE_FILE).write_text(dump_config(p.scene))
-        data["env"] = {"scene": SCENE_FILE, "set": [], "level": None, "eval_level": None}
+        # the scene resolved into scene.yaml; the rest of the section (the curriculum) kept
+        data["env"] = {**data["env"], "scene": SCENE_FILE, "set": [], "level": None, "eval_level": None,
+                       "eval_scene": None}
         if p.evaluates_elsewhere:
             (p.out / EVAL_SCENE_FILE).write_text(dump_config(p.eval_scene))
             data["env"]["eval_scene"] = EVAL_SCENE_FILE
@@ -447,7 +449,8 @@ def _open_session(p: Prepared, progress: bool, evaluate: bool, log) -> _Session:
         _write_run_files(p)
     return _Session(p=p, log=log, progress=progress, lead=lead, many=many, env=env, env_params=env_params,
                     trainer=trainer, ckpt=Checkpoints(p.out / "checkpoints", keep=c.run.keep_checkpoints),
-                    eval_env=eval_env, eval_params=eval_params)
+                    eval_env=eval_env, eval_params=eval_params,
+                    curriculum=Curriculum(c.env.curriculum) if p.scene is not None and c.env.curriculum else None)
 
 
 def _restore(s: _Session, state) -> tuple[object, int, bool, list[dict]]:
@@ -468,14 +471,24 @@ def _restore(s: _Session, state) -> tuple[object, int, bool, list[dict]]:
     return state, start_iteration, restored, rows
 
 
-def _start_curriculum_and_selection(s: _Session, rows: list[dict]) -> None:
-    """The curriculum's stage (from the rows of a resumed run) and the selection evaluator."""
+def _start_curriculum(s: _Session, state):
+    """``state`` with the curriculum at its first stage and the training episodes drawn from
+    that stage's ranges (a fresh run; a resumed one's checkpoint replaces both)."""
+    if s.curriculum is None:
+        return state
+    cs = s.curriculum.start()
+    return s.trainer.with_episode_ranges(state.replace(curriculum=cs),
+                                         scaled_target_ranges(s.env_params.ranges, s.curriculum.fraction(cs)))
+
+
+def _start_selection(s: _Session, state) -> None:
+    """Say where the curriculum stands (from the state: a resumed run's checkpoint holds it)
+    and build the selection evaluator."""
     c = s.c
-    if s.p.scene is not None and c.env.curriculum is not None:
-        s.curriculum = Curriculum.resumed(c.env.curriculum, rows)
-        s.trainer.set_episode_ranges(scaled_target_ranges(s.env_params.ranges, s.curriculum.fraction))
-        s.log(f"curriculum: stage {s.curriculum.stage + 1} of {len(c.env.curriculum.stages)} (the target's speed, "
-              f"jink and flee ranges x {s.curriculum.fraction:g})")
+    if s.curriculum is not None:
+        fraction = s.curriculum.fraction(state.curriculum)
+        s.log(f"curriculum: stage {int(state.curriculum.stage) + 1} of {len(c.env.curriculum.stages)} (the target's "
+              f"speed, jink and flee ranges x {fraction:g})")
     # model selection on fixed episodes (capture environments; the builtin task has its own evaluation)
     if s.selection is not None:
         s.evaluator = Evaluator(s.env, s.env_params, s.trainer.policy_fn(),
@@ -514,19 +527,22 @@ def _warm_start(s: _Session, state, k_bc, t_start: float, rows: list[dict]):
     return state, rows
 
 
-def _iteration_row(s: _Session, iteration: int, dt: float, m: dict, bar) -> dict:
-    """One iteration's metrics row; advances the curriculum on its success."""
+def _iteration_row(s: _Session, state, iteration: int, dt: float, m: dict, bar):
+    """One iteration's metrics row, and the state with the curriculum advanced on the
+    iteration's success: ``(state, row)``."""
     row = {"iteration": iteration, "env_steps": iteration * s.c.algo.batch_size,
            "iteration_s": round(dt, 4), "lr": s.trainer.learning_rate(iteration - 1),
            **{k: m[k] for k in CSV_FIELDS if k in m}}
     cur = s.curriculum
     if cur is not None:
-        row.update(curriculum_stage=cur.stage, curriculum_fraction=cur.fraction)
-        if cur.update(m["success_rate"]):
-            s.trainer.set_episode_ranges(scaled_target_ranges(s.env_params.ranges, cur.fraction))
-            s.say(bar, f"curriculum: stage {cur.stage + 1} of {len(s.c.env.curriculum.stages)} from "
-                       f"iteration {iteration + 1} (ranges x {cur.fraction:g})")
-    return row
+        row.update(curriculum_stage=cur.stage(state.curriculum), curriculum_fraction=cur.fraction(state.curriculum))
+        cs, moved = cur.update(state.curriculum, m["success_rate"])
+        state = state.replace(curriculum=cs)
+        if moved:
+            state = s.trainer.with_episode_ranges(state, scaled_target_ranges(s.env_params.ranges, cur.fraction(cs)))
+            s.say(bar, f"curriculum: stage {int(cs.stage) + 1} of {len(s.c.env.curriculum.stages)} from "
+                       f"iteration {iteration + 1} (ranges x {cur.fraction(cs):g})")
+    return state, row
 
 
 def _show_progress(s: _Session, bar, row: dict, m: dict, dt: float) -> None:
@@ -534,8 +550,8 @@ def _show_progress(s: _Session, bar, row: dict, m: dict, dt: float) -> None:
         return
     bar.update(1)
     sel = f", selection {row['select_success']:.0%}" if "select_success" in row else ""
-    if s.curriculum is not None:
-        sel += f", stage {s.curriculum.stage + 1}"
+    if "curriculum_stage" in row:
+        sel += f", stage {row['curriculum_stage'] + 1}"
     bar.set_postfix_str(f"return {m['mean_return']:.2f}, success {m['success_rate']:.0%}{sel}, "
                         f"{s.c.algo.batch_size / dt:,.0f} team steps/s")
 
@@ -572,7 +588,7 @@ def _train_loop(s: _Session, state, rows: list[dict], start_iteration: int, prev
         over_time = limit_s is not None and previous_wall + time.perf_counter() - t_start > limit_s
         if s.many and limit_s is not None:      # the first process's clock decides for all
             over_time = bool(multihost_utils.broadcast_one_to_all(np.bool_(over_time)))
-        row = _iteration_row(s, iteration, dt, m, bar)
+        state, row = _iteration_row(s, state, iteration, dt, m, bar)
         if s.evaluator is not None and (iteration % s.selection.every == 0 or last_iteration or over_time):
             state, stats = s.select(state)
             row.update(_selection_row(stats))
@@ -633,7 +649,8 @@ def _summary(s: _Session, run: _Trained, train_wall: float) -> dict:
         full = [int(float(r["iteration"])) for r in rows
                 if r.get("curriculum_stage") not in ("", None)
                 and int(float(r["curriculum_stage"])) == len(c.env.curriculum.stages) - 1]
-        summary["curriculum"] = {"stages": list(c.env.curriculum.stages), "final_stage": s.curriculum.stage,
+        summary["curriculum"] = {"stages": list(c.env.curriculum.stages),
+                                 "final_stage": s.curriculum.stage(run.state.curriculum),
                                  "full_range_from_iteration": full[0] if full else None}
     if s.selection is not None:
         score = [float(x) for x in jax.device_get(run.state.best_score)]
@@ -707,9 +724,11 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
     c = s.c
     k_init, k_bc = jax.random.split(jax.random.PRNGKey(c.run.seed))
     t_compile = time.perf_counter()
-    state, start_iteration, restored, rows = _restore(s, s.trainer.init(k_init))
+    # a fresh state (with the curriculum's first stage): the start of a new run, and the
+    # structure a resumed run's checkpoint restores into
+    state, start_iteration, restored, rows = _restore(s, _start_curriculum(s, s.trainer.init(k_init)))
     previous_wall = float(rows[-1]["wall_s"]) if rows else 0.0
-    _start_curriculum_and_selection(s, rows)
+    _start_selection(s, state)
     t_start = time.perf_counter()
     if not restored:
         state, rows = _warm_start(s, state, k_bc, t_start, rows)

@@ -58,6 +58,7 @@ from jax.sharding import NamedSharding, PartitionSpec as P
 
 from mysim_jax.core import batching, parallel
 from mysim_jax.mappo.config import network_memory_bytes
+from mysim_jax.mappo.curriculum import CurriculumState
 from mysim_jax.mappo.losses import (RunningStats, gae, gaussian_entropy, gaussian_log_prob, normalize_advantages,
                                     policy_loss, value_loss)
 
@@ -117,6 +118,9 @@ class TrainerState:
     best: dict                   # the best policy so far by model selection (policy_arrays layout)
     best_score: jnp.ndarray      # (2,) its (successes, mean return) on the selection episodes; -inf: none yet
     best_iteration: jnp.ndarray  # () int32, the iteration it was taken after (-1: none yet)
+    ranges: Any                  # the episode ranges new training episodes are drawn from (a capture
+                                 # environment's Ranges; None for an environment without them)
+    curriculum: CurriculumState  # where the curriculum stands (env.curriculum; zeros without one)
 
 
 @struct.dataclass
@@ -233,27 +237,22 @@ class Trainer:
         the anchor schedule's weight, length and critic warm-up (0 without ``init: bc``)."""
         c = self.config
         anchor = self.uses_anchor
-        knobs = {"kl_stop": jnp.float32(np.inf if c.target_kl is None else 1.5 * c.target_kl),
-                 "anchor_coef": jnp.float32(c.bc.anchor_coef if anchor else 0.0),
-                 "anchor_iterations": jnp.float32(c.bc.anchor_iterations),
-                 "critic_warmup": jnp.float32(self.critic_warmup)}
-        if hasattr(self.env_params, "ranges"):
-            # the episode draws of new training episodes (a curriculum changes them)
-            knobs["ranges"] = self.env_params.ranges
-        return knobs
+        return {"kl_stop": jnp.float32(np.inf if c.target_kl is None else 1.5 * c.target_kl),
+                "anchor_coef": jnp.float32(c.bc.anchor_coef if anchor else 0.0),
+                "anchor_iterations": jnp.float32(c.bc.anchor_iterations),
+                "critic_warmup": jnp.float32(self.critic_warmup)}
 
-    def set_episode_ranges(self, ranges) -> None:
-        """Draw new training episodes from ``ranges`` (a capture environment's
+    def with_episode_ranges(self, ts: "TrainerState", ranges) -> "TrainerState":
+        """``ts`` drawing its new training episodes from ``ranges`` (a capture environment's
         :class:`~mysim_jax.tasks.capture.Ranges`, as :func:`~mysim_jax.tasks.capture.scaled_target_ranges`
-        gives) from the next iteration on; an argument of the compiled iteration, so
-        nothing recompiles. Model selection and evaluation keep ``env_params``' own."""
-        if "ranges" not in self._knobs:
-            raise ValueError("set_episode_ranges: this environment has no episode ranges")
-        old = self._knobs["ranges"]
-        if jax.tree.structure(ranges) != jax.tree.structure(old):
-            raise ValueError("set_episode_ranges: ranges of another environment")
-        ranges = jax.tree.map(lambda new, o: jnp.asarray(new, o.dtype).reshape(o.shape), ranges, old)
-        object.__setattr__(self, "_knobs", {**self._knobs, "ranges": ranges})
+        gives) from the next iteration on: a field of the state, so nothing recompiles and a
+        checkpoint keeps it. Model selection and evaluation keep ``env_params``' own."""
+        if ts.ranges is None:
+            raise ValueError("with_episode_ranges: this environment has no episode ranges")
+        if jax.tree.structure(ranges) != jax.tree.structure(ts.ranges):
+            raise ValueError("with_episode_ranges: ranges of another environment")
+        ranges = jax.tree.map(lambda new, o: jnp.asarray(new, o.dtype).reshape(o.shape), ranges, ts.ranges)
+        return ts.replace(ranges=ranges)
 
     # --- pieces ----------------------------------------------------------------------
     def _schedule(self):
@@ -322,7 +321,8 @@ class Trainer:
         return TrainerState(params=params, opt_state=self.tx.init(params), obs_stats=obs_stats,
                             state_stats=state_stats, ret_stats=RunningStats.create(), env_state=env_state, obs=obs,
                             global_state=gstate, key=k_run, iteration=jnp.int32(0), anchor=arrays, best=arrays,
-                            best_score=jnp.full((2,), -jnp.inf, jnp.float32), best_iteration=jnp.int32(-1))
+                            best_score=jnp.full((2,), -jnp.inf, jnp.float32), best_iteration=jnp.int32(-1),
+                            ranges=getattr(self.env_params, "ranges", None), curriculum=CurriculumState.start())
 
     def init(self, key) -> TrainerState:
         """A fresh run from ``key``: networks, optimiser, ``num_envs`` reset environments
@@ -332,7 +332,7 @@ class Trainer:
     # --- one iteration -----------------------------------------------------------------
     def _rollout(self, ts: TrainerState, knobs: dict | None = None):
         c = self.config
-        step_batch = self._env_step(None if knobs is None else knobs.get("ranges"))
+        step_batch = self._env_step(ts.ranges)
         params = ts.params
 
         def one(carry, _):
