@@ -46,6 +46,7 @@ every device holds the same parameters. The result equals one device's to float 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any, Callable
 
 import flax.linen as nn
@@ -162,17 +163,41 @@ class Trainer:
         if self.mesh is not None and self.config.num_envs % self.mesh.size:
             raise ValueError(f"algo.num_envs {self.config.num_envs} is not divisible by the {self.mesh.size} devices "
                              "the environments are split over (run.devices)")
-        n_agents, action_dim = self.env.action_shape
-        object.__setattr__(self, "actor", Actor(action_dim, tuple(self.config.hidden), self.config.activation,
-                                                self.config.init_std))
-        object.__setattr__(self, "critic", Critic(tuple(self.config.hidden), self.config.activation))
-        object.__setattr__(self, "tx", self._optimizer())
-        object.__setattr__(self, "_iteration_jit", jax.jit(self._iteration))
-        object.__setattr__(self, "_init", jax.jit(self._init_state))
-        object.__setattr__(self, "_knobs", self._make_knobs())
-        one = jax.eval_shape(lambda k: self.env.reset(k, self.env_params)[1], jax.random.PRNGKey(0))
-        object.__setattr__(self, "_one_state", one)
-        object.__setattr__(self, "block", batching.chunk_for(one))
+
+    # what the settings above determine, built once on first use (frozen: nothing changes after)
+    @cached_property
+    def actor(self) -> Actor:
+        return Actor(self.env.action_shape[1], tuple(self.config.hidden), self.config.activation, self.config.init_std)
+
+    @cached_property
+    def critic(self) -> Critic:
+        return Critic(tuple(self.config.hidden), self.config.activation)
+
+    @cached_property
+    def tx(self) -> optax.GradientTransformation:
+        return self._optimizer()
+
+    @cached_property
+    def _iteration_jit(self):
+        return jax.jit(self._iteration)
+
+    @cached_property
+    def _init(self):
+        return jax.jit(self._init_state)
+
+    @cached_property
+    def _knobs(self) -> dict:
+        return self._make_knobs()
+
+    @cached_property
+    def _one_state(self):
+        """One environment's state, shapes and dtypes only."""
+        return jax.eval_shape(lambda k: self.env.reset(k, self.env_params)[1], jax.random.PRNGKey(0))
+
+    @cached_property
+    def block(self) -> int:
+        """The environments :func:`~mysim_jax.core.batching.vmap` steps at a time."""
+        return batching.chunk_for(self._one_state)
 
     def memory_needs(self) -> dict:
         """An estimate of the memory one iteration holds, ``{part: (bytes, the fields that
