@@ -397,14 +397,16 @@ def test_a_failed_run_leaves_nothing_half_written(tmp_path, monkeypatch):
 
 def test_validating_every_shipped_scene_does_not_import_jax():
     """Config checks run before JAX is imported (scripts report bad input in a fraction of
-    a second); a module that pulls JAX into the config path breaks that."""
+    a second); a module that pulls JAX into the config path breaks that. Training files are
+    checked with their scenes (``load_run_config``), and a run folder's metrics read."""
     code = ("import sys, glob, os\nfrom mysim_jax.config.scene import load_config\n"
-            "from mysim_jax.mappo.config import load_train_config\n"
+            "from mysim_jax.mappo.run_files import load_run_config, read_metrics\n"
             "from mysim_jax.perception.detect.config import load_config as load_detector_config\n"
             "for f in sorted(glob.glob('configs/*.yaml')):\n"
             "    name = os.path.basename(f)\n"
-            "    (load_train_config if name.startswith('train_') else\n"
+            "    (load_run_config if name.startswith('train_') else\n"
             "     load_detector_config if name.startswith('detector') else load_config)(f)\n"
+            "assert read_metrics('docs/train/falling')\n"
             "print('jax' in sys.modules)\n")
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
     assert res.returncode == 0, res.stderr

@@ -181,7 +181,7 @@ def test_a_profile_applies_its_overrides_before_the_command_line(tmp_path):
     """``--profile NAME`` applies the file's named overrides, then ``--set``; every profile
     is checked whichever runs; an unknown one names those the file has; the run folder's
     file is resolved (no profiles) and its description names the profile."""
-    from mysim_jax.mappo.run import _write_run_files, prepare
+    from mysim_jax.mappo.run_files import prepare, write_run_files
 
     raw = {"name": "t", "env": {"builtin": "reach"}, "algo": {"lr": 1e-3},
            "profiles": {"slow": ["algo.lr=1e-4", "run.seed=3", "name=t_slow"], "other": ["algo.num_envs=8"]}}
@@ -203,7 +203,7 @@ def test_a_profile_applies_its_overrides_before_the_command_line(tmp_path):
     path = tmp_path / "t.yaml"
     path.write_text(yaml.safe_dump(raw))
     prepared = prepare(str(path), ["run.checkpoint_every=2"], str(tmp_path / "run"), profile="slow")
-    _write_run_files(prepared)
+    write_run_files(prepared)
     written = yaml.safe_load((tmp_path / "run" / "train.yaml").read_text())
     assert written["profiles"] == {} and written["description"] == "(profile slow)"
     resolved = train_config_from_dict(written, "train.yaml")

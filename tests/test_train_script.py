@@ -96,14 +96,14 @@ def test_a_run_the_time_guard_stops_says_so(tmp_path):
 def test_the_curves_name_a_time_guard_stop(tmp_path, monkeypatch):
     import matplotlib.figure
 
-    from mysim_jax.mappo import run as run_module
+    from mysim_jax.io.training_plots import plot_curves
 
     titles = []
     monkeypatch.setattr(matplotlib.figure.Figure, "suptitle", lambda self, t, **k: titles.append(t))
     rows = [{"iteration": i, "env_steps": 512 * i, "episodes": 1, "mean_return": 0.1 * i, "success_rate": 0.1,
              "mean_length": 10, "value_loss": 1, "policy_loss": 0, "entropy": 1} for i in range(1, 4)]
-    run_module.plot_curves(rows, tmp_path / "a.png", "t", None, (3, 200))
-    run_module.plot_curves(rows, tmp_path / "b.png", "t", None, None)
+    plot_curves(rows, tmp_path / "a.png", "t", None, (3, 200))
+    plot_curves(rows, tmp_path / "b.png", "t", None, None)
     assert "stopped by the time guard (run.time_limit_min) after iteration 3 of 200" in titles[0]
     assert titles[1] == "t"
 
@@ -434,7 +434,8 @@ def test_runs_side_by_side_plot_reads_every_run(tmp_path):
     import matplotlib
 
     matplotlib.use("Agg")
-    from mysim_jax.mappo.run import CSV_FIELDS, _write_rows, plot_runs, read_metrics
+    from mysim_jax.io.training_plots import plot_runs
+    from mysim_jax.mappo.run_files import CSV_FIELDS, read_metrics, write_rows
 
     runs = {}
     for name, selection in (("with_selection", True), ("without", False)):
@@ -442,7 +443,7 @@ def test_runs_side_by_side_plot_reads_every_run(tmp_path):
         folder.mkdir()
         rows = [{"iteration": i, "wall_s": 60.0 * i, "episodes": 4, "success_rate": 0.25 * i,
                  "select_success": (0.5 if selection and i % 2 == 0 else "")} for i in range(5)]
-        _write_rows(folder / "metrics.csv", rows)
+        write_rows(folder / "metrics.csv", rows)
         runs[name] = read_metrics(folder)
         assert [int(r["iteration"]) for r in runs[name]] == list(range(5))
         assert set(runs[name][0]) == set(CSV_FIELDS)

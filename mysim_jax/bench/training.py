@@ -32,7 +32,9 @@ import yaml
 from mysim_jax.bench.report import ROOT, TRAIN_CAPTURE, TRAIN_RUNS
 from mysim_jax.bench.timing import aot_compile, contention_note, median, time_round_robin, wait_for_quiet
 from mysim_jax.core import batching
-from mysim_jax.mappo.run import load_run_config, make_environment, plot_runs, read_metrics
+from mysim_jax.io.training_plots import plot_runs
+from mysim_jax.mappo.run import load_run_config, make_environment
+from mysim_jax.mappo.run_files import read_metrics
 from mysim_jax.mappo.trainer import Trainer
 from mysim_jax.tasks.sweep import paired_difference_interval
 

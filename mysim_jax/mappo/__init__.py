@@ -6,6 +6,12 @@
   :func:`~mysim_jax.mappo.trainer.make_train`;
 * :mod:`mysim_jax.mappo.losses` — GAE, the clipped objectives, running normalisers;
 * :mod:`mysim_jax.mappo.checkpoint` — orbax checkpoints and the saved policy;
-* :mod:`mysim_jax.mappo.run` — a run folder on disk (``scripts/train.py``);
+* :mod:`mysim_jax.mappo.run` — a training run, from the training file to the evaluated
+  policy (``scripts/train.py``);
+* :mod:`mysim_jax.mappo.run_files` — a run's folder: the checked run, its self-contained
+  files and ``metrics.csv`` (no JAX);
+* :mod:`mysim_jax.mappo.curriculum` — the curriculum's stage rule and state;
+* :mod:`mysim_jax.mappo.bc` — cloning the scripted team, and starting from a saved policy;
+* :mod:`mysim_jax.mappo.policies` — saved policies loaded and checked for evaluation;
 * :mod:`mysim_jax.mappo.toy` — a small built-in task for tests and smoke runs.
 """

@@ -1,4 +1,6 @@
-"""A training run on disk: what ``scripts/train.py`` does, as library code.
+"""A training run on disk: what ``scripts/train.py`` does, as library code (the folder's
+files and the checked run: :mod:`mysim_jax.mappo.run_files`; its curves:
+:mod:`mysim_jax.io.training_plots`).
 
 A run folder ``OUT`` holds
 
@@ -26,12 +28,9 @@ run bit for bit (same machine and JAX build).
 
 from __future__ import annotations
 
-import csv
 import json
-import shutil
 import time
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Callable
 
 import jax
@@ -40,134 +39,30 @@ import jax.numpy as jnp
 import numpy as np
 from tensorboardX import SummaryWriter
 from tqdm.auto import tqdm
-import yaml
-import matplotlib
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-
-from mysim_jax.config.scene import dump_config
 from mysim_jax.core import parallel
 from mysim_jax.core.machine import machine
 from mysim_jax.core.config_base import ConfigError
-from mysim_jax.io.output import check_output_dir
+from mysim_jax.io.training_plots import plot_curves
 from mysim_jax.mappo import bc
 from mysim_jax.mappo.checkpoint import Checkpoints, load_policy, save_policy
-from mysim_jax.mappo.config import (TrainConfig, check_memory, check_memory_needs, describe, init_policy_path,
-                                    load_eval_scene, load_scene, load_train_config, train_config_from_dict)
+from mysim_jax.mappo.config import TrainConfig, check_memory_needs, init_policy_path
 from mysim_jax.mappo.curriculum import Curriculum
 from mysim_jax.mappo.policies import PolicyError, check_trained_on
+from mysim_jax.mappo.run_files import (CSV_FIELDS, EVAL_SCENE_FILE, SCENE_FILE, Prepared, describe_run,
+                                       load_run_config, prepare, read_rows, write_rows, write_run_files)
 from mysim_jax.mappo.toy import ReachEnv
 from mysim_jax.mappo.trainer import Trainer, deterministic_policy, deterministic_policy_fn
 from mysim_jax.tasks.capture import make_env, scaled_target_ranges
 from mysim_jax.tasks.contract import environment_contract
 from mysim_jax.tasks.evaluate import Evaluator
 from mysim_jax.tasks.report import comparison_line, summary_line, write_comparison, write_evaluation
+
+# a run from a training file: prepare (or load_run_config) -> train_run; the first three
+# live with the run folder's files (mysim_jax.mappo.run_files)
+__all__ = ["Prepared", "prepare", "load_run_config", "describe_run", "make_environment", "make_eval_environment",
+           "training_mesh", "train_run", "evaluate_builtin"]
 from mysim_jax.tasks.sweep import wilson_interval
-
-TRAIN_FILE = "train.yaml"
-INIT_POLICY_DIR = "init_policy"      # a copy of algo.init_policy's folder
-SCENE_FILE = "scene.yaml"
-EVAL_SCENE_FILE = "scene_eval.yaml"
-CSV_FIELDS = ("iteration", "env_steps", "wall_s", "iteration_s", "episodes", "mean_return", "success_rate",
-              "mean_length", "step_reward", "policy_loss", "value_loss", "entropy", "approx_kl", "clip_fraction",
-              "explained_variance", "grad_norm", "action_std", "lr", "updates_applied", "policy_coef",
-              "anchor_coef", "anchor_loss", "select_success", "select_return", "curriculum_stage",
-              "curriculum_fraction")
-
-
-@dataclass
-class Prepared:
-    """A checked run: its configs and where it writes (nothing compiled yet)."""
-
-    config: TrainConfig
-    scene: object | None           # SceneConfig, or None for a builtin environment
-    out: Path
-    resume: bool
-    source: str
-    eval_scene: object | None = None   # the scene of the final evaluation (None: ``scene``)
-    profile: str | None = None         # the training file's profile applied (``--profile``)
-
-    @property
-    def evaluates_elsewhere(self) -> bool:
-        """Whether the final evaluation runs on another scene than training."""
-        return (self.scene is not None and self.eval_scene is not None
-                and dump_config(self.eval_scene) != dump_config(self.scene))
-
-
-def load_run_config(config_path: str, overrides=(), profile: str | None = None) -> Prepared:
-    """A training file and its scene, checked, for use without a run folder (benchmarks,
-    notebooks): ``out`` is the default ``runs/<name>``, unchecked and not created."""
-    config = load_train_config(config_path, overrides, profile)
-    scene = load_scene(config, config_path)
-    return Prepared(config, scene, Path("runs") / config.name, False, str(config_path),
-                    load_eval_scene(config, config_path, scene), profile)
-
-
-def prepare(config_path: str | None, overrides=(), out: str | None = None, resume: str | None = None,
-            profile: str | None = None) -> Prepared:
-    """Check a training file (with its profile ``profile`` applied, then ``overrides``) or a
-    run folder to resume, and the output folder. Raises ConfigError or OutputError with a
-    one-line message; imports no JAX."""
-    if resume is not None:
-        run = Path(resume)
-        if not (run / TRAIN_FILE).is_file():
-            raise ConfigError(f"--resume {resume}: not a training run folder (no {TRAIN_FILE} in it)")
-        config = load_train_config(run / TRAIN_FILE, overrides)
-        check_memory(config.algo, str(run / TRAIN_FILE))
-        scene = load_scene(config, run / TRAIN_FILE)
-        return Prepared(config, scene, run, True, str(run / TRAIN_FILE),
-                        load_eval_scene(config, run / TRAIN_FILE, scene))
-    if config_path is None:
-        raise ConfigError("give a training file, or --resume RUN_DIR")
-    config = load_train_config(config_path, overrides, profile)
-    check_memory(config.algo, str(config_path))
-    scene = load_scene(config, config_path)
-    target = Path(out) if out is not None else Path("runs") / config.name
-    check_output_dir(target)
-    if (target / TRAIN_FILE).exists():
-        raise ConfigError(f"--out {target}: holds a training run already; continue it with --resume {target}, "
-                          "or choose another folder")
-    return Prepared(config, scene, target, False, str(config_path), load_eval_scene(config, config_path, scene),
-                    profile)
-
-
-def describe_run(p: Prepared) -> str:
-    """One line: what will run, and where it writes."""
-    what = f"builtin:{p.config.env.builtin}" if p.scene is None else f"{p.scene.name} (level {p.scene.level})"
-    if p.evaluates_elsewhere:
-        what += f", evaluated at level {p.eval_scene.level}"
-    if p.profile is not None:
-        what += f", profile {p.profile}"
-    return f"{p.config.name} on {what}: {describe(p.config)}; writing {p.out}/" + (" (resuming)" if p.resume else "")
-
-
-def _write_run_files(p: Prepared) -> None:
-    p.out.mkdir(parents=True, exist_ok=True)
-    data = p.config.model_dump(mode="json")
-    # resolved: the profile's values are in the file; its description names it
-    data["profiles"] = {}
-    if p.profile is not None:
-        data["description"] = f"{data['description']} (profile {p.profile})".lstrip()
-    if p.scene is not None:
-        (p.out / SCENE_FILE).write_text(dump_config(p.scene))
-        # the scene resolved into scene.yaml; the rest of the section (the curriculum) kept
-        data["env"] = {**data["env"], "scene": SCENE_FILE, "set": [], "level": None, "eval_level": None,
-                       "eval_scene": None}
-        if p.evaluates_elsewhere:
-            (p.out / EVAL_SCENE_FILE).write_text(dump_config(p.eval_scene))
-            data["env"]["eval_scene"] = EVAL_SCENE_FILE
-    if p.config.algo.init_policy is not None:
-        # the starting policy travels with the run (--resume needs nothing outside the folder)
-        start = init_policy_path(p.config, p.source)
-        if start.resolve() != (p.out / INIT_POLICY_DIR).resolve():
-            shutil.copytree(start, p.out / INIT_POLICY_DIR, dirs_exist_ok=True)
-        data["algo"]["init_policy"] = INIT_POLICY_DIR
-    text = yaml.safe_dump(data, sort_keys=False)
-    # the run folder is valid by construction; check it anyway before relying on it
-    train_config_from_dict(yaml.safe_load(text), str(p.out / TRAIN_FILE))
-    (p.out / TRAIN_FILE).write_text(text)
-
 
 def _silent(*args, **kwargs) -> None:
     """The log of a process that is not the first (several processes print nothing)."""
@@ -215,137 +110,6 @@ def make_eval_environment(p: Prepared, env, env_params):
                           f"({eval_env.obs_size}, {tuple(eval_env.action_shape)}) differ from training's "
                           f"({env.obs_size}, {tuple(env.action_shape)})")
     return eval_env, eval_params
-
-
-def _read_rows(path: Path, upto: int) -> list[dict]:
-    if not path.exists():
-        return []
-    with path.open() as f:
-        rows = [r for r in csv.DictReader(f) if r.get("iteration", "").isdigit() and int(r["iteration"]) <= upto]
-    return rows
-
-
-def _write_rows(path: Path, rows: list[dict]) -> None:
-    tmp = path.with_suffix(".csv.tmp")
-    with tmp.open("w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=CSV_FIELDS)
-        w.writeheader()
-        w.writerows(rows)
-    tmp.replace(path)
-
-
-def _column(rows: list[dict], key: str):
-    def value(r):
-        v = r.get(key, "")
-        return float(v) if v not in ("", None) else np.nan
-
-    return np.array([value(r) for r in rows])
-
-
-def plot_curves(rows: list[dict], path: Path, title: str, best_iteration: int | None = None,
-                time_guard: tuple[int, int] | None = None) -> Path | None:
-    """Learning curves of ``metrics.csv`` rows: return, success rate (training episodes, and
-    the deterministic policy on the selection episodes with the selected iteration
-    marked), episode length, losses, entropy. ``time_guard`` = ``(iteration, planned)``
-    when ``run.time_limit_min`` stopped the run before its step budget: the title says so
-    and every panel marks where.
-
-    Return, success and length are per episode: iterations in which no episode ended leave a
-    gap rather than a zero.
-    """
-    if not rows:
-        return None
-
-    x = _column(rows, "env_steps")
-    panels = [("mean_return", "mean episode return"), ("success_rate", "success rate"),
-              ("mean_length", "mean episode length [team steps]"), ("value_loss", "value loss"),
-              ("policy_loss", "policy loss"), ("entropy", "policy entropy")]
-    per_episode = {"mean_return", "success_rate", "mean_length"}
-    episodes = _column(rows, "episodes")
-    ended = ~(episodes <= 0)
-    fig, axes = plt.subplots(2, 3, figsize=(13, 6.5))
-    for ax, (key, label) in zip(axes.ravel(), panels):
-        y = _column(rows, key)
-        if key in per_episode:
-            y = np.where(ended, y, np.nan)
-        keep = np.isfinite(y)
-        ax.plot(x[keep], y[keep], lw=1.2, marker="." if key in per_episode else None, ms=2,
-                label="training episodes (exploring)" if key == "success_rate" else None)
-        if key == "success_rate":
-            sel = _column(rows, "select_success")
-            has = np.isfinite(sel)
-            if has.any():
-                ax.plot(x[has], sel[has], "o-", ms=4, lw=1.0, color="tab:green",
-                        label="deterministic policy, selection episodes")
-                if best_iteration is not None:
-                    its = _column(rows, "iteration")
-                    at = np.flatnonzero(its == best_iteration)
-                    if at.size:
-                        ax.axvline(x[at[0]], color="tab:red", ls="--", lw=1.0,
-                                   label=f"selected policy (iteration {best_iteration})")
-            frac = _column(rows, "curriculum_fraction")
-            if np.isfinite(frac).any():
-                has = np.isfinite(frac)
-                ax.step(x[has], frac[has], where="post", color="tab:purple", lw=1.0,
-                        label="curriculum: fraction of the target's full speed / jink / flee ranges")
-            ax.set_ylim(-0.02, 1.02)
-        if time_guard is not None:
-            its = _column(rows, "iteration")
-            at = np.flatnonzero(its == time_guard[0])
-            if at.size:
-                ax.axvline(x[at[0]], color="black", ls=":", lw=1.2,
-                           label="stopped by run.time_limit_min" if key == "success_rate" else None)
-        if key == "success_rate":
-            ax.legend(fontsize=7, loc="lower right")
-        ax.set_title(label, fontsize=10)
-        ax.set_xlabel("team steps")
-        ax.grid(alpha=0.3)
-    if time_guard is not None:
-        title = (f"{title}\nstopped by the time guard (run.time_limit_min) after iteration {time_guard[0]} of "
-                 f"{time_guard[1]}: not the step budget")
-    fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
-
-
-def read_metrics(run_dir: Path) -> list[dict]:
-    """Every row of a run folder's ``metrics.csv``."""
-    return _read_rows(Path(run_dir) / "metrics.csv", 10**9)
-
-
-def plot_runs(runs: dict[str, list[dict]], path: Path, title: str) -> Path | None:
-    """Several runs' ``metrics.csv`` rows side by side against wall time: the deterministic
-    policy's success on the selection episodes (where the run had model selection) and
-    the training episodes' success (exploration on), one colour per run."""
-    if not runs:
-        return None
-
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.2), sharey=True)
-    for i, (name, rows) in enumerate(runs.items()):
-        colour = f"C{i}"
-        minutes = _column(rows, "wall_s") / 60.0
-        sel = _column(rows, "select_success")
-        has = np.isfinite(sel)
-        if has.any():
-            axes[0].plot(minutes[has], sel[has], "o-", ms=4, lw=1.2, color=colour, label=name)
-        train = np.where(_column(rows, "episodes") > 0, _column(rows, "success_rate"), np.nan)
-        keep = np.isfinite(train)
-        axes[1].plot(minutes[keep], train[keep], lw=1.0, color=colour, label=name)
-    axes[0].set_title("deterministic policy, selection episodes", fontsize=10)
-    axes[1].set_title("training episodes (exploring)", fontsize=10)
-    for ax in axes:
-        ax.set_xlabel("wall time of the run [min] (cloning, training, selection)")
-        ax.set_ylim(-0.02, 1.02)
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=7, loc="lower right")
-    axes[0].set_ylabel("success rate")
-    fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
 
 
 def evaluate_builtin(env, env_params, policy, episodes: int, seed: int) -> dict:
@@ -446,7 +210,7 @@ def _open_session(p: Prepared, progress: bool, evaluate: bool, log) -> _Session:
     trainer = Trainer(c.algo, env, env_params, mesh=training_mesh(c, p.source))
     check_memory_needs(trainer.memory_needs(), p.source)
     if not p.resume and lead:
-        _write_run_files(p)
+        write_run_files(p)
     return _Session(p=p, log=log, progress=progress, lead=lead, many=many, env=env, env_params=env_params,
                     trainer=trainer, ckpt=Checkpoints(p.out / "checkpoints", keep=c.run.keep_checkpoints),
                     eval_env=eval_env, eval_params=eval_params,
@@ -465,7 +229,7 @@ def _restore(s: _Session, state) -> tuple[object, int, bool, list[dict]]:
             raise
         if last is not None:
             start_iteration, restored = int(state.iteration), True
-    rows = _read_rows(s.p.out / "metrics.csv", start_iteration)
+    rows = read_rows(s.p.out / "metrics.csv", start_iteration)
     if s.p.resume:
         s.log(f"resuming {s.p.out} at iteration {start_iteration} of {s.c.algo.num_iterations}")
     return state, start_iteration, restored, rows
@@ -522,7 +286,7 @@ def _warm_start(s: _Session, state, k_bc, t_start: float, rows: list[dict]):
         s.log(f"selection episodes before training: success {stats.success.mean():.1%}")
     if s.trainer.uses_anchor or s.evaluator is not None:
         if s.lead:
-            _write_rows(s.p.out / "metrics.csv", rows)
+            write_rows(s.p.out / "metrics.csv", rows)
         s.ckpt.save(0, s.trainer.place(state))
     return state, rows
 
@@ -600,7 +364,7 @@ def _train_loop(s: _Session, state, rows: list[dict], start_iteration: int, prev
         _show_progress(s, bar, row, m, dt)
         if iteration % c.run.checkpoint_every == 0 or last_iteration or over_time:
             if s.lead:
-                _write_rows(s.p.out / "metrics.csv", rows)
+                write_rows(s.p.out / "metrics.csv", rows)
                 writer.flush()
             s.ckpt.save(iteration, s.trainer.place(state))
         if over_time and not last_iteration:
@@ -739,7 +503,7 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
         # the others end here; the first process writes and evaluates, then all leave together
         multihost_utils.sync_global_devices("mysim_jax run written")
         return {}
-    _write_rows(p.out / "metrics.csv", run.rows)
+    write_rows(p.out / "metrics.csv", run.rows)
     best_iteration = int(run.state.best_iteration)
     plot_curves(run.rows, p.out / "curves.png", c.name, best_iteration if best_iteration >= 0 else None,
                 (run.iteration, c.algo.num_iterations) if run.stopped_early else None)

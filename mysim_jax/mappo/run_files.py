@@ -1,0 +1,148 @@
+"""A training run's folder on disk: the checked run (:class:`Prepared`), the files that make
+the folder self-contained (``train.yaml``, ``scene.yaml``, ``scene_eval.yaml``, a copy of
+the starting policy) and its ``metrics.csv``. The run itself is :mod:`mysim_jax.mappo.run`.
+Imports no JAX: a training file is checked, and a run folder read, without it."""
+
+from __future__ import annotations
+
+import csv
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import yaml
+
+from mysim_jax.config.scene import dump_config
+from mysim_jax.core.config_base import ConfigError
+from mysim_jax.io.output import check_output_dir
+from mysim_jax.mappo.config import (TrainConfig, check_memory, describe, init_policy_path, load_eval_scene,
+                                    load_scene, load_train_config, train_config_from_dict)
+
+TRAIN_FILE = "train.yaml"
+INIT_POLICY_DIR = "init_policy"      # a copy of algo.init_policy's folder
+SCENE_FILE = "scene.yaml"
+EVAL_SCENE_FILE = "scene_eval.yaml"
+CSV_FIELDS = ("iteration", "env_steps", "wall_s", "iteration_s", "episodes", "mean_return", "success_rate",
+              "mean_length", "step_reward", "policy_loss", "value_loss", "entropy", "approx_kl", "clip_fraction",
+              "explained_variance", "grad_norm", "action_std", "lr", "updates_applied", "policy_coef",
+              "anchor_coef", "anchor_loss", "select_success", "select_return", "curriculum_stage",
+              "curriculum_fraction")
+
+
+@dataclass
+class Prepared:
+    """A checked run: its configs and where it writes (nothing compiled yet)."""
+
+    config: TrainConfig
+    scene: object | None           # SceneConfig, or None for a builtin environment
+    out: Path
+    resume: bool
+    source: str
+    eval_scene: object | None = None   # the scene of the final evaluation (None: ``scene``)
+    profile: str | None = None         # the training file's profile applied (``--profile``)
+
+    @property
+    def evaluates_elsewhere(self) -> bool:
+        """Whether the final evaluation runs on another scene than training."""
+        return (self.scene is not None and self.eval_scene is not None
+                and dump_config(self.eval_scene) != dump_config(self.scene))
+
+
+def load_run_config(config_path: str, overrides=(), profile: str | None = None) -> Prepared:
+    """A training file and its scene, checked, for use without a run folder (benchmarks,
+    notebooks): ``out`` is the default ``runs/<name>``, unchecked and not created."""
+    config = load_train_config(config_path, overrides, profile)
+    scene = load_scene(config, config_path)
+    return Prepared(config, scene, Path("runs") / config.name, False, str(config_path),
+                    load_eval_scene(config, config_path, scene), profile)
+
+
+def prepare(config_path: str | None, overrides=(), out: str | None = None, resume: str | None = None,
+            profile: str | None = None) -> Prepared:
+    """Check a training file (with its profile ``profile`` applied, then ``overrides``) or a
+    run folder to resume, and the output folder. Raises ConfigError or OutputError with a
+    one-line message; imports no JAX."""
+    if resume is not None:
+        run = Path(resume)
+        if not (run / TRAIN_FILE).is_file():
+            raise ConfigError(f"--resume {resume}: not a training run folder (no {TRAIN_FILE} in it)")
+        config = load_train_config(run / TRAIN_FILE, overrides)
+        check_memory(config.algo, str(run / TRAIN_FILE))
+        scene = load_scene(config, run / TRAIN_FILE)
+        return Prepared(config, scene, run, True, str(run / TRAIN_FILE),
+                        load_eval_scene(config, run / TRAIN_FILE, scene))
+    if config_path is None:
+        raise ConfigError("give a training file, or --resume RUN_DIR")
+    config = load_train_config(config_path, overrides, profile)
+    check_memory(config.algo, str(config_path))
+    scene = load_scene(config, config_path)
+    target = Path(out) if out is not None else Path("runs") / config.name
+    check_output_dir(target)
+    if (target / TRAIN_FILE).exists():
+        raise ConfigError(f"--out {target}: holds a training run already; continue it with --resume {target}, "
+                          "or choose another folder")
+    return Prepared(config, scene, target, False, str(config_path), load_eval_scene(config, config_path, scene),
+                    profile)
+
+
+def describe_run(p: Prepared) -> str:
+    """One line: what will run, and where it writes."""
+    what = f"builtin:{p.config.env.builtin}" if p.scene is None else f"{p.scene.name} (level {p.scene.level})"
+    if p.evaluates_elsewhere:
+        what += f", evaluated at level {p.eval_scene.level}"
+    if p.profile is not None:
+        what += f", profile {p.profile}"
+    return f"{p.config.name} on {what}: {describe(p.config)}; writing {p.out}/" + (" (resuming)" if p.resume else "")
+
+
+def write_run_files(p: Prepared) -> None:
+    """The run folder's ``train.yaml`` (resolved: the profile applied, the scene in
+    ``scene.yaml``), its scenes and a copy of the starting policy."""
+    p.out.mkdir(parents=True, exist_ok=True)
+    data = p.config.model_dump(mode="json")
+    # resolved: the profile's values are in the file; its description names it
+    data["profiles"] = {}
+    if p.profile is not None:
+        data["description"] = f"{data['description']} (profile {p.profile})".lstrip()
+    if p.scene is not None:
+        (p.out / SCENE_FILE).write_text(dump_config(p.scene))
+        # the scene resolved into scene.yaml; the rest of the section (the curriculum) kept
+        data["env"] = {**data["env"], "scene": SCENE_FILE, "set": [], "level": None, "eval_level": None,
+                       "eval_scene": None}
+        if p.evaluates_elsewhere:
+            (p.out / EVAL_SCENE_FILE).write_text(dump_config(p.eval_scene))
+            data["env"]["eval_scene"] = EVAL_SCENE_FILE
+    if p.config.algo.init_policy is not None:
+        # the starting policy travels with the run (--resume needs nothing outside the folder)
+        start = init_policy_path(p.config, p.source)
+        if start.resolve() != (p.out / INIT_POLICY_DIR).resolve():
+            shutil.copytree(start, p.out / INIT_POLICY_DIR, dirs_exist_ok=True)
+        data["algo"]["init_policy"] = INIT_POLICY_DIR
+    text = yaml.safe_dump(data, sort_keys=False)
+    # the run folder is valid by construction; check it anyway before relying on it
+    train_config_from_dict(yaml.safe_load(text), str(p.out / TRAIN_FILE))
+    (p.out / TRAIN_FILE).write_text(text)
+
+
+def read_rows(path: Path, upto: int) -> list[dict]:
+    """The rows of ``metrics.csv`` at ``path`` up to iteration ``upto`` (none when it is missing)."""
+    if not path.exists():
+        return []
+    with path.open() as f:
+        rows = [r for r in csv.DictReader(f) if r.get("iteration", "").isdigit() and int(r["iteration"]) <= upto]
+    return rows
+
+
+def write_rows(path: Path, rows: list[dict]) -> None:
+    """``metrics.csv`` at ``path``, replaced whole (written beside it, then renamed)."""
+    tmp = path.with_suffix(".csv.tmp")
+    with tmp.open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=CSV_FIELDS)
+        w.writeheader()
+        w.writerows(rows)
+    tmp.replace(path)
+
+
+def read_metrics(run_dir: Path) -> list[dict]:
+    """Every row of a run folder's ``metrics.csv``."""
+    return read_rows(Path(run_dir) / "metrics.csv", 10**9)
