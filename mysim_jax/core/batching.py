@@ -655,9 +655,9 @@ def chunk_for(state, cache_bytes: int = 16 << 20, per_env_factor: float = 16.0) 
     ``state`` is one environment's (unbatched) pytree of arrays or of their shapes
     (``jax.eval_shape`` output: only shapes and dtypes are read); ``per_env_factor`` stands for the
     step's temporaries, several times the state. The defaults are calibrated on the
-    capture environment (blocks of 128–256 ran fastest at B = 1024 on a 2-core EPYC,
-    twice the unblocked speed; ``scripts/bench.py`` section e times the result); the rope
-    net, with a state a tenth the size, is not blocked."""
+    capture environment, whose blocks of a few hundred environments run fastest at
+    batches of a thousand (``scripts/bench.py`` section e times blocked against unblocked:
+    BENCHMARKS.md); the rope net, with a state a tenth the size, is not blocked."""
     nbytes = tree_nbytes(state)
     if nbytes == 0:
         return None

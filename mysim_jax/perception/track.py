@@ -290,8 +290,7 @@ class GimbalTrackerConfig:
     The integral gain is off by default: with ``kp = 1`` the loop points the camera in one
     frame, the servo has no steady-state error to remove (the camera's centre of mass is on
     the joint), and a moving target is followed by the bearing-rate feed-forward; an integral
-    then only adds an offset that decays at ``ki`` (measured on a static target: 2.7 px
-    left after 2 s with ``ki = 0.5``)."""
+    then only adds an offset that decays at ``ki`` (docs/tracking.md, "What runs")."""
 
     kp: float = 1.0                         # on the angle error a* - a (1: point in one frame)
     ki: float = 0.0                         # 1/s, on the angle error (off: see the class doc)

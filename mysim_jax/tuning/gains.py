@@ -9,23 +9,22 @@ Positive parametrisation: ``gain = gain₀ · exp(θ)`` per entry (θ starts at 
 gains stay positive and a step in θ is a relative change; entries that start at zero
 (the paper's roll/pitch attitude integrators) stay zero.
 
-Long horizons (measured by ``scripts/tune_pid.py --horizon-study``, docs/physics.md, "Quadrotor &
-control"):
+Long horizons (``scripts/tune_pid.py --horizon-study`` measures them; its figures are in
+docs/physics.md, "Quadrotor & control"):
 
-* gradient size: the closed loop is stable, so |∇L| grows with the horizon only about
-  as fast as the loss itself does (|∇L|/L ≈ 0.4–1.9 from 1 to 10 s, 4.5 at 20 s on the
-  large maneuver): no exponential blow-up, finite everywhere. Full back-propagation
-  through every step is used. Truncated back-propagation (``truncate``, 1 s windows)
-  was measured and rejected: its gradient points elsewhere (cosine 0.28 at 5 s, −0.23 at
-  10 s with the full gradient);
-* memory: plain reverse mode stores every step's residuals, ~1.1 MB per simulated
-  second for one UAV (11 MB for the 10 s scene), which is why it is the default;
-  ``remat=True`` (``--checkpoint``) puts each chunk of ``every`` steps under
-  ``jax.checkpoint`` and stores one state per chunk (0.13 MB at 10 s) at the price of
-  recomputing the steps and a slower compile, for long horizons or many vehicles;
+* gradient size: the closed loop is stable, so |∇L| grows with the horizon about as fast
+  as the loss itself does: no exponential blow-up, finite everywhere. Full
+  back-propagation through every step is used; truncated back-propagation
+  (``truncate``) stays available, but its gradient points elsewhere than the full one
+  on long horizons;
+* memory: plain reverse mode stores every step's residuals (about a megabyte per
+  simulated second for one UAV), which is why it is the default; ``remat=True``
+  (``--checkpoint``) puts each chunk of ``every`` steps under ``jax.checkpoint`` and
+  stores one state per chunk, at the price of recomputing the steps and a slower
+  compile, for long horizons or many vehicles;
 * guards: Adam's per-coordinate steps are bounded by about the learning rate (a relative
-  gain change of ~5 % per step), gradients are clipped to a global norm of 1 (the
-  measured norms are ~1e-2, so only a spike a hundred times larger is cut), and
+  gain change of a few per cent per step), gradients are clipped to a global norm of 1
+  (far above the norms measured on the shipped scenes, so only a spike is cut), and
   non-finite updates are skipped (``optax.apply_if_finite``).
 """
 
