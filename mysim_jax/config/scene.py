@@ -33,7 +33,8 @@ import yaml
 from pydantic import Field, ValidationError, field_validator, model_validator
 
 from mysim_jax.config.capture import TargetConfig, TeamConfig
-from mysim_jax.config.env import EnvConfig, ranking_problems
+from mysim_jax.config.capture_checks import capture_problems
+from mysim_jax.config.env import EnvConfig
 from mysim_jax.config.quadrotor import QuadrotorConfig, quadrotor_problems
 from mysim_jax.contact.config import ContactConfig, contact_problems
 from mysim_jax.core.config_base import (ConfigError, Finite, MIN_POSITIVE, Name, NonNegFloat, PosFloat, StrictModel,
@@ -389,99 +390,10 @@ class SceneConfig(StrictModel):
         # the net and the target are checked as what they expand to (points, ropes, a body)
         full, problems = expand_capture(self)
         problems += full._reference_problems()
-        problems += self._team_problems()
-        problems += self._env_problems()
-        problems += self._target_contact_problems()
-        problems += self._arena_problems()
-        problems += self._clearance_problems()
+        problems += capture_problems(self)
         if problems:
             raise ValueError("; ".join(problems))
         return self
-
-    def _target_contact_problems(self) -> list[str]:
-        """The target's contact sphere must have the target's radius (both are given)."""
-        if self.target is None or self.contact is None:
-            return []
-        return [f"contact.groups.{i}.radius: {g.radius:g} m, but target '{self.target.name}' has radius "
-                f"{self.target.radius:g} m (target.radius); give its contact group the same radius"
-                for i, g in enumerate(self.contact.groups)
-                if self.target.name in (g.members or []) and g.radius != self.target.radius]
-
-    def _arena_problems(self) -> list[str]:
-        """A maneuvering target's arena must hold the net: a net wider than the arena
-        could cover the whole arena at once."""
-        prop = self.target.propulsion if self.target is not None else None
-        if prop is None or prop.arena is None or self.net is None:
-            return []
-        low, high = prop.arena.low, prop.arena.high
-        small = [axis for axis, lo, hi in zip("xy", low, high) if hi - lo <= self.net.size]
-        if not small:
-            return []
-        return [f"target.propulsion.arena: {' and '.join(f'{hi - lo:g} m' for lo, hi in zip(low[:2], high[:2]))} "
-                f"wide, no wider than the net (net.size = {self.net.size:g} m) on axis {', '.join(small)}: widen the "
-                "arena, or the net covers it whole"]
-
-    def _clearance_problems(self) -> list[str]:
-        """A spawn clearance must leave part of the spawn box outside it (around the
-        quadrotors' centroid at the start)."""
-        if self.target is None or self.target.spawn.clearance <= 0.0:
-            return []
-        if not self.quadrotors:
-            return ["target.spawn.clearance: keeps the spawn away from the quadrotors' centroid, and the scene has "
-                    "no quadrotors"]
-        bodies = {b.name: b for b in self.bodies}
-        centre = [sum(bodies[q.body].pos[a] for q in self.quadrotors) / len(self.quadrotors) for a in (0, 1)]
-        low, high = self.target.spawn.position.low, self.target.spawn.position.high
-        # the farthest point of the spawn rectangle from the centroid
-        far = sum(max(abs(lo - c), abs(hi - c)) ** 2 for lo, hi, c in zip(low[:2], high[:2], centre)) ** 0.5
-        clearance = self.target.spawn.clearance
-        if far <= clearance:
-            return [f"target.spawn.clearance: {clearance:g} m, but no spawn position (x, y in the box low "
-                    f"{list(low[:2])}, high {list(high[:2])}) is farther than {far:.3g} m from the quadrotors' centroid "
-                    f"({centre[0]:g}, {centre[1]:g}): lower the clearance or widen target.spawn.position"]
-        return []
-
-    def _team_problems(self) -> list[str]:
-        team = self.team
-        if team is None:
-            return []
-        if not self.quadrotors:
-            return ["team: the scene has no quadrotors to give setpoints to"]
-        problems = []
-        if team.policy == "scripted" and self.target is None:
-            problems.append("team.policy: scripted intercepts a target, and the scene has none")
-        for i, q in enumerate(self.quadrotors):
-            if q.controller is None:
-                problems.append(f"team: quadrotors.{i} has no controller to take setpoints")
-                continue
-            lo, hi = q.controller.flyable_box.low[2], q.controller.flyable_box.high[2]
-            if team.altitude is not None and not lo <= team.altitude <= hi:
-                problems.append(f"team.altitude: {team.altitude:g} m is outside quadrotors.{i}'s flyable box "
-                                f"(z from {lo:g} to {hi:g} m, quadrotors.{i}.controller.flyable_box)")
-        return problems
-
-    def _env_problems(self) -> list[str]:
-        env = self.env
-        if env is None:
-            return []
-        problems = []
-        missing = [block for block, value in (("net", self.net), ("target", self.target), ("quadrotors", self.quadrotors))
-                   if not value]
-        if missing:
-            problems.append(f"env: a capture environment needs {' and '.join(missing)}: block(s)")
-        problems += [f"env: quadrotors.{i} has no controller to take the actions (setpoints)"
-                     for i, q in enumerate(self.quadrotors) if q.controller is None]
-        period = 1.0 / env.policy_rate
-        ratio = period / self.sim.dt
-        if round(ratio) < 1 or abs(ratio - round(ratio)) > 1e-6 * ratio:
-            problems.append(f"env.policy_rate: {env.policy_rate:g} Hz is a period of {period:g} s, not a whole "
-                            f"multiple of sim.dt = {self.sim.dt:g} s (e.g. {1.0 / (max(round(ratio), 1) * self.sim.dt):g} Hz)")
-        elif round(self.sim.t_end / (round(ratio) * self.sim.dt)) < 1:
-            problems.append(f"env.policy_rate: sim.t_end = {self.sim.t_end:g} s is shorter than one policy period")
-        else:
-            max_steps = int(round(self.sim.t_end / (round(ratio) * self.sim.dt)))
-            problems += ranking_problems(env.weights(), max(len(self.quadrotors), 1), max_steps, env.discount)
-        return problems
 
     def _reference_problems(self) -> list[str]:
         self._check_size()
