@@ -227,6 +227,13 @@ class Trainer:
         ``bc.anchor_iterations`` or ``bc.critic_warmup`` run the same program."""
         return self._iteration_jit(self.place(ts), self._knobs)
 
+    def iterations(self, ts: "TrainerState", n: int):
+        """``n`` iterations as one ``lax.scan``: ``(state after them, metrics)``, each metric
+        stacked ``(n,)``. Traceable (no placement, no host transfer): :func:`make_train`
+        scans a whole run with it; jitted, it compiles once per ``n``."""
+        knobs = self.knobs()
+        return jax.lax.scan(lambda carry, _: self._iteration(carry, knobs), ts, None, length=n)
+
     def place(self, ts: "TrainerState") -> "TrainerState":
         """``ts`` on the trainer's devices: the environments' leaves split over the mesh, the
         rest replicated (unchanged without a mesh; arrays already in place are not copied)."""
@@ -568,21 +575,18 @@ def deterministic_policy(actor: Actor, arrays: dict, normalize_obs: bool = True,
 
 
 def make_train(config, env, env_params):
-    """``train(key, callback=None) -> (state, history)``: ``config.num_iterations`` jitted
-    iterations from ``key``; ``callback(state, metrics)`` after each (metrics as floats);
-    ``history`` the list of every iteration's metrics."""
+    """``train(key) -> (state, metrics)``: networks and ``config.num_envs`` environments
+    from ``key``, then ``config.num_iterations`` iterations as one ``lax.scan``; ``metrics``
+    holds each iteration's metrics stacked, ``(num_iterations,)`` per key. ``train`` is a
+    pure function of ``key``: ``jax.jit(train)`` compiles the whole run, and
+    ``jax.vmap(train)(keys)`` trains one seed per key in one program (``(n_seeds, ...)``
+    leaves). Plain PPO from random networks on one device: ``scripts/train.py`` adds
+    cloning, model selection, the curriculum, checkpoints and evaluation. ``train.trainer``
+    is the :class:`Trainer`."""
     trainer = Trainer(config, env, env_params)
 
-    def train(key, callback=None):
-        ts = trainer.init(key)
-        history = []
-        for _ in range(config.num_iterations):
-            ts, m = trainer.iteration(ts)
-            m = {k: float(v) for k, v in jax.device_get(m).items()}
-            history.append(m)
-            if callback is not None:
-                callback(ts, m)
-        return ts, history
+    def train(key):
+        return trainer.iterations(trainer._init_state(key), config.num_iterations)
 
     train.trainer = trainer
     return train
