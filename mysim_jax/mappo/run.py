@@ -57,12 +57,13 @@ from mysim_jax.tasks.capture import make_env, scaled_target_ranges
 from mysim_jax.tasks.contract import environment_contract
 from mysim_jax.tasks.evaluate import Evaluator
 from mysim_jax.tasks.report import comparison_line, summary_line, write_comparison, write_evaluation
+from mysim_jax.tasks.sweep import wilson_interval
 
 # a run from a training file: prepare (or load_run_config) -> train_run; the first three
 # live with the run folder's files (mysim_jax.mappo.run_files)
 __all__ = ["Prepared", "prepare", "load_run_config", "describe_run", "make_environment", "make_eval_environment",
            "training_mesh", "train_run", "evaluate_builtin"]
-from mysim_jax.tasks.sweep import wilson_interval
+
 
 def _silent(*args, **kwargs) -> None:
     """The log of a process that is not the first (several processes print nothing)."""

@@ -230,7 +230,7 @@ class Trainer:
     def iterations(self, ts: "TrainerState", n: int):
         """``n`` iterations as one ``lax.scan``: ``(state after them, metrics)``, each metric
         stacked ``(n,)``. Traceable (no placement, no host transfer): :func:`make_train`
-        scans a whole run with it; jitted, it compiles once per ``n``."""
+        scans a whole run with it."""
         knobs = self.knobs()
         return jax.lax.scan(lambda carry, _: self._iteration(carry, knobs), ts, None, length=n)
 
@@ -266,13 +266,16 @@ class Trainer:
     def _make_knobs(self) -> dict:
         """The settings the iteration takes as arguments (float32 scalars): the KL past which
         an iteration's remaining minibatches are skipped (inf without ``target_kl``), and
-        the anchor schedule's weight, length and critic warm-up (0 without ``init: bc``)."""
+        the anchor schedule's weight, length and critic warm-up (0 without ``init: bc``).
+        NumPy scalars, not JAX arrays: made on first use, which may be inside a trace
+        (:meth:`iterations` under ``jax.jit``), where a JAX array would be a tracer that
+        the cache keeps after the trace ends."""
         c = self.config
         anchor = self.uses_anchor
-        return {"kl_stop": jnp.float32(np.inf if c.target_kl is None else 1.5 * c.target_kl),
-                "anchor_coef": jnp.float32(c.bc.anchor_coef if anchor else 0.0),
-                "anchor_iterations": jnp.float32(c.bc.anchor_iterations),
-                "critic_warmup": jnp.float32(self.critic_warmup)}
+        return {"kl_stop": np.float32(np.inf if c.target_kl is None else 1.5 * c.target_kl),
+                "anchor_coef": np.float32(c.bc.anchor_coef if anchor else 0.0),
+                "anchor_iterations": np.float32(c.bc.anchor_iterations),
+                "critic_warmup": np.float32(self.critic_warmup)}
 
     def with_episode_ranges(self, ts: "TrainerState", ranges) -> "TrainerState":
         """``ts`` drawing its new training episodes from ``ranges`` (a capture environment's
