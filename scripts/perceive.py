@@ -7,8 +7,8 @@
 Reads RUN_DIR (``trajectory.csv`` and ``config.yaml`` of scripts/simulate.py), renders the
 camera's images at ``--camera-rate`` Hz and ``--size`` pixels,
 simulates the UAV's IMU (paper Table IMU_simulator), runs VIO and IMU-only dead reckoning
-(mysim_jax/perception/vio.py; the initial state is the true one at the first image) and
-writes into OUT: ``trajectory_vio.tum``, ``trajectory_dead_reckoning.tum``,
+(mysim_jax/perception/vio_run_folder.py, running vio.py and imu_preintegration.py; the initial
+state is the true one at the first image) and writes into OUT: ``trajectory_vio.tum``, ``trajectory_dead_reckoning.tum``,
 ``trajectory_true.tum`` (t x y z qx qy qz qw), ``metrics.json`` (ATE with and without SE(3)
 alignment, RPE, distance flown, from evo; and a Gauss-Markov fit of the unaligned position and
 velocity errors, ``error_model``), ``velocity_vio.csv``, ``vio_frames.csv`` (features, inliers,
@@ -119,7 +119,7 @@ def main(argv=None) -> int:
 
     from mysim_jax.io.output import OutputError, check_output_dir
     from mysim_jax.perception.camera import PerceptionError
-    from mysim_jax.perception.vio import prepare_perception, run_perception, vio_summary_lines
+    from mysim_jax.perception.vio_run_folder import prepare_perception, run_perception, vio_summary_lines
 
     try:
         out = check_output_dir(args.out)

@@ -17,7 +17,7 @@ PACKAGE = ROOT / "mysim_jax"
 LAZY_IMPORTS = {
     ("io/blender_import.py", "bpy"), ("io/blender_import.py", "bmesh"), ("io/blender_import.py", "mathutils"),
     ("io/blender_import.py", "bpy_extras"),
-    ("perception/vio.py", "gtsam"),
+    ("perception/imu_preintegration.py", "gtsam"),
     ("io/replay.py", "plotly"),
 }
 

@@ -1,4 +1,4 @@
-"""Visual-inertial odometry (mysim_jax/perception/vio.py, features.py, metrics.py).
+"""Visual-inertial odometry (mysim_jax/perception/vio.py, imu_preintegration.py, features.py, metrics.py).
 
 The flights here are analytic (no simulator): a figure-eight with rolling, pitching and
 yawing attitude whose positions, velocities, accelerations and body rates are exact, so
@@ -16,8 +16,9 @@ from mysim_jax.perception.camera import R_BODY_CV, intrinsics, project
 from mysim_jax.perception.features import FeatureTracker, relative_rotation
 from mysim_jax.perception.ground import GroundTexture, view_ground
 from mysim_jax.perception.metrics import PoseTrack, read_tum, trajectory_errors, write_tum
-from mysim_jax.perception.vio import (CameraModel, ImuNoise, ImuSamples, NavState, VioConfig,
-                                      dead_reckoning, run_vio)
+from mysim_jax.perception.imu_preintegration import ImuNoise, ImuSamples, NavState, dead_reckoning
+from mysim_jax.perception.vio import CameraModel, run_vio
+from mysim_jax.perception.vio_config import VioConfig
 
 # The paper's fixed camera (Table camera offset), pitched 50 deg down as in
 # configs/uav_vio_flight.yaml: quat = rotation about the body y axis, camera -> body.
@@ -202,7 +203,7 @@ def test_rotation_from_tracked_features(texture):
     angle = np.radians(6.0)
     tracker = FeatureTracker(intr)
     rng = np.random.default_rng(1)
-    from mysim_jax.perception.vio import _so3_exp
+    from mysim_jax.perception.imu_preintegration import _so3_exp
 
     first = tracker.track(_render(intr, R0, p, texture, rng))
     for s in np.linspace(0, 1, 7)[1:]:
