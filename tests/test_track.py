@@ -6,8 +6,10 @@ import pytest
 
 from mysim_jax.config.scene import load_config
 from mysim_jax.perception.camera import PerceptionError, intrinsics
-from mysim_jax.perception.track import (Detection, GimbalGeometry, GimbalTracker, OracleDetector, GimbalTrackerConfig,
-                                        check_tracking_scene, image_detector, run_tracking, tracking_metrics)
+from mysim_jax.perception.detect import Detection
+from mysim_jax.perception.gimbal_tracker import GimbalGeometry, GimbalTracker, GimbalTrackerConfig
+from mysim_jax.perception.track import check_tracking_scene, run_tracking, tracking_metrics
+from mysim_jax.perception.track_detectors import OracleDetector, image_detector
 
 SCENE = """
 name: track_small
@@ -220,7 +222,7 @@ def test_association_drops_a_false_detection_and_the_consensus_ignores_one_bad_c
     from types import SimpleNamespace
 
     from mysim_jax.perception.localize import fuse_rays
-    from mysim_jax.perception.track import _consensus_point, associate
+    from mysim_jax.perception.track_cues import _consensus_point, associate
 
     intr = intrinsics(width=640, height=360)
     x = np.array([0.3, -0.2, 4.0])
@@ -251,7 +253,8 @@ def test_region_hints_project_the_prediction_and_the_team_point():
     point, projected with the sphere's image size; None behind the camera or when too old."""
     from types import SimpleNamespace
 
-    from mysim_jax.perception.track import OUT_OF_VIEW, _hint, point_hint, region_hint
+    from mysim_jax.perception.track_cues import _hint, point_hint, region_hint
+    from mysim_jax.perception.track_detectors import OUT_OF_VIEW
 
     intr = intrinsics(width=640, height=360)
     o, x = np.array([0.0, 0.0, 2.0]), np.array([4.0, 1.0, 1.0])
@@ -286,7 +289,7 @@ def test_region_detector_uses_hints_and_counts_its_calls():
     stats count each kind."""
     from types import SimpleNamespace
 
-    from mysim_jax.perception.track import OUT_OF_VIEW, RegionDetector, RegionHint
+    from mysim_jax.perception.track_detectors import OUT_OF_VIEW, RegionDetector, RegionHint
 
     calls = []
     box = Detection(box=np.array([1.0, 1.0, 5.0, 5.0]), score=0.9)
@@ -356,7 +359,7 @@ def test_closed_loop_looks_where_the_track_expects_the_target(small_config):
     the stand-in detector finds the true box when the window holds the target's centre)."""
     from types import SimpleNamespace
 
-    from mysim_jax.perception.track import OUT_OF_VIEW, RegionDetector
+    from mysim_jax.perception.track_detectors import OUT_OF_VIEW, RegionDetector
 
     calls = []
 

@@ -11,7 +11,7 @@ round-robin on the same frames (:func:`mysim_jax.bench.timing.time_round_robin`)
   the pyramid with the flip test, then the second stage;
 * ``region`` — :meth:`CNNDetector.detect_region <mysim_jax.perception.detect.model.CNNDetector.detect_region>`
   around a hint ``HINT_OFFSET_PX`` off the target's true centre, with its true size (the
-  mode gimbal tracking runs, :class:`~mysim_jax.perception.track.RegionDetector`);
+  mode gimbal tracking runs, :class:`~mysim_jax.perception.track_detectors.RegionDetector`);
 * ``region, first stage only`` — the same window without the second stage (what the
   second stage costs there).
 
