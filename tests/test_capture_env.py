@@ -1,4 +1,4 @@
-"""The capture environment (mysim_jax/tasks/capture.py, rewards.py, config/env.py).
+"""The capture environment (mysim_jax/tasks/capture/, rewards.py, config/env.py).
 
 Reward terms and checks are tested on constructed snapshots (each term's sign and scale
 against its formula in the rewards module docstring); the environment's API on a small

@@ -8,12 +8,16 @@ JAX code runs. Every problem is reported as a :class:`ConfigError` that names th
 Checks done here: the file itself (UTF-8 YAML text without duplicate keys, see
 :mod:`mysim_jax.core.config_base`), unknown keys, wrong types or shapes, booleans where numbers
 belong, numbers beyond the accepted range, non-positive masses / lengths / stiffnesses,
+an output grid that does not fit the step (``output_dt`` a whole multiple of ``dt``,
+``t_end`` of ``output_dt``) and runs too long to be meant (:data:`MAX_ENV_STEPS`). The
+checks across blocks are functions of the validated scene that :class:`SceneConfig` runs:
 duplicate names, references (rope ends, spring ends, joint markers, loads) to things that
-do not exist, contact pairs that list no pair, an output grid that does not fit the step
-(``output_dt`` a whole multiple of ``dt``, ``t_end`` of ``output_dt``), and runs too
-long or too large to be meant (:data:`MAX_ENV_STEPS`, :data:`MAX_OUTPUT_VALUES`). The explicit
-stability check needs the assembled topology (masses on both ends of every spring), so it
-runs in :func:`mysim_jax.build.build`, still before anything compiles, and reports against
+do not exist, contact pairs that list no pair and scenes too large to be meant
+(:mod:`mysim_jax.config.scene_checks`), and the capture blocks'
+(:mod:`mysim_jax.config.capture_checks`). Overrides are applied to the raw file by
+:mod:`mysim_jax.config.overrides`. The explicit stability check needs the assembled
+topology (masses on both ends of every spring), so it runs in
+:func:`mysim_jax.build.build`, still before anything compiles, and reports against
 ``sim.dt`` / ``sim.substeps``.
 
 Units are SI throughout. Quaternions are scalar-first ``[w, x, y, z]`` (normalised on
@@ -22,7 +26,6 @@ load; a zero quaternion is an error).
 
 from __future__ import annotations
 
-import copy
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,11 +38,13 @@ from pydantic import Field, ValidationError, field_validator, model_validator
 from mysim_jax.config.capture import TargetConfig, TeamConfig
 from mysim_jax.config.capture_checks import capture_problems
 from mysim_jax.config.env import EnvConfig
-from mysim_jax.config.quadrotor import QuadrotorConfig, quadrotor_problems
-from mysim_jax.contact.config import ContactConfig, contact_problems
+from mysim_jax.config.overrides import apply_override, unaliased
+from mysim_jax.config.quadrotor import QuadrotorConfig
+from mysim_jax.config.scene_checks import reference_problems
+from mysim_jax.contact.config import ContactConfig
 from mysim_jax.core.config_base import (ConfigError, Finite, MIN_POSITIVE, Name, NonNegFloat, PosFloat, StrictModel,
                                         Tolerance, UnitQuat, Vec3, available_memory_bytes, format_validation_error,
-                                        parse_yaml, read_yaml_file)
+                                        read_yaml_file)
 from mysim_jax.net.config import NetConfig, net_elements
 
 __all__ = ["ConfigError", "SceneConfig", "RunSettings", "load_config", "config_from_dict", "apply_override",
@@ -59,9 +64,7 @@ MAX_IMPLICIT_ITERATIONS = 10_000
 
 # Run-size limits: a run beyond these is almost always a typo (t_end in ms, dt in s...).
 MAX_ENV_STEPS = 2**31 - 1          # environment steps of one run (the controller counts them in int32)
-MAX_OUTPUT_VALUES = 200_000_000    # saved numbers (rows x columns): 1.6 GB in memory, ~4 GB of CSV
 MAX_ROPE_MASSES = 10_000           # lumped masses of one rope
-MAX_OBJECTS = 100_000              # point masses (rope masses included) and bodies of a scene
 # output_dt / dt and t_end / output_dt must be whole numbers to this relative tolerance
 GRID_TOLERANCE = 1e-6
 
@@ -389,116 +392,11 @@ class SceneConfig(StrictModel):
     def _references(self):
         # the net and the target are checked as what they expand to (points, ropes, a body)
         full, problems = expand_capture(self)
-        problems += full._reference_problems()
+        problems += reference_problems(full)
         problems += capture_problems(self)
         if problems:
             raise ValueError("; ".join(problems))
         return self
-
-    def _reference_problems(self) -> list[str]:
-        self._check_size()
-        problems = self._name_problems()
-        problems += self._attachment_problems()
-        problems += self._joint_problems()
-        attachable = self.attachment_names()
-        for i, ld in enumerate(self.loads):
-            if ld.at not in attachable or ld.at in self.anchor_names():
-                problems.append(f"loads.{i}.at: '{ld.at}' is not a point, body or body.marker")
-            elif any(ld.torque) and ld.at not in {b.name for b in self.bodies}:
-                problems.append(f"loads.{i}.torque: a torque needs a body, '{ld.at}' is not one")
-        plottable = self.trajectory_names()
-        for i, name in enumerate(self.output.plot):
-            if name not in plottable:
-                problems.append(f"output.plot.{i}: '{name}' is not a point or body")
-        if self.contact is not None:
-            points = [p.name for p in self.points] + [f"{r.name}_{j}" for r in self.ropes for j in range(r.n_masses)]
-            problems += contact_problems(self.contact, points, [b.name for b in self.bodies], self.anchor_names(),
-                                         ropes=self.ropes, springs=self.springs)
-        problems += quadrotor_problems(self)
-        return problems
-
-    def _check_size(self) -> None:
-        """Refuse scenes too large to build or to save (ValueError)."""
-        n_cameras = sum(len(q.cameras) for q in self.quadrotors)
-        n_objects = (len(self.points) + sum(r.n_masses for r in self.ropes) + len(self.bodies) + n_cameras)
-        if n_objects > MAX_OBJECTS:
-            raise ValueError(f"the scene has {n_objects:,} point masses and bodies (rope masses and cameras "
-                             f"included): more than {MAX_OBJECTS:,}")
-        rows, columns = self.output_size()
-        values = rows * columns
-        if values > MAX_OUTPUT_VALUES:
-            raise ValueError(
-                f"sim: the run would save {rows:,} rows of {columns:,} columns ({values:.3g} "
-                f"values, more than {MAX_OUTPUT_VALUES:.3g}); raise sim.output_dt or shorten sim.t_end")
-
-    def _name_problems(self) -> list[str]:
-        """Names used twice (points, bodies, anchors, ropes and their masses, springs,
-        joints share one namespace; markers are unique per body)."""
-        problems: list[str] = []
-        owners: dict[str, str] = {}
-
-        def claim(name: str, where: str):
-            if name in owners:
-                problems.append(f"{where}: name '{name}' is already used by {owners[name]}")
-            else:
-                owners[name] = where
-
-        for i, p in enumerate(self.points):
-            claim(p.name, f"points.{i}")
-        for i, b in enumerate(self.bodies):
-            claim(b.name, f"bodies.{i}")
-            seen = set()
-            for j, m in enumerate(b.markers):
-                if m.name in seen:
-                    problems.append(f"bodies.{i}.markers.{j}: duplicate marker name '{m.name}'")
-                seen.add(m.name)
-        for i, a in enumerate(self.anchors):
-            claim(a.name, f"anchors.{i}")
-        for i, r in enumerate(self.ropes):
-            claim(r.name, f"ropes.{i}")
-            for j in range(r.n_masses):
-                claim(f"{r.name}_{j}", f"ropes.{i} (its mass {j})")
-        for i, s in enumerate(self.springs):
-            claim(s.name, f"springs.{i}")
-        for i, j in enumerate(self.joints):
-            claim(j.name, f"joints.{i}")
-        return problems
-
-    def _attachment_problems(self) -> list[str]:
-        """Rope and spring ends that name nothing attachable."""
-        problems: list[str] = []
-        attachable = self.attachment_names()
-        for kind, items in (("ropes", self.ropes), ("springs", self.springs)):
-            for i, x in enumerate(items):
-                for end in ("start", "end"):
-                    ref = getattr(x, end)
-                    if ref not in attachable:
-                        problems.append(f"{kind}.{i}.{end}: '{ref}' {self._unknown(ref)}")
-                    elif kind == "ropes" and ref.startswith(f"{x.name}_"):
-                        problems.append(f"ropes.{i}.{end}: a rope cannot attach to its own masses")
-                if x.start == x.end:
-                    problems.append(f"{kind}.{i}: start and end are the same ('{x.start}')")
-        return problems
-
-    def _joint_problems(self) -> list[str]:
-        problems: list[str] = []
-        frames = self.frame_names()
-        for i, j in enumerate(self.joints):
-            for side in ("marker_i", "marker_j"):
-                ref = getattr(j, side)
-                if ref not in frames:
-                    problems.append(
-                        f"joints.{i}.{side}: '{ref}' is not a marker ('body.marker') or anchor"
-                        f" {self._unknown(ref)}"
-                    )
-            if j.marker_i == j.marker_j:
-                problems.append(f"joints.{i}: marker_i and marker_j are the same")
-            bi, bj = j.marker_i.split(".")[0], j.marker_j.split(".")[0]
-            if bi == bj and "." in j.marker_i:
-                problems.append(f"joints.{i}: both markers are on body '{bi}'")
-            if j.marker_i in self.anchor_names() and j.marker_j in self.anchor_names():
-                problems.append(f"joints.{i}: a joint between two anchors constrains nothing")
-        return problems
 
     # --- name tables -------------------------------------------------------------------
     def anchor_names(self) -> set[str]:
@@ -543,14 +441,6 @@ class SceneConfig(StrictModel):
         """Names a rope / spring end may use."""
         return self.trajectory_names() | self.marker_names() | self.anchor_names()
 
-    def _unknown(self, ref: str) -> str:
-        if "." in ref:
-            body = ref.split(".")[0]
-            if body not in {b.name for b in self.bodies}:
-                return f"(no body named '{body}')"
-            return f"(body '{body}' has no marker '{ref.split('.', 1)[1]}')"
-        return "(no point, rope mass, body or anchor has that name)"
-
 
 # --- capture scenes: the net and the target as ordinary entries -------------------------
 
@@ -588,55 +478,6 @@ def expand_capture(config: SceneConfig) -> tuple[SceneConfig, list[str]]:
 
 
 # --- loading ---------------------------------------------------------------------------
-
-
-def apply_override(raw: dict, assignment: str) -> None:
-    """Apply one ``dotted.key=value`` override to a raw config dict, in place.
-
-    The value is parsed as YAML (``5e-4`` and ``[0, 0, -9.81]`` work). List entries are
-    addressed by index (``ropes.0.EA=2e5``). Unknown keys are left for validation to
-    reject, so the error names them.
-    """
-    if "=" not in assignment:
-        raise ConfigError(f"--set '{assignment}': expected key=value")
-    key, text = assignment.split("=", 1)
-    parts = [p for p in key.strip().split(".") if p]
-    if not parts:
-        raise ConfigError(f"--set '{assignment}': empty key")
-    value = parse_yaml(text, f"--set {key}", "value")
-    node: Any = raw
-    for depth, part in enumerate(parts[:-1]):
-        where = ".".join(parts[: depth + 1])
-        if isinstance(node, list):
-            if not part.isdigit() or int(part) >= len(node):
-                raise ConfigError(f"--set {key}: '{where}' has no entry {part} (it has {len(node)})")
-            node = node[int(part)]
-        elif isinstance(node, dict):
-            if part not in node:
-                node[part] = {}
-            node = node[part]
-        else:
-            raise ConfigError(f"--set {key}: '{where}' is a value, not a section")
-    last = parts[-1]
-    if isinstance(node, list):
-        if not last.isdigit() or int(last) >= len(node):
-            raise ConfigError(f"--set {key}: no entry {last} (it has {len(node)})")
-        node[int(last)] = value
-    elif isinstance(node, dict):
-        node[last] = value
-    else:
-        raise ConfigError(f"--set {key}: parent is a value, not a section")
-
-
-def unaliased(raw: Any) -> Any:
-    """A copy of a YAML-parsed value in which no mapping or list is shared. YAML anchors
-    (``&ctrl`` ... ``*ctrl``) make one object appear at several places; a ``--set`` override
-    addresses one place and must change only that one."""
-    if isinstance(raw, dict):
-        return {k: unaliased(v) for k, v in raw.items()}
-    if isinstance(raw, list):
-        return [unaliased(v) for v in raw]
-    return copy.deepcopy(raw)
 
 
 def config_from_dict(raw: Any, source: str = "<dict>", overrides: list[str] | tuple[str, ...] = (),

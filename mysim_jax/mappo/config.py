@@ -42,7 +42,8 @@ from pydantic import Field, ValidationError, model_validator
 import yaml
 
 from mysim_jax.config.env import drawn_value_problems
-from mysim_jax.config.scene import apply_override, load_config
+from mysim_jax.config.overrides import apply_override
+from mysim_jax.config.scene import load_config
 from mysim_jax.core.config_base import (ConfigError, Name, PosFloat, StrictModel, available_memory_bytes,
                                         format_validation_error, read_yaml_file)
 

@@ -1,0 +1,90 @@
+"""The capture environment's pytrees: its traced parameters (:class:`EnvParams`), one
+environment's state (:class:`EnvState`) and what they hold (the per-episode draws
+:class:`Episode` and their :class:`Ranges`, the estimation errors :class:`PerceptionErrors`).
+Trained policies and checkpoints rely on their structure and field order."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+from flax import struct
+
+from mysim_jax.core.types import Params, State
+
+
+@struct.dataclass
+class Episode:
+    """What is drawn per episode (besides the target's spawn, which lives in the sim state)."""
+
+    target_mass: jnp.ndarray      # () kg
+    uav_mass_scale: jnp.ndarray   # () -
+    wind_force: jnp.ndarray       # (3,) N on every UAV, world
+    flee_acceleration: jnp.ndarray  # () m/s^2
+    jink_acceleration: jnp.ndarray  # () m/s^2
+    max_speed: jnp.ndarray        # () m/s
+    noise: jnp.ndarray            # (4,) sigma of UAV position [m], UAV velocity [m/s], target position, velocity
+    # env.randomize.thrust_loss only (None otherwise: no draws, the same state as without the effect)
+    thrust_fraction: jnp.ndarray | None = None   # () of the faulty UAV's nominal maximum thrust
+    thrust_loss_time: jnp.ndarray | None = None  # () s, when the fault starts
+    thrust_loss_uav: jnp.ndarray | None = None   # () in [0, n_agents): the faulty UAV is its integer part
+
+
+@struct.dataclass
+class Ranges:
+    """Per-episode randomisation ranges ``low``/``high`` of every :class:`Episode` field."""
+
+    low: Episode
+    high: Episode
+
+
+@struct.dataclass
+class EnvParams:
+    """Traced environment parameters (vmap or change them without recompiling)."""
+
+    sim: Params                   # the scene's nominal physics parameters
+    start: State                  # the nominal first state (the target is placed by the reset)
+    weights: jnp.ndarray          # (n_terms,) reward weights, REWARD_TERMS order, >= 0
+    discount: jnp.ndarray         # () γ of the potential-based shaping
+    ranges: Ranges
+    # (4, 2) (sigma, rho per policy step) of the estimation errors of UAV position [m], UAV
+    # velocity [m/s], target position, target velocity (env.perception; rho = exp(-policy_dt
+    # / correlation_time)); zeros when the team sees true states
+    perception: jnp.ndarray
+    target_delay: jnp.ndarray     # () the target estimate's latency over the policy period, in [0, 1]
+    # (2,) per policy step: the probability of losing the target estimate while it is seen,
+    # and of regaining it while lost (env.perception.target_dropout); zeros: never lost
+    target_dropout: jnp.ndarray
+
+
+@struct.dataclass
+class PerceptionErrors:
+    """The current estimation errors (estimate minus truth) when the team flies on
+    estimates (``env.perception``); each a first-order Gauss-Markov process per axis. With
+    the target's true state one policy step ago, which the estimate's latency interpolates
+    towards (at an episode's start: its first state), and whether the target estimate is
+    lost (``perception.target_dropout``) with the last one the team had."""
+
+    uav_pos: jnp.ndarray          # (n_agents, 3) m, each UAV's own position estimate
+    uav_vel: jnp.ndarray          # (n_agents, 3) m/s
+    target_pos: jnp.ndarray       # (3,) m, the team's fused target estimate
+    target_vel: jnp.ndarray       # (3,) m/s
+    target_pos_before: jnp.ndarray   # (3,) m, true, one policy step ago
+    target_vel_before: jnp.ndarray   # (3,) m/s
+    target_lost: jnp.ndarray         # () bool, the target estimate is lost (it coasts)
+    target_last_pos: jnp.ndarray     # (3,) m, the target estimate when last seen
+    target_last_vel: jnp.ndarray     # (3,) m/s
+    target_lost_steps: jnp.ndarray   # () int32, policy steps since it was last seen
+
+
+@struct.dataclass
+class EnvState:
+    """State of one environment."""
+
+    sim: State
+    episode: Episode
+    steps: jnp.ndarray            # () int32, policy steps taken this episode
+    held: jnp.ndarray             # () bool, the target was held after the last step
+    held_time: jnp.ndarray        # () s from the first held step of the current hold to the last
+    touched: jnp.ndarray          # () bool, the target has touched the net this episode
+    returns: jnp.ndarray          # (n_agents,) sum of rewards this episode
+    potential: jnp.ndarray        # (n_shaping_terms, n_agents) weighted potential terms of this state
+    perception: PerceptionErrors | None = None   # None unless the team flies on estimates
