@@ -71,7 +71,9 @@ from mysim_jax.perception.detect import Detection   # noqa: F401  (the detection
 from mysim_jax.perception.detect.model import load_detector
 from mysim_jax.perception.localize import (RANGE_SIGMA, PoseNoise, box_size_px, box_touches_border, fuse,
                                           pixel_bearings, sphere_range, sphere_size_px)
-from mysim_jax.perception.render import Frame, Renderer, auto_target_style
+from mysim_jax.perception.render import Renderer
+from mysim_jax.perception.render_io import Frame
+from mysim_jax.perception.render_models import auto_target_style
 from mysim_jax.sim import rollout, single_env_scene
 from mysim_jax.tasks.scripted import team_policy
 
