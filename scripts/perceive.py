@@ -162,7 +162,7 @@ def _track(args) -> int:
             raise PerceptionError(f"--t-end must be positive, got {args.t_end}")
         if args.range_sigma is None:
             from mysim_jax.perception.localize import RANGE_SIGMA
-            from mysim_jax.perception.render import auto_target_style
+            from mysim_jax.perception.render_models import auto_target_style
 
             args.range_sigma = RANGE_SIGMA[auto_target_style(config)]
         if not args.range_sigma > 0:

@@ -234,18 +234,20 @@ def test_chunked_batch_equals_one_block_and_chunk_for_scales_with_the_state():
 
 
 def test_the_private_jax_name_stack_hook_still_carries_scope_names():
-    """``batching`` reaches into ``jax._src.source_info_util`` (its one private JAX import)
-    so that the equations it re-emits keep their ``jax.named_scope`` names in profiles and
-    HLO. A JAX that moves it would drop the names silently; this says so instead."""
+    """``batching`` reaches into ``jax._src.source_info_util`` (its one private JAX import, in
+    its evaluator ``batch_last_eval``) so that the equations it re-emits keep their
+    ``jax.named_scope`` names in profiles and HLO. A JAX that moves it would drop the names
+    silently; this says so instead."""
     import jax
     import jax.numpy as jnp
 
-    from mysim_jax.core import batching
+    from mysim_jax.core import batch_last_eval, batching
 
     def f(x):
         with jax.named_scope("springs"):
             return jnp.sin(x) * 2.0
 
-    assert batching._source_info_util is not None, "jax._src.source_info_util moved: update mysim_jax/core/batching.py"
+    assert batch_last_eval._source_info_util is not None, \
+        "jax._src.source_info_util moved: update mysim_jax/core/batch_last_eval.py"
     text = jax.jit(batching.vmap(f)).lower(jnp.ones((8, 3))).as_text(debug_info=True)
     assert "springs" in text

@@ -55,13 +55,14 @@ def _edges(lines):
 
 def test_file_imports_only_what_blender_has():
     """Blender runs the file as a script: no mysim_jax, nothing beyond the standard library,
-    NumPy and Blender's own modules."""
+    NumPy, Blender's own modules and its sibling file (which imports no further)."""
     allowed = {"__future__", "argparse", "csv", "math", "re", "sys", "warnings", "dataclasses", "pathlib", "numpy",
                "bpy", "bmesh", "mathutils", "bpy_extras"}
-    tree = ast.parse(SCRIPT.read_text())
-    modules = {a.name.split(".")[0] for node in ast.walk(tree) if isinstance(node, ast.Import) for a in node.names}
-    modules |= {node.module.split(".")[0] for node in ast.walk(tree) if isinstance(node, ast.ImportFrom)}
-    assert modules <= allowed, modules - allowed
+    for path, also in ((SCRIPT, {"blender_layout"}), (SCRIPT.with_name("blender_layout.py"), set())):
+        tree = ast.parse(path.read_text())
+        modules = {a.name.split(".")[0] for node in ast.walk(tree) if isinstance(node, ast.Import) for a in node.names}
+        modules |= {node.module.split(".")[0] for node in ast.walk(tree) if isinstance(node, ast.ImportFrom)}
+        assert modules <= allowed | also, (path.name, modules - allowed - also)
 
 
 @pytest.mark.parametrize("scene", ["capture_env_falling", "capture_falling", "rope_net", "collision_light",

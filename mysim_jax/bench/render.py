@@ -7,7 +7,7 @@ for ``t_end`` seconds. Three views, each rendered at every image size of the sam
 
 * ``onboard`` — ``cam0`` at the output row where it sees the most of the target with all of
   the target inside the image (the net across the image, the target in it, the ground behind);
-* ``observer`` — a free camera (:func:`~mysim_jax.perception.render.look_at`) 8 m from the
+* ``observer`` — a free camera (:func:`~mysim_jax.perception.camera.look_at`) 8 m from the
   net, looking at it: all four UAVs, the net, the tethers and the target in view;
 * ``ground`` — the same free camera turned away from the team: ground and sky only.
 
@@ -33,7 +33,8 @@ from mysim_jax.build import build
 from mysim_jax.config.scene import config_from_dict
 from mysim_jax.io.trajectory import trajectory_columns
 from mysim_jax.perception.camera import intrinsics
-from mysim_jax.perception.render import Renderer, look_at
+from mysim_jax.perception.camera import look_at
+from mysim_jax.perception.render import Renderer
 from mysim_jax.sim import simulate
 from mysim_jax.tasks.scripted import team_policy
 

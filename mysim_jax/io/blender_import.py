@@ -14,9 +14,11 @@ or from Python, with Blender as a module (``pip install -e '.[blender]'``, Pytho
     render_frames("out/run/render", frames=[0, 25, 50])
 
 This file imports neither mysim_jax nor anything outside Python's standard library,
-NumPy (which Blender bundles) and, where Blender is needed, ``bpy``; its CSV and scene
-helpers (:func:`read_columns`, :func:`scene_layout`, :func:`keyed_rows`) work without
-Blender.
+NumPy (which Blender bundles), its sibling file :mod:`mysim_jax.io.blender_layout` and, where
+Blender is needed, ``bpy``. The sibling holds what works without Blender: reading the CSV and
+telling its objects and lines apart (:func:`read_columns`, :func:`scene_layout`,
+:func:`keyed_rows`, importable from here too); this file builds, animates and renders the
+Blender scene, and is the command line.
 
 What it does, as the paper's algorithm: read the CSV (:mod:`mysim_jax.io.trajectory`
 writes it; only ``time``, ``NAME_x/y/z`` and, for rigid bodies, ``NAME_qw/qx/qy/qz``
@@ -32,12 +34,8 @@ the scene's frame rate; set the frame range. On top of that:
   masses (one shape key per keyed row, each weighted 1 at its row's frame and 0 at its
   neighbours', so the mesh moves through the rows with linear interpolation), drawn as
   tubes of ``line_radius`` by a geometry-nodes modifier. Which masses are joined is read
-  from the names mysim_jax gives them (:mod:`mysim_jax.net.config`): net knots
-  ``P_k{i}_{j}`` are joined through the masses of ropes ``P_h{i}_{j}`` and ``P_v{i}_{j}``;
-  other masses named ``R_0 .. R_{n-1}`` form a chain, whose ends join the nearest free
-  point, knot or body beyond them (within 1.5 mass spacings, at the first row). A rope
-  ending at a fixed anchor (anchors are not in the CSV) is drawn up to its last mass.
-  ``lines`` (lists of names) replaces this guess.
+  from the names mysim_jax gives them (:mod:`mysim_jax.io.blender_layout` says
+  how); ``lines`` (lists of names) replaces this guess.
 * **Cameras**: every ``camera`` body carries a Blender camera with the paper's
   intrinsics (focal length 50 mm, sensor 36 mm wide, 1920 x 1080 pixels) looking along
   the body's +x axis, with image right = body −y and image down = body −z; ``--view
@@ -56,15 +54,22 @@ but interpolating between them is not).
 from __future__ import annotations
 
 import argparse
-import csv
 import math
-import re
 import sys
-import warnings
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+if __name__ == "__main__":   # run as a file (blender --python FILE): import the sibling file, not the package
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from blender_layout import (BlenderImportError, Layout, continuous_quaternions, default_kind, keyed_rows,
+                                point_positions, read_columns, scene_layout)
+else:
+    from .blender_layout import (BlenderImportError, Layout, continuous_quaternions, default_kind, keyed_rows,
+                                 point_positions, read_columns, scene_layout)
+
+__all__ = ["import_trajectory", "render_frames", "main", "KINDS", "BlenderImportError", "Layout", "read_columns",
+           "scene_layout", "keyed_rows", "continuous_quaternions", "default_kind"]
 
 KINDS = ("quadrotor", "camera", "sphere", "box")
 BODY_RADIUS = 0.15          # m, default sphere of a rigid body
@@ -77,208 +82,11 @@ CAMERA_RESOLUTION = (1920, 1080)
 GROUND_COLORS = ((0.55, 0.65, 0.5), (0.42, 0.5, 0.38))
 GROUND_SIZE = 200.0         # m, side of the ground plane (at least): scene cameras see it to the horizon
 CAMERA_CLIP_START = 0.05    # m: a scene camera sees nothing nearer, so not the inside of its own body
-ATTACH_SPACINGS = 1.5       # a chain end joins a node within this many mass spacings
 # Blender camera axes (x right, y up, looking along -z) in the camera body's frame, whose
 # +x is the optical axis, image right = body -y, image down = body -z.
 CAMERA_AXES = np.array([[0.0, 0.0, -1.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])   # columns: Blender x, y, z
 COLORS = ((0.12, 0.47, 0.71), (1.0, 0.5, 0.05), (0.17, 0.63, 0.17), (0.84, 0.15, 0.16), (0.58, 0.4, 0.74),
           (0.55, 0.34, 0.29), (0.89, 0.47, 0.76), (0.09, 0.75, 0.81))
-
-
-class BlenderImportError(ValueError):
-    """The CSV or an option cannot be used; the message names it and says what to do."""
-
-
-# --- the CSV and the scene layout (no Blender needed) --------------------------------------
-
-
-def read_columns(path) -> dict[str, np.ndarray]:
-    """Read a trajectory CSV (header row, then one row per output time) into ``{name: (n,)}``."""
-    path = Path(path)
-    if not path.is_file():
-        raise BlenderImportError(f"{path}: no such trajectory CSV (scripts/simulate.py writes OUT/trajectory.csv)")
-    with open(path, newline="") as fh:
-        header = next(csv.reader(fh), None)
-    if not header or "time" not in header:
-        raise BlenderImportError(f"{path}: the first row must be the header and name a 'time' column")
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", UserWarning)      # "input contained no data": said below
-            data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
-    except ValueError as err:
-        raise BlenderImportError(f"{path}: not a numeric CSV below its header ({err})") from None
-    if data.shape[0] == 0:
-        raise BlenderImportError(f"{path}: the CSV has a header but no rows")
-    if data.shape[1] != len(header):
-        raise BlenderImportError(f"{path}: {data.shape[1]} values per row but {len(header)} header names")
-    columns = {name: data[:, i] for i, name in enumerate(header)}
-    check_time(columns["time"], str(path))
-    return columns
-
-
-def check_time(time, where="time") -> None:
-    time = np.asarray(time, float)
-    if len(time) == 0:
-        raise BlenderImportError(f"{where}: no rows")
-    if not np.all(np.isfinite(time)) or np.any(np.diff(time) <= 0):
-        raise BlenderImportError(f"{where}: the time column must be finite and increasing")
-
-
-@dataclass
-class Layout:
-    """What a trajectory holds: rigid bodies (position and quaternion columns), free point
-    masses (drawn as spheres), and lines (polylines of point and body names)."""
-
-    bodies: list[str] = field(default_factory=list)
-    points: list[str] = field(default_factory=list)
-    lines: list[list[str]] = field(default_factory=list)
-
-
-def _objects(columns):
-    """Names with ``_x/_y/_z`` columns, split into bodies (with a quaternion) and points.
-    A controller reference (``NAME_ref_x/y/z`` beside ``NAME_ref_yaw``) is not an object."""
-    bodies, points = [], []
-    for key in columns:
-        if not key.endswith("_x"):
-            continue
-        name = key[:-2]
-        if not all(f"{name}_{a}" in columns for a in "yz"):
-            continue
-        if name.endswith("_ref") and f"{name}_yaw" in columns:
-            continue
-        (bodies if all(f"{name}_q{a}" in columns for a in "wxyz") else points).append(name)
-    return bodies, points
-
-
-KNOT = re.compile(r"^(?P<net>.+)_k(?P<i>\d+)_(?P<j>\d+)$")
-CHAIN = re.compile(r"^(?P<rope>.+)_(?P<k>\d+)$")
-
-
-def _positions(columns, name, rows=slice(None)):
-    return np.stack([np.asarray(columns[f"{name}_{a}"], float)[rows] for a in "xyz"], axis=-1)
-
-
-def infer_lines(columns, bodies, points):
-    """Polylines of names (see the module docstring) and the points they use."""
-    objects = set(bodies) | set(points)
-    start = {n: _positions(columns, n, 0) for n in objects}
-    lines, used = [], set()
-    grids: dict[str, dict[tuple[int, int], str]] = {}
-    for p in points:
-        m = KNOT.match(p)
-        if m:
-            grids.setdefault(m["net"], {})[(int(m["i"]), int(m["j"]))] = p
-    for net, grid in grids.items():
-        used |= set(grid.values())
-        for (i, j), knot in sorted(grid.items()):
-            for kind, end in (("h", (i, j + 1)), ("v", (i + 1, j))):
-                if end not in grid:
-                    continue
-                masses = []
-                while f"{net}_{kind}{i}_{j}_{len(masses)}" in objects:
-                    masses.append(f"{net}_{kind}{i}_{j}_{len(masses)}")
-                used |= set(masses)
-                lines.append([knot, *masses, grid[end]])
-    groups: dict[str, dict[int, str]] = {}
-    for p in points:
-        m = CHAIN.match(p)
-        if p not in used and m and m["rope"] not in objects:
-            groups.setdefault(m["rope"], {})[int(m["k"])] = p
-    chains = [[g[k] for k in range(len(g))] for g in groups.values() if set(g) == set(range(len(g)))]
-    nodes = [n for n in objects if n not in used and not any(n in c for c in chains)]
-    nodes += [n for grid in grids.values() for n in grid.values()]
-    for chain in chains:
-        used |= set(chain)
-        line = list(chain)
-        a = _attach(start, chain[0], chain[1] if len(chain) > 1 else None, nodes, chain)
-        if a is not None:
-            line.insert(0, a)
-        inner = chain[-2] if len(chain) > 1 else None
-        b = _attach(start, chain[-1], inner, nodes, chain, other=a if len(chain) == 1 else None)
-        if b is not None:
-            line.append(b)
-        if len(line) > 1:
-            lines.append(line)
-        else:
-            used.discard(chain[0])      # a lone mass that joins nothing is a free point
-    return lines, used
-
-
-def _attach(start, end, inner, nodes, chain, other=None):
-    """The node a chain's ``end`` mass joins: the nearest node beyond it (away from the
-    ``inner`` neighbour; for a one-mass chain, on the other side of ``other``), within
-    ``ATTACH_SPACINGS`` mass spacings."""
-    p = start[end]
-    candidates = [n for n in nodes if n not in chain and np.all(np.isfinite(start[n]))]
-    if not candidates:
-        return None
-    d = {n: float(np.linalg.norm(start[n] - p)) for n in candidates}
-    if inner is not None:
-        spacing = float(np.mean([np.linalg.norm(start[a] - start[b]) for a, b in zip(chain[:-1], chain[1:])]))
-        outward = p - start[inner]
-        candidates = [n for n in candidates if np.dot(start[n] - p, outward) > 0]
-    elif other is not None:
-        spacing = d[other]
-        candidates = [n for n in candidates if n != other and np.dot(start[n] - p, start[other] - p) < 0]
-    else:
-        spacing = min(d.values())
-    candidates = [n for n in candidates if d[n] <= ATTACH_SPACINGS * spacing]
-    return min(candidates, key=d.get) if candidates else None
-
-
-def scene_layout(columns, lines=None) -> Layout:
-    """Bodies, free points and lines of a trajectory (``lines`` given: used as they are,
-    after checking that every name in them is in the CSV)."""
-    bodies, points = _objects(columns)
-    if not bodies and not points:
-        raise BlenderImportError("the CSV has no objects: no NAME_x, NAME_y, NAME_z columns")
-    if lines is None:
-        lines, used = infer_lines(columns, bodies, points)
-    else:
-        lines = [list(line) for line in lines]
-        unknown = sorted({n for line in lines for n in line} - set(bodies) - set(points))
-        if unknown:
-            raise BlenderImportError(f"lines: {', '.join(unknown[:5])} not in the CSV (no NAME_x/y/z columns)")
-        used = {n for line in lines for n in line if n in points}
-    return Layout(bodies=bodies, points=[p for p in points if p not in used], lines=lines)
-
-
-def keyed_rows(time, fps) -> tuple[np.ndarray, np.ndarray]:
-    """``(rows, frames)``: the rows to key (the row nearest to each whole frame's time,
-    each row at most once) and their frames ``(t - t0) fps`` (fractional where a row's
-    time falls between frames)."""
-    time = np.asarray(time, float)
-    check_time(time)
-    if not (isinstance(fps, (int, np.integer)) and not isinstance(fps, bool) and fps > 0):
-        raise BlenderImportError(f"fps must be a positive whole number of frames per second, got {fps!r}")
-    rel = (time - time[0]) * fps
-    wanted = np.arange(int(math.floor(rel[-1] + 1e-9)) + 1)
-    after = np.clip(np.searchsorted(rel, wanted), 0, len(rel) - 1)      # first row at or after the frame
-    before = np.clip(after - 1, 0, len(rel) - 1)
-    nearest = np.where(np.abs(rel[before] - wanted) <= np.abs(rel[after] - wanted), before, after)
-    rows = np.unique(np.append(nearest, len(rel) - 1))
-    return rows, rel[rows]
-
-
-def continuous_quaternions(q) -> np.ndarray:
-    """Unit quaternions ``(n, 4)`` with each one's sign chosen nearest to the one before."""
-    q = np.asarray(q, float)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    out = q.copy()
-    for k in range(1, len(q)):
-        if np.dot(out[k], out[k - 1]) < 0:
-            out[k] = -out[k]
-    return out
-
-
-def default_kind(name: str, body: bool) -> str:
-    if not body:
-        return "sphere"
-    if name.startswith("uav"):
-        return "quadrotor"
-    if name.startswith("cam"):
-        return "camera"
-    return "sphere"
 
 
 def _parse_pairs(values, what, convert=str) -> dict:
@@ -453,7 +261,7 @@ def _lines_object(columns, layout, rows, frames, radius, collection):
     names = list(dict.fromkeys(n for line in layout.lines for n in line))
     index = {n: k for k, n in enumerate(names)}
     edges = {tuple(sorted((index[a], index[b]))) for line in layout.lines for a, b in zip(line[:-1], line[1:])}
-    xyz = np.stack([_positions(columns, n, rows) for n in names], axis=1)       # (n_rows, n_verts, 3)
+    xyz = np.stack([point_positions(columns, n, rows) for n in names], axis=1)       # (n_rows, n_verts, 3)
     xyz = np.where(np.isfinite(xyz), xyz, 0.0)
     mesh = bpy.data.meshes.new("lines")
     mesh.from_pydata(xyz[0].tolist(), sorted(edges), [])
@@ -608,7 +416,7 @@ def import_trajectory(csv_path, fps: int = 25, usd=None, kinds=None, radius=None
         else:
             r = radius.get(name, BODY_RADIUS if body else POINT_RADIUS)
             obj = _mesh_object(name, _shape(kind, r), [_material(name, color), nose], collection)
-        pos = _positions(columns, name, rows)
+        pos = point_positions(columns, name, rows)
         _key(obj, "location", frames, np.where(np.isfinite(pos), pos, 0.0))
         if body:
             obj.rotation_mode = "QUATERNION"
@@ -621,7 +429,7 @@ def import_trajectory(csv_path, fps: int = 25, usd=None, kinds=None, radius=None
     if layout.lines:
         objects["lines"] = _lines_object(columns, layout, rows, frames, line_radius, collection)
     drawn = created | {n for line in layout.lines for n in line}
-    everything = np.concatenate([_positions(columns, n, rows) for n in drawn], axis=0)
+    everything = np.concatenate([point_positions(columns, n, rows) for n in drawn], axis=0)
     if ground is None:
         ground = bool(np.nanmin(everything[:, 2]) >= -1e-3)
     objects["overview"] = _overview(everything, collection, ground)

@@ -20,7 +20,8 @@ the top-left pixel at (0, 0).
 
 Poses come from the trajectory CSV that ``scripts/simulate.py`` writes
 (:mod:`mysim_jax.io.trajectory`): the camera body's position and scalar-first body→world
-quaternion per output row.
+quaternion per output row; a free camera's (one that is no body of the scene) from
+:func:`look_at`.
 """
 
 from __future__ import annotations
@@ -131,6 +132,29 @@ def camera_poses(columns: dict[str, np.ndarray], name: str) -> CameraPoses:
     pos, quat = body_pose_columns(columns, name)
     R = quat_to_matrix(quat) @ R_BODY_CV
     return CameraPoses(name=name, t=np.asarray(columns["time"], dtype=float), R=R, p=pos)
+
+
+def look_at(eye, target, t, up=(0.0, 0.0, 1.0), name: str = "observer") -> CameraPoses:
+    """Poses of a free camera at ``eye`` looking at ``target`` ((3,) or (N, 3) m each) at times ``t`` (N,).
+
+    The image's up direction is ``up`` projected on the image plane (world z: no roll).
+    """
+    t = np.atleast_1d(np.asarray(t, dtype=float))
+    eye = np.broadcast_to(np.asarray(eye, dtype=float), (len(t), 3))
+    target = np.broadcast_to(np.asarray(target, dtype=float), (len(t), 3))
+    z = target - eye
+    norm = np.linalg.norm(z, axis=1, keepdims=True)
+    if np.any(norm < 1e-9):
+        raise PerceptionError("look_at: eye and target coincide; the camera has no direction")
+    z = z / norm
+    x = np.cross(z, np.asarray(up, dtype=float))
+    xn = np.linalg.norm(x, axis=1, keepdims=True)
+    if np.any(xn < 1e-9):
+        raise PerceptionError("look_at: the camera looks straight along 'up'; pass another up vector")
+    x = x / xn
+    y = np.cross(z, x)
+    R = np.stack([x, y, z], axis=-1)
+    return CameraPoses(name=name, t=t, R=R, p=eye.copy())
 
 
 def project(intr: Intrinsics, R: np.ndarray, p: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -44,27 +44,42 @@ edge of the leftmost pixel (its index - 0.5), ``u_max`` the right edge of the ri
 Speed: the cost is the ground (a dozen full-image operations) plus the candidate pixels of
 the objects (an object's screen area, a line's length); BENCHMARKS.md, section (h), has the
 frame rates.
+
+This module places the objects at a row and draws them (:class:`Renderer`). The objects'
+models are in :mod:`mysim_jax.perception.render_models`; the run folder, :class:`Frame`,
+:class:`TargetView` and the video and image writers in :mod:`mysim_jax.perception.render_io`;
+:func:`~mysim_jax.perception.camera.look_at` (a free camera) in the camera module. All are
+importable from here too.
 """
 
 from __future__ import annotations
 
-import csv
-from dataclasses import dataclass, field
-from pathlib import Path
+from dataclasses import dataclass
 from typing import Iterable, Iterator, Literal
 
-import cv2
 import numpy as np
 from tqdm.auto import tqdm
 
-from mysim_jax.config.scene import ConfigError, load_config
 from mysim_jax.core.npgeom import quat_to_matrix
-from mysim_jax.io.trajectory import read_trajectory_csv
 from mysim_jax.perception.camera import (R_BODY_CV, CameraPoses, Intrinsics, PerceptionError, check_sees_ground,
-                                         intrinsics as make_intrinsics)
+                                         intrinsics as make_intrinsics, look_at)
 from mysim_jax.perception.ground import GroundTexture, view_ground
+from mysim_jax.perception.render_io import Frame, Run, TargetView, load_run, write_images, write_video
+from mysim_jax.perception.render_models import (CAMERA, FRONT, HULL, LENS, MOTOR, NET, REAR, ROTOR, TARGET,
+                                                TARGET_DRONE, TETHER, Model, auto_target_style, body_models,
+                                                camera_model, line_segments, quadrotor_model, sphere_model,
+                                                stack_models)
 from mysim_jax.perception.render_raster import (Capsules, Ellipsoids, Fragments, Lights, capsule_fragments,
                                                 composite, ellipsoid_fragments)
+
+# The renderer's public names, with those of the modules it draws from (object models, the
+# files and results, a free camera's poses), so that ``from mysim_jax.perception.render
+# import ...`` reaches all of them.
+__all__ = ["Renderer", "Lighting", "SKY", "GROUND",
+           "Frame", "TargetView", "Run", "load_run", "write_video", "write_images", "look_at",
+           "Model", "quadrotor_model", "camera_model", "sphere_model", "auto_target_style", "body_models",
+           "line_segments", "stack_models", "HULL", "FRONT", "REAR", "MOTOR", "ROTOR", "TARGET", "TARGET_DRONE",
+           "NET", "TETHER", "CAMERA", "LENS"]
 
 SKY, GROUND = 0, 1                 # ids of the background in Frame.ids
 
@@ -112,192 +127,10 @@ def _background_lut(lighting: Lighting) -> np.ndarray:
     return np.clip(np.round(lut * 255), 0, 255).astype(np.uint8)
 
 
-# --- object models (body frame) -------------------------------------------------------------
-
-
-@dataclass
-class _Model:
-    """Primitives of one object in its body frame (x forward, y left, z up; m)."""
-
-    e_centre: list = field(default_factory=list)      # (3,)
-    e_axes: list = field(default_factory=list)        # (3, 3)
-    e_semi: list = field(default_factory=list)        # (3,)
-    e_colour: list = field(default_factory=list)
-    c_a: list = field(default_factory=list)
-    c_b: list = field(default_factory=list)
-    c_radius: list = field(default_factory=list)
-    c_colour: list = field(default_factory=list)
-
-    def ellipsoid(self, centre, semi, colour, axes=None):
-        self.e_centre.append(np.asarray(centre, float))
-        self.e_semi.append(np.asarray(semi, float))
-        self.e_axes.append(np.eye(3) if axes is None else np.asarray(axes, float))
-        self.e_colour.append(np.asarray(colour, float))
-
-    def capsule(self, a, b, radius, colour):
-        self.c_a.append(np.asarray(a, float))
-        self.c_b.append(np.asarray(b, float))
-        self.c_radius.append(float(radius))
-        self.c_colour.append(np.asarray(colour, float))
-
-
-HULL = (0.80, 0.81, 0.84)
-FRONT = (0.85, 0.12, 0.08)
-REAR = (0.16, 0.16, 0.18)
-MOTOR = (0.10, 0.10, 0.11)
-ROTOR = (0.62, 0.64, 0.68)
-TARGET = (0.95, 0.42, 0.05)
-TARGET_DRONE = (0.10, 0.10, 0.10)
-NET = (0.93, 0.93, 0.88)
-TETHER = (0.95, 0.80, 0.15)
-CAMERA = (0.12, 0.12, 0.14)
-LENS = (0.02, 0.02, 0.03)
-
-
-def quadrotor_model(arm_length, angle, hull=HULL, front=FRONT, rear=REAR) -> _Model:
-    """A quadrotor: hull, arms to ``d_i = l_i (sin a_i, cos a_i, 0)`` (the scene's rotor layout),
-    motors and rotor discs, sized by the mean arm length L (rotor tips at 1.48 L)."""
-    arm = np.asarray(arm_length, float)
-    ang = np.asarray(angle, float)
-    L = float(arm.mean())
-    m = _Model()
-    m.ellipsoid((0, 0, 0), (0.42 * L, 0.30 * L, 0.16 * L), hull)
-    for l_i, a_i in zip(arm, ang):
-        d = np.array([l_i * np.sin(a_i), l_i * np.cos(a_i), 0.0])
-        m.capsule((0, 0, 0), d, 0.07 * L, front if d[0] > 1e-9 else rear)
-        m.capsule(d - (0, 0, 0.10 * L), d + (0, 0, 0.18 * L), 0.11 * L, MOTOR)
-        m.ellipsoid(d + (0, 0, 0.24 * L), (0.48 * L, 0.48 * L, 0.025 * L), ROTOR)
-    return m
-
-
-def camera_model() -> _Model:
-    """A camera body: a small dark box (ellipsoid) with a lens along the optical axis (+x)."""
-    m = _Model()
-    m.ellipsoid((0, 0, 0), (0.018, 0.015, 0.015), CAMERA)
-    m.capsule((0.012, 0, 0), (0.024, 0, 0), 0.008, LENS)
-    return m
-
-
-def sphere_model(radius: float, colour=TARGET) -> _Model:
-    m = _Model()
-    m.ellipsoid((0, 0, 0), (radius, radius, radius), colour)
-    return m
-
-
-# --- outputs --------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class TargetView:
-    """Where the target is in one frame (boxes: see the module doc for the pixel convention)."""
-
-    box: np.ndarray | None        # (4,) px (u_min, v_min, u_max, v_max) of the visible pixels; None: none visible
-    full_box: np.ndarray | None   # (4,) px, the same for the silhouette with no occluders; None: out of view
-    visible_fraction: float       # visible pixels / silhouette pixels (0 when out of view)
-    visible_px: int               # pixels showing the target
-    full_px: int                  # pixels of its unoccluded silhouette within the image
-    centre: np.ndarray            # (2,) px, projection of the target's centre (meaningless when depth <= 0)
-    depth: float                  # m, depth of the target's centre along the optical axis
-
-
-@dataclass(frozen=True)
-class Frame:
-    """One rendered camera image and its ground truth."""
-
-    image: np.ndarray            # (H, W, 3) uint8 RGB
-    depth: np.ndarray            # (H, W) float32 m along the optical axis of the surface seen; inf on sky
-    ids: np.ndarray              # (H, W) int16 object id, an index into ``names`` (0 sky, 1 ground)
-    names: tuple[str, ...]       # object name of every id
-    target: TargetView | None    # None when the scene has no target
-    row: int                     # output row of the run
-    t: float                     # s
-    camera: str
-    R: np.ndarray                # (3, 3) OpenCV camera frame -> world
-    p: np.ndarray                # (3,) m, optical centre in the world
-
-    def mask(self, name: str) -> np.ndarray:
-        """(H, W) bool: pixels showing object ``name`` ('sky', 'ground', a body, 'net', 'tether0', ...)."""
-        if name not in self.names:
-            raise PerceptionError(f"no object '{name}' in this frame; objects: {', '.join(self.names)}")
-        return self.ids == self.names.index(name)
-
-
-@dataclass(frozen=True)
-class Run:
-    """A saved run: its resolved scene config and trajectory columns."""
-
-    folder: Path
-    config: object                    # SceneConfig
-    columns: dict[str, np.ndarray]    # column name -> (N,) values
-
-    @property
-    def fps(self) -> float:
-        """Output rows per second of simulated time."""
-        t = self.columns["time"]
-        return float((len(t) - 1) / (t[-1] - t[0])) if len(t) > 1 and t[-1] > t[0] else 1.0
-
-
-def load_run(folder: str | Path) -> Run:
-    """Read ``trajectory.csv`` and ``config.yaml`` of a run folder written by ``scripts/simulate.py``."""
-    folder = Path(folder)
-    if not folder.is_dir():
-        raise PerceptionError(f"run folder {folder} does not exist; write one with "
-                              f"scripts/simulate.py CONFIG --out {folder}")
-    missing = [n for n in ("trajectory.csv", "config.yaml") if not (folder / n).is_file()]
-    if missing:
-        raise PerceptionError(f"run folder {folder} has no {' or '.join(missing)}; it must be the --out folder of "
-                              f"scripts/simulate.py (which writes both)")
-    try:
-        config = load_config(folder / "config.yaml")
-    except ConfigError as err:
-        raise PerceptionError(f"run folder {folder}: {err}") from None
-    try:
-        columns = read_trajectory_csv(folder / "trajectory.csv")
-    except (ValueError, OSError) as err:
-        raise PerceptionError(f"run folder {folder}: trajectory.csv cannot be read ({err})") from None
-    return Run(folder=folder, config=config, columns=columns)
-
-
-def look_at(eye, target, t, up=(0.0, 0.0, 1.0), name: str = "observer") -> CameraPoses:
-    """Poses of a free camera at ``eye`` looking at ``target`` ((3,) or (N, 3) m each) at times ``t`` (N,).
-
-    The image's up direction is ``up`` projected on the image plane (world z: no roll).
-    """
-    t = np.atleast_1d(np.asarray(t, dtype=float))
-    eye = np.broadcast_to(np.asarray(eye, dtype=float), (len(t), 3))
-    target = np.broadcast_to(np.asarray(target, dtype=float), (len(t), 3))
-    z = target - eye
-    norm = np.linalg.norm(z, axis=1, keepdims=True)
-    if np.any(norm < 1e-9):
-        raise PerceptionError("look_at: eye and target coincide; the camera has no direction")
-    z = z / norm
-    x = np.cross(z, np.asarray(up, dtype=float))
-    xn = np.linalg.norm(x, axis=1, keepdims=True)
-    if np.any(xn < 1e-9):
-        raise PerceptionError("look_at: the camera looks straight along 'up'; pass another up vector")
-    x = x / xn
-    y = np.cross(z, x)
-    R = np.stack([x, y, z], axis=-1)
-    return CameraPoses(name=name, t=t, R=R, p=eye.copy())
-
-
 # --- the renderer ---------------------------------------------------------------------------
 
 
 _POSE = ("x", "y", "z", "qw", "qx", "qy", "qz")
-
-
-def _stack(models: list[_Model]):
-    """Concatenate models: ellipsoid and capsule arrays with the index of their model."""
-    e_owner = np.concatenate([np.full(len(m.e_centre), k) for k, m in enumerate(models)] or [np.zeros(0)]).astype(int)
-    c_owner = np.concatenate([np.full(len(m.c_a), k) for k, m in enumerate(models)] or [np.zeros(0)]).astype(int)
-
-    def cat(key, shape):
-        rows = [x for m in models for x in getattr(m, key)]
-        return np.asarray(rows, dtype=float).reshape((-1,) + shape)
-
-    return (e_owner, cat("e_centre", (3,)), cat("e_axes", (3, 3)), cat("e_semi", (3,)), cat("e_colour", (3,)),
-            c_owner, cat("c_a", (3,)), cat("c_b", (3,)), cat("c_radius", ()), cat("c_colour", (3,)))
 
 
 def _check_settings(intr: Intrinsics, target_style, min_line_px) -> None:
@@ -314,80 +147,6 @@ def _check_settings(intr: Intrinsics, target_style, min_line_px) -> None:
         raise PerceptionError(f"target_style must be 'auto', 'sphere' or 'drone', got {target_style!r}")
     if not min_line_px >= 0:
         raise PerceptionError(f"min_line_px must be >= 0, got {min_line_px}")
-
-
-def auto_target_style(config) -> str:
-    """How ``target_style="auto"`` draws the scene's target: ``"drone"`` for a maneuvering
-    target (the evading drone), else ``"sphere"``."""
-    return "drone" if config.target.behaviour == "maneuvering" else "sphere"
-
-
-def _body_models(config, target_style):
-    """The bodies drawn, in the order of their models (the target, the quadrotors, their
-    cameras), the models, and each camera's quadrotor."""
-    bodies: list[str] = []
-    models: list[_Model] = []
-    camera_owner: dict[str, str] = {}
-    target = getattr(config, "target", None)
-    if target is not None:
-        style = auto_target_style(config) if target_style == "auto" else target_style
-        bodies.append(target.name)
-        if style == "drone":
-            L = target.radius / 1.48
-            models.append(quadrotor_model((L,) * 4, tuple(np.pi / 4 + k * np.pi / 2 for k in range(4)),
-                                          hull=TARGET_DRONE, front=TARGET, rear=TARGET_DRONE))
-        else:
-            models.append(sphere_model(target.radius))
-    for q in config.quadrotors:
-        bodies.append(q.body)
-        models.append(quadrotor_model(q.rotors.arm_length, q.rotors.angle))
-    for q in config.quadrotors:
-        for cam in q.cameras:
-            bodies.append(cam.name)
-            models.append(camera_model())
-            camera_owner[cam.name] = q.body
-    return bodies, models, camera_owner
-
-
-def _line_segments(net, bodies, names):
-    """The net's lines and tethers as segments between trajectory points (or, at a UAV's
-    end, tether markers): ``(points, [(point a, point b, object id)], radii, colours,
-    [(body index, attach point in the body frame)])``. Appends the net's and each tether's
-    object name to ``names``."""
-    points: list[str] = []
-    segments: list[tuple[int, int, int]] = []
-    radius: list[float] = []
-    colours: list[tuple] = []
-    markers: list[tuple[int, np.ndarray]] = []
-    if net is None:
-        return points, segments, radius, colours, markers
-    index: dict[str, int] = {}
-
-    def point(n):
-        if n not in index:
-            index[n] = len(points)
-            points.append(n)
-        return index[n]
-
-    net_id = len(names)
-    names.append(net.name)
-    for chain in net.edge_chains():
-        ids = [point(n) for n in chain]
-        segments += [(a, b, net_id) for a, b in zip(ids[:-1], ids[1:])]
-        radius += [net.line.diameter / 2] * (len(ids) - 1)
-        colours += [NET] * (len(ids) - 1)
-    if net.tethers is not None:
-        t = net.tethers
-        for k, (uav, knot) in enumerate(zip(t.uavs, net.tether_knots())):
-            tether_id = len(names)
-            names.append(f"tether{k}")
-            chain = [point(net.knot_name(*knot))] + [point(f"{net.name}_t{k}_{m}") for m in range(t.n_masses)]
-            markers.append((bodies.index(uav), np.asarray(t.attach, float)))
-            chain.append(-len(markers))           # negative: a tether marker (resolved at render)
-            segments += [(a, b, tether_id) for a, b in zip(chain[:-1], chain[1:])]
-            radius += [t.line.diameter / 2] * (len(chain) - 1)
-            colours += [TETHER] * (len(chain) - 1)
-    return points, segments, radius, colours, markers
 
 
 class Renderer:
@@ -420,7 +179,7 @@ class Renderer:
 
         target = getattr(config, "target", None)
         self.target_name = None if target is None else target.name
-        bodies, models, self.camera_owner = _body_models(config, target_style)
+        bodies, models, self.camera_owner = body_models(config, target_style)
         names = ["sky", "ground"] + bodies
         unknown = sorted(self.hide - set(bodies))
         if unknown:
@@ -429,9 +188,9 @@ class Renderer:
         self._bodies = bodies
         self._body_columns = [f"{b}_{k}" for b in bodies for k in _POSE]
         (self._e_owner, self._e_centre, self._e_axes, self._e_semi, self._e_colour,
-         self._c_owner, self._c_a, self._c_b, self._c_radius, self._c_colour) = _stack(models)
+         self._c_owner, self._c_a, self._c_b, self._c_radius, self._c_colour) = stack_models(models)
 
-        points, segments, radius, colours, self._markers = _line_segments(getattr(config, "net", None), bodies, names)
+        points, segments, radius, colours, self._markers = line_segments(getattr(config, "net", None), bodies, names)
         self._points = points
         self._point_columns = [f"{n}_{a}" for n in points for a in "xyz"]
         seg = np.asarray(segments, dtype=int).reshape(-1, 3)
@@ -675,74 +434,3 @@ class Renderer:
                           visible_fraction=float(visible.size / silhouette.size) if silhouette.size else 0.0,
                           visible_px=int(visible.size), full_px=int(silhouette.size), centre=centre, depth=z)
 
-
-# --- writers --------------------------------------------------------------------------------
-
-
-def _rgb(frame) -> np.ndarray:
-    image = frame.image if isinstance(frame, Frame) else np.asarray(frame)
-    if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
-        raise PerceptionError(f"a frame must be a Frame or an (H, W, 3) uint8 RGB image, got "
-                              f"{image.dtype} {image.shape}")
-    return image
-
-
-def write_video(frames: Iterable, path: str | Path, fps: float = 20.0) -> int:
-    """Write frames (:class:`Frame` or (H, W, 3) uint8 RGB) to a video file; returns the frame count.
-
-    The codec follows the suffix: ``.mp4`` (MPEG-4 part 2), ``.avi`` (Motion JPEG).
-    """
-    path = Path(path)
-    codecs = {".mp4": "mp4v", ".avi": "MJPG"}
-    if path.suffix.lower() not in codecs:
-        raise PerceptionError(f"video file {path} must end in .mp4 or .avi (or write images with write_images)")
-    if not fps > 0:
-        raise PerceptionError(f"fps must be positive, got {fps}")
-    if not path.parent.is_dir():
-        raise PerceptionError(f"folder {path.parent} does not exist; create it first")
-    writer = None
-    count = 0
-    try:
-        for frame in frames:
-            image = _rgb(frame)
-            if writer is None:
-                size = (image.shape[1], image.shape[0])
-                writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*codecs[path.suffix.lower()]), float(fps), size)
-                if not writer.isOpened():
-                    raise PerceptionError(f"OpenCV cannot write {path} with codec {codecs[path.suffix.lower()]}; "
-                                          f"try .avi or write_images")
-            elif (image.shape[1], image.shape[0]) != size:
-                raise PerceptionError(f"frame {count} is {image.shape[1]} x {image.shape[0]} px but the video is "
-                                      f"{size[0]} x {size[1]}; all frames must have one size")
-            writer.write(cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
-            count += 1
-    finally:
-        if writer is not None:
-            writer.release()
-    if count == 0:
-        raise PerceptionError(f"no frames to write to {path}")
-    return count
-
-
-def write_images(frames: Iterable[Frame], folder: str | Path, prefix: str = "frame") -> int:
-    """Write every frame as ``PREFIX_ROW.png`` into ``folder`` (created) and the target's boxes as
-    ``targets.csv`` (row, t, box, full box, visible fraction; empty cells when absent); returns the count."""
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    count = 0
-    with open(folder / "targets.csv", "w", newline="") as fh:
-        out = csv.writer(fh)
-        out.writerow(["row", "t", "u_min", "v_min", "u_max", "v_max",
-                      "full_u_min", "full_v_min", "full_u_max", "full_v_max", "visible_fraction"])
-        for frame in frames:
-            if not isinstance(frame, Frame):
-                raise PerceptionError(f"write_images takes Frames (Renderer.render_many), got {type(frame).__name__}")
-            if not cv2.imwrite(str(folder / f"{prefix}_{frame.row:05d}.png"), cv2.cvtColor(frame.image, cv2.COLOR_RGB2BGR)):
-                raise PerceptionError(f"OpenCV could not write {folder / f'{prefix}_{frame.row:05d}.png'}")
-            tv = frame.target
-            box = [] if tv is None or tv.box is None else [f"{x:g}" for x in tv.box]
-            full = [] if tv is None or tv.full_box is None else [f"{x:g}" for x in tv.full_box]
-            out.writerow([frame.row, f"{frame.t:.6g}", *(box or [""] * 4), *(full or [""] * 4),
-                          "" if tv is None else f"{tv.visible_fraction:.4f}"])
-            count += 1
-    return count

@@ -40,7 +40,8 @@ from mysim_jax.perception.camera import Intrinsics, PerceptionError, intrinsics 
 from mysim_jax.perception.detect.model import load_detector
 from mysim_jax.perception.gimbal_tracker import GimbalGeometry, GimbalTracker, GimbalTrackerConfig
 from mysim_jax.perception.localize import RANGE_SIGMA, PoseNoise
-from mysim_jax.perception.render import Renderer, auto_target_style
+from mysim_jax.perception.render import Renderer
+from mysim_jax.perception.render_models import auto_target_style
 from mysim_jax.perception.track_cues import _associate_all, _RegionMemory, _team_point
 from mysim_jax.perception.track_detectors import FrameDetector, OracleDetector, RegionDetector, image_detector
 from mysim_jax.sim import rollout, single_env_scene

@@ -31,7 +31,7 @@ from mysim_jax.perception.camera import Intrinsics, PerceptionError, project
 from mysim_jax.perception.gimbal_tracker import GimbalTracker
 from mysim_jax.perception.localize import (box_size_px, box_touches_border, fuse, pixel_bearings, sphere_range,
                                           sphere_size_px)
-from mysim_jax.perception.render import Frame
+from mysim_jax.perception.render_io import Frame
 from mysim_jax.perception.track_detectors import OUT_OF_VIEW, RegionHint, box_centre
 
 

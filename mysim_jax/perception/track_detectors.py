@@ -16,7 +16,7 @@ import numpy as np
 
 from mysim_jax.perception.camera import PerceptionError
 from mysim_jax.perception.detect import Detection
-from mysim_jax.perception.render import Frame
+from mysim_jax.perception.render_io import Frame
 
 
 FrameDetector = Callable[[Frame], list]     # Frame -> detections, best first

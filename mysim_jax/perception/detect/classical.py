@@ -1,7 +1,7 @@
 """The classical baseline: an orange colour threshold, then connected blobs (OpenCV).
 
 What a robotics user tries first for a target of a known colour: both capture targets show
-the target orange (:data:`mysim_jax.perception.render.TARGET`; the sphere all over, the
+the target orange (:data:`mysim_jax.perception.render_models.TARGET`; the sphere all over, the
 evading drone on its front arms). The image is converted to HSV, pixels of orange hue
 (OpenCV hue ``hue`` range, i.e. 10-42 deg, which leaves out the UAVs' red front arms and the
 yellow tethers) with enough saturation and value are kept, closed with a small ellipse (so a

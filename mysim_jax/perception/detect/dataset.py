@@ -29,7 +29,7 @@ free camera (:class:`~mysim_jax.perception.camera.CameraPoses`). Per sample:
   near a held-out palette; held-out frames keep their own);
 * with ``p_empty`` the target is hidden under the ground (a frame with no target).
 
-The ground truth is the renderer's :class:`~mysim_jax.perception.render.TargetView`: ``box``
+The ground truth is the renderer's :class:`~mysim_jax.perception.render_io.TargetView`: ``box``
 bounds the target's visible pixels (occlusion and image border included).
 
 Splits (:data:`TRAIN` and :data:`HELD_OUT`) differ in every sampled range that describes the
