@@ -103,6 +103,12 @@ def test_tether_to_a_body_that_is_not_a_quadrotor():
         config_from_dict(r)
 
 
+
+def test_a_quadrotor_on_a_missing_body_is_named_with_a_spawn_clearance():
+    """The clearance check reads the quadrotors' bodies: one that names no body is the
+    quadrotor check's error, not a crash of the clearance check (a fuzzed --set found it)."""
+    with pytest.raises(ConfigError, match=r"quadrotors\.1\.body: 'nan' is not a body"):
+        load_config(CONFIGS / "capture_env_maneuvering.yaml", ["quadrotors.1.body=nan"])
 @pytest.mark.parametrize("edit, message", [
     (lambda t: t["spawn"]["position"].update(low=[0.0, 0.0, 7.0], high=[1.0, 1.0, 6.0]),
      r"target\.spawn\.position.*empty range: low > high on axis z"),

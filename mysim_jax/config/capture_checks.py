@@ -50,6 +50,8 @@ def clearance_problems(scene) -> list[str]:
         return ["target.spawn.clearance: keeps the spawn away from the quadrotors' centroid, and the scene has "
                 "no quadrotors"]
     bodies = {b.name: b for b in scene.bodies}
+    if any(q.body not in bodies for q in scene.quadrotors):
+        return []        # a quadrotor on a missing body is reported by the quadrotor checks
     centre = [sum(bodies[q.body].pos[a] for q in scene.quadrotors) / len(scene.quadrotors) for a in (0, 1)]
     low, high = scene.target.spawn.position.low, scene.target.spawn.position.high
     # the farthest point of the spawn rectangle from the centroid
