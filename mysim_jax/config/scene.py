@@ -9,7 +9,8 @@ Checks done here: the file itself (UTF-8 YAML text without duplicate keys, see
 :mod:`mysim_jax.core.config_base`), unknown keys, wrong types or shapes, booleans where numbers
 belong, numbers beyond the accepted range, non-positive masses / lengths / stiffnesses,
 an output grid that does not fit the step (``output_dt`` a whole multiple of ``dt``,
-``t_end`` of ``output_dt``) and runs too long to be meant (:data:`MAX_ENV_STEPS`). The
+``t_end`` of ``output_dt``), runs too long to be meant (:data:`MAX_ENV_STEPS`) and the
+``effects:`` blocks of registered effects (:mod:`mysim_jax.config.effect_blocks`). The
 checks across blocks are functions of the validated scene that :class:`SceneConfig` runs:
 duplicate names, references (rope ends, spring ends, joint markers, loads) to things that
 do not exist, contact pairs that list no pair and scenes too large to be meant
@@ -37,6 +38,7 @@ from pydantic import Field, ValidationError, field_validator, model_validator
 
 from mysim_jax.config.capture import TargetConfig, TeamConfig
 from mysim_jax.config.capture_checks import capture_problems
+from mysim_jax.config.effect_blocks import validate_effect_blocks
 from mysim_jax.config.env import EnvConfig
 from mysim_jax.config.overrides import apply_override, unaliased
 from mysim_jax.config.quadrotor import QuadrotorConfig
@@ -387,6 +389,12 @@ class SceneConfig(StrictModel):
     target: TargetConfig | None = None       # see mysim_jax/config/capture.py
     team: TeamConfig | None = None           # see mysim_jax/config/capture.py
     env: EnvConfig | None = None             # see mysim_jax/config/env.py
+    effects: dict[Name, Any] = {}            # registered effects' own blocks, see mysim_jax/config/effect_blocks.py
+
+    @field_validator("effects")
+    @classmethod
+    def _effect_blocks(cls, blocks):
+        return validate_effect_blocks(blocks)
 
     @model_validator(mode="after")
     def _references(self):

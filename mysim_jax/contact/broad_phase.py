@@ -1,4 +1,4 @@
-"""Broad phase for sphere–capsule contact (an effect, see :mod:`mysim_jax.effects.registry`).
+"""Broad phase for sphere–capsule contact (an effect, see docs/effects.md).
 
 A net's lines are hundreds of capsules, and a sphere (the target) touches a handful of
 them at a time. With ``contact.broad_phase: {capsules: K, margin: m}`` the pairs are
@@ -34,6 +34,7 @@ import numpy as np
 from flax import struct
 
 from mysim_jax.contact.forces import ALL_PAIRS, capsule_geometry, contact_loads, sphere_kinematics
+from mysim_jax.core.effect import Effect
 from mysim_jax.dynamics.forces import Loads
 from mysim_jax.dynamics.markers import node_states
 
@@ -62,15 +63,11 @@ def pair_table(scene) -> np.ndarray:
     return np.stack([np.pad(r, (0, width - len(r)), constant_values=-1) for r in rows]).astype(np.int32)
 
 
-def _static(scene) -> BroadPhaseScene:
-    return dict(scene.effects)["capsule_broad_phase"]
-
-
 def select_pairs(scene, params, phys):
     """``(selected, overflow, depth)``: the K pairs of smallest gap of every sphere
     ``(n * K,)``, whether some sphere has more than K pairs within the margin, and the
     penetration of every pair ``(n_capsule_pairs,)`` at ``phys``."""
-    static = _static(scene)
+    static = BROAD_PHASE.static(scene)
     table = pair_table(scene)
     k = min(static.capsules, table.shape[1])
     pos, _, _ = sphere_kinematics(scene, phys)
@@ -93,7 +90,7 @@ def _stage(scene, params, phys, nodes, held):
                         lambda: contact_loads(scene, params, phys, nodes, pairs=selected, spheres=False))
 
 
-class _BroadPhase:
+class _BroadPhase(Effect[BroadPhaseScene, None, BroadPhaseMemory]):
     name = "capsule_broad_phase"
 
     def build(self, config, ctx):
@@ -105,8 +102,8 @@ class _BroadPhase:
 
     def update(self, scene, params, state):
         if not scene.contact.broad_phase:        # the scene has no sphere–capsule pairs
-            return None, state.effects[self.name]
-        memory = state.effects[self.name]
+            return None, self.memory(state)
+        memory = self.memory(state)
         selected, overflow, depth = select_pairs(scene, params, state.phys)
         evaluated = jnp.zeros(depth.shape, bool).at[memory.selected].set(True) | memory.overflowed
         missed = jnp.any((depth > 0.0) & ~evaluated)
@@ -123,7 +120,7 @@ class _BroadPhase:
             selected, overflow, _ = select_pairs(scene, params, state.phys)
             memory = BroadPhaseMemory(selected=selected, overflowed=overflow,
                                       overflow=jnp.zeros((), jnp.int32), missed=jnp.zeros((), jnp.int32))
-        return state.replace(effects={**state.effects, self.name: memory})
+        return self.with_memory(state, memory)
 
     def stages(self, static):
         return (("capsule_contact", _stage),)

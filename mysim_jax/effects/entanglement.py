@@ -1,5 +1,5 @@
 """Entanglement: an evading drone loses its propulsion once its rotors touch the net's
-lines (an effect, see :mod:`mysim_jax.effects.registry`).
+lines (an effect, see docs/effects.md).
 
 Net-based counter-drone systems (launched nets such as SkyWall, drone-carried nets such
 as Fortem's DroneHunter) do not need to hold a drone by its frame: lines that reach its
@@ -34,6 +34,7 @@ import numpy as np
 from flax import struct
 
 from mysim_jax.contact.forces import capsule_geometry, sphere_kinematics
+from mysim_jax.core.effect import Effect
 from mysim_jax.dynamics.markers import node_states
 
 
@@ -56,32 +57,25 @@ class EntanglementMemory:
     touching: jnp.ndarray         # () bool: the rotors touched a line at the last step's start
 
 
-NAME = "entanglement"
-
-
-def _static(scene) -> EntanglementScene:
-    return dict(scene.effects)[NAME]
-
-
 def rotors_touch_lines(scene, params, phys):
     """``()`` bool: is the target within its radius plus ``margin`` of a net line?"""
-    static = _static(scene)
+    static = ENTANGLEMENT.static(scene)
     pos, _, _ = sphere_kinematics(scene, phys)
     node_pos, _ = node_states(scene, params, phys)
     depth = capsule_geometry(scene, params, pos, node_pos, np.asarray(static.pairs, np.int32))[4]
-    return jnp.max(depth) >= -params.effects[NAME].margin
+    return jnp.max(depth) >= -ENTANGLEMENT.params(params).margin
 
 
 def propulsion_share(scene, state):
     """``()`` the share of its propulsion the target keeps, ``1 − e``; None in a scene
     without entanglement (the propulsion is whole and nothing is traced)."""
-    if NAME not in dict(scene.effects):
+    if not ENTANGLEMENT.in_scene(scene):
         return None
-    return 1.0 - state.effects[NAME].level
+    return 1.0 - ENTANGLEMENT.memory(state).level
 
 
-class _Entanglement:
-    name = NAME
+class _Entanglement(Effect[EntanglementScene, EntanglementParams, EntanglementMemory]):
+    name = "entanglement"
 
     def build(self, config, ctx):
         target = config.target
@@ -102,17 +96,11 @@ class _Entanglement:
         return EntanglementScene(pairs=pairs), params, memory
 
     def update(self, scene, params, state):
-        memory = state.effects[NAME]
+        memory = self.memory(state)
         touching = rotors_touch_lines(scene, params, state.phys)
-        step = jnp.asarray(scene.dt, memory.level.dtype) / params.effects[NAME].time
+        step = jnp.asarray(scene.dt, memory.level.dtype) / self.params(params).time
         level = jnp.minimum(1.0, memory.level + jnp.where(touching, step, 0.0))
         return None, EntanglementMemory(level=level, touching=touching)
-
-    def init(self, scene, params, state):
-        return state
-
-    def stages(self, static):
-        return ()
 
 
 ENTANGLEMENT = _Entanglement()

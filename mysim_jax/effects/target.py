@@ -1,5 +1,5 @@
 """The non-cooperative target: a rigid sphere with air drag, falling or evading (an effect,
-see :mod:`mysim_jax.effects.registry`).
+see docs/effects.md).
 
 Forces on the target body (world frame, at its centre of mass):
 
@@ -37,6 +37,7 @@ import numpy as np
 from flax import struct
 
 from mysim_jax.core import rng, vecmath
+from mysim_jax.core.effect import Effect
 from mysim_jax.dynamics.forces import Loads
 from mysim_jax.effects.entanglement import propulsion_share
 
@@ -89,10 +90,6 @@ class TargetMemory:
     next_jink: jnp.ndarray            # () s, when the jink is redrawn
 
 
-def _static(scene) -> TargetScene:
-    return dict(scene.effects)["target"]
-
-
 def evasive_command(static: TargetScene, tp: TargetParams, memory: TargetMemory, phys, t):
     """``(a_cmd (3,), memory)``: the evasive behaviour's commanded acceleration (module docstring)."""
     keys = jax.random.split(memory.key, 3)
@@ -143,14 +140,14 @@ def arena_braking(tp: TargetParams, p, v, cmd):
 
 
 def _drag_stage(scene, params, phys, nodes, held) -> Loads:
-    static = _static(scene)
+    static = TARGET.static(scene)
     v = phys.body_vel[static.body]
-    force = -params.effects["target"].drag_constant * vecmath.safe_norm(v) * v
+    force = -TARGET.params(params).drag_constant * vecmath.safe_norm(v) * v
     return _on_target(scene, phys, static.body, force)
 
 
 def _propulsion_stage(scene, params, phys, nodes, held) -> Loads:
-    static = _static(scene)
+    static = TARGET.static(scene)
     force = params.body_mass[static.body] * (held - params.gravity)
     return _on_target(scene, phys, static.body, force)
 
@@ -162,8 +159,8 @@ def _on_target(scene, phys, body, force) -> Loads:
                  body_torque=jnp.zeros((scene.n_bodies, 3), dtype=dtype))
 
 
-class _Target:
-    """The target effect (see :mod:`mysim_jax.effects.registry` for the protocol)."""
+class _Target(Effect[TargetScene, TargetParams, TargetMemory]):
+    """The target effect (docs/effects.md for the protocol)."""
 
     name = "target"
 
@@ -205,11 +202,11 @@ class _Target:
         return static, params, memory
 
     def update(self, scene, params, state):
-        static = _static(scene)
-        memory = state.effects["target"]
+        static = self.static(scene)
+        memory = self.memory(state)
         if static.behaviour != "maneuvering":
             return None, memory
-        cmd, memory = evasive_command(static, params.effects["target"], memory, state.phys, state.time)
+        cmd, memory = evasive_command(static, self.params(params), memory, state.phys, state.time)
         share = propulsion_share(scene, state)
         if share is not None:      # entangled rotors: the propulsion force m (a_cmd − g) scaled by the share
             cmd = params.gravity + share * (cmd - params.gravity)
@@ -217,7 +214,7 @@ class _Target:
 
     def init(self, scene, params, state):
         """The seeded spawn: a draw from the key the memory holds (``target.seed``)."""
-        return spawn_target(scene, params, state, state.effects["target"].key)
+        return spawn_target(scene, params, state, self.memory(state).key)
 
     def stages(self, static):
         stages = []
@@ -253,8 +250,8 @@ def spawn_target(scene, params, state, key):
     """The state with the target placed by a fresh draw from its spawn ranges (uniform
     position and velocity, at rest in rotation) and its memory re-keyed. Pure: vmap it
     over keys to spawn a batch. The other bodies and points are not touched."""
-    static = _static(scene)
-    tp = params.effects["target"]
+    static = TARGET.static(scene)
+    tp = TARGET.params(params)
     keys = jax.random.split(key, 3)      # position, velocity, the target's next key
     k_next = keys[2]
     dtype = state.phys.body_pos.dtype
@@ -269,6 +266,5 @@ def spawn_target(scene, params, state, key):
         body_quat=state.phys.body_quat.at[b].set(jnp.asarray([1.0, 0.0, 0.0, 0.0], dtype=dtype)),
         body_angvel=state.phys.body_angvel.at[b].set(0.0),
     )
-    memory = state.effects["target"].replace(key=k_next, jink=jnp.zeros(3, dtype=dtype),
-                                              next_jink=state.time)
-    return state.replace(phys=phys, effects={**state.effects, "target": memory})
+    memory = TARGET.memory(state).replace(key=k_next, jink=jnp.zeros(3, dtype=dtype), next_jink=state.time)
+    return TARGET.with_memory(state.replace(phys=phys), memory)

@@ -1,4 +1,4 @@
-"""Air drag on the net's lines (an effect, see :mod:`mysim_jax.effects.registry`).
+"""Air drag on the net's lines (an effect, see docs/effects.md).
 
 Every lumped mass of the net and its tethers carries the quadratic drag of the piece of
 line it stands for (:mod:`mysim_jax.net.config`): ``F_i = −½ ρ (C_d d ℓ)_i |v_i| v_i``
@@ -16,6 +16,7 @@ import numpy as np
 from flax import struct
 
 from mysim_jax.core import vecmath
+from mysim_jax.core.effect import Effect
 from mysim_jax.dynamics.forces import Loads
 from mysim_jax.net.config import net_elements
 
@@ -31,15 +32,15 @@ class LineDragParams:
 
 
 def _stage(scene, params, phys, nodes, held) -> Loads:
-    static = dict(scene.effects)["line_drag"]
+    static = LINE_DRAG.static(scene)
     idx = np.asarray(static.points, dtype=np.int32)
     v = phys.point_vel[idx]
-    force = -(params.effects["line_drag"].constant * vecmath.safe_norm(v))[:, None] * v
+    force = -(LINE_DRAG.params(params).constant * vecmath.safe_norm(v))[:, None] * v
     node_force = jnp.zeros((scene.n_nodes, 3), dtype=v.dtype).at[idx].set(force)
     return Loads.of_nodes(node_force, scene.n_bodies)
 
 
-class _LineDrag:
+class _LineDrag(Effect[LineDragScene, LineDragParams, None]):
     name = "line_drag"
 
     def build(self, config, ctx):
@@ -55,12 +56,6 @@ class _LineDrag:
         constant = 0.5 * net.air_density * np.asarray([areas[n] for n in names])
         static = LineDragScene(points=tuple(ctx.point_names.index(n) for n in names))
         return static, LineDragParams(constant=jnp.asarray(constant, dtype=ctx.dtype)), None
-
-    def update(self, scene, params, state):
-        return None, None
-
-    def init(self, scene, params, state):
-        return state
 
     def stages(self, static):
         return (("line_drag", _stage),)
