@@ -16,7 +16,7 @@ import pytest
 
 from mysim_jax.core import batching
 from mysim_jax.config.scene import ConfigError, load_config
-from mysim_jax.contact.broad_phase import select_pairs
+from mysim_jax.contact.broad_phase import BROAD_PHASE, select_pairs
 from mysim_jax.contact.forces import ALL_PAIRS, contact_loads
 from mysim_jax.tasks.capture import make_env
 
@@ -69,7 +69,7 @@ def test_chosen_pairs_give_the_all_pairs_forces(catches):
 
 def test_counters_report_no_missed_contact_and_the_fallbacks(catches):
     env, params, states, overflow, missed = catches
-    memory = states.sim.effects["capsule_broad_phase"]
+    memory = BROAD_PHASE.memory(states.sim)
     assert memory.selected.shape[-1] == 16
     assert int(np.max(memory.missed)) == 0 and int(missed.sum()) == 0
     # the env's info counts fall-backs per team step (none on this level at K = 16: the

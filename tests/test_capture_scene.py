@@ -171,7 +171,7 @@ def test_spawn_is_reproducible_from_the_seed_and_inside_the_ranges():
 
 
 def test_spawn_vmaps_over_keys():
-    from mysim_jax.effects.target import spawn_target
+    from mysim_jax.effects.target import TARGET, spawn_target
 
     scene, params, state = build(load_config(FALLING))
     body = scene.body_names.index("target")
@@ -179,7 +179,7 @@ def test_spawn_vmaps_over_keys():
     states = jax.vmap(lambda k: spawn_target(scene, params, state, k))(keys)
     p = np.asarray(states.phys.body_pos[:, body])
     assert len(np.unique(p[:, 0])) == 64
-    low, high = np.asarray(params.effects["target"].spawn_pos_low), np.asarray(params.effects["target"].spawn_pos_high)
+    low, high = np.asarray(TARGET.params(params).spawn_pos_low), np.asarray(TARGET.params(params).spawn_pos_high)
     assert np.all(p >= low - 1e-6) and np.all(p <= high + 1e-6)
     # a uniform draw: the mean of 64 draws is within 4 standard errors of the middle
     sem = (high - low) / math.sqrt(12.0 * 64)

@@ -84,14 +84,14 @@ def test_entanglement_grows_with_contact_never_falls_and_scales_the_propulsion()
         _, memory = ENTANGLEMENT.update(scene, params, s)
         level = min(1.0, level + scene.dt / TIME)
         np.testing.assert_allclose(float(memory.level), level, rtol=1e-5, atol=1e-6)
-        s = s.replace(effects={**s.effects, "entanglement": memory})
+        s = ENTANGLEMENT.with_memory(s, memory)
     assert float(memory.level) == 1.0
-    moved = away.replace(effects={**away.effects, "entanglement": memory.replace(level=jnp.asarray(0.4))})
+    moved = ENTANGLEMENT.with_memory(away, memory.replace(level=jnp.asarray(0.4)))
     _, after = ENTANGLEMENT.update(scene, params, moved)
     assert float(after.level) == pytest.approx(0.4) and not bool(after.touching)
     # the propulsion keeps the share 1 - e of its force m (a_cmd - g)
-    static = dict(scene.effects)["target"]
-    a_cmd, _ = evasive_command(static, params.effects["target"], moved.effects["target"], moved.phys, moved.time)
+    a_cmd, _ = evasive_command(TARGET.static(scene), TARGET.params(params), TARGET.memory(moved), moved.phys,
+                               moved.time)
     held, _ = TARGET.update(scene, params, moved)
     g = np.asarray(params.gravity)
     np.testing.assert_allclose(np.asarray(held) - g, 0.6 * (np.asarray(a_cmd) - g), rtol=1e-5, atol=1e-6)
@@ -116,7 +116,7 @@ def test_a_drone_hovering_on_the_net_drops_into_it_only_when_entangled():
             return step(scene, params, x, hold(scene, params, x))
         advance = jax.jit(lambda s: jax.lax.fori_loop(0, 300, period, s))
         end = advance(s)
-        level = float(end.effects["entanglement"].level) if "entanglement" in end.effects else 0.0
+        level = float(ENTANGLEMENT.memory(end).level) if ENTANGLEMENT.in_scene(scene) else 0.0
         return float(end.phys.body_pos[b, 2] - start[2]), level
 
     drop, level = run([])
@@ -153,7 +153,7 @@ def test_simulate_verdict_needs_the_entanglement_column_to_reach_the_threshold()
 
     def caught(levels):
         memory = EntanglementMemory(level=np.asarray(levels, np.float32), touching=np.ones(len(times), bool))
-        traj = Trajectory(time=times, phys=phys, acc=acc, effects={"entanglement": memory})
+        traj = Trajectory(time=times, phys=phys, acc=acc, effects={ENTANGLEMENT.name: memory})
         columns = trajectory_columns(scene, traj)
         np.testing.assert_array_equal(columns["target_entanglement"], np.asarray(levels, np.float32))
         return capture_outcome(columns, cfg)
@@ -183,6 +183,6 @@ def test_simulate_verdict_takes_the_scenes_success_thresholds():
     acc = Accelerations(point_acc=np.zeros_like(phys.point_pos), body_acc=np.zeros_like(phys.body_pos),
                         body_angacc=np.zeros_like(phys.body_pos))
     memory = EntanglementMemory(level=np.full(len(times), 0.6, np.float32), touching=np.ones(len(times), bool))
-    columns = trajectory_columns(scene, Trajectory(time=times, phys=phys, acc=acc, effects={"entanglement": memory}))
+    columns = trajectory_columns(scene, Trajectory(time=times, phys=phys, acc=acc, effects={ENTANGLEMENT.name: memory}))
     assert capture_outcome(columns, cfg).caught
     assert not capture_outcome(columns, cfg, min_entanglement=1.0).caught

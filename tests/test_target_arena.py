@@ -18,7 +18,7 @@ import pytest
 
 from mysim_jax.build import build
 from mysim_jax.config.scene import ConfigError, load_config
-from mysim_jax.effects.target import evasive_command, spawn_target
+from mysim_jax.effects.target import TARGET, evasive_command, spawn_target
 
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "capture_env_maneuvering.yaml"
 LOW, HIGH = np.array([-4.0, -4.0, 1.5]), np.array([4.0, 4.0, 5.0])
@@ -29,8 +29,8 @@ def _flights(overrides, n_targets=256, seconds=12.0):
     """Centre positions ``(n_targets, steps, 3)`` of targets spawned from distinct keys."""
     config = load_config(CONFIG, overrides)
     scene, params, state = build(config)
-    static = dict(scene.effects)["target"]
-    tp = params.effects["target"]
+    static = TARGET.static(scene)
+    tp = TARGET.params(params)
     b = static.body
     mass = params.body_mass[b]
     dt = scene.dt
@@ -49,7 +49,7 @@ def _flights(overrides, n_targets=256, seconds=12.0):
             return (phys, memory, t + dt), phys.body_pos[b]
 
         steps = int(round(seconds / dt))
-        return jax.lax.scan(step, (s.phys, s.effects["target"], s.time), None, length=steps)[1]
+        return jax.lax.scan(step, (s.phys, TARGET.memory(s), s.time), None, length=steps)[1]
 
     keys = jax.random.split(jax.random.PRNGKey(3), n_targets)
     return np.asarray(jax.jit(jax.vmap(flight))(keys))
@@ -97,7 +97,7 @@ def test_the_spawn_keeps_its_clearance_and_stays_uniform_over_what_is_left():
     def spawns(overrides, n=4096):
         config = load_config(CONFIG, overrides)
         scene, params, state = build(config)
-        b = dict(scene.effects)["target"].body
+        b = TARGET.static(scene).body
         keys = jax.random.split(jax.random.PRNGKey(11), n)
         return np.asarray(jax.jit(jax.vmap(lambda k: spawn_target(scene, params, state, k).phys.body_pos[b]))(keys))
 

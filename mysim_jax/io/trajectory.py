@@ -22,8 +22,10 @@ from pathlib import Path
 
 import numpy as np
 
-from mysim_jax.sim import Trajectory
 from mysim_jax.core.types import Scene
+from mysim_jax.effects.entanglement import ENTANGLEMENT
+from mysim_jax.effects.target import TARGET
+from mysim_jax.sim import Trajectory
 
 _XYZ = ("x", "y", "z")
 
@@ -43,9 +45,9 @@ def trajectory_columns(scene: Scene, traj: Trajectory) -> dict[str, np.ndarray]:
         for key, arr in (("v", traj.phys.body_vel), ("a", traj.acc.body_acc), ("w", traj.phys.body_angvel)):
             for c, axis in enumerate(_XYZ):
                 cols[f"{name}_{key}{axis}"] = np.asarray(arr[:, i, c])
-    effects, memory = dict(scene.effects), getattr(traj, "effects", None) or {}
-    if "entanglement" in memory and "target" in effects:
-        cols[f"{scene.body_names[effects['target'].body]}_entanglement"] = np.asarray(memory["entanglement"].level)
+    entanglement = ENTANGLEMENT.memory_or_none(traj)
+    if entanglement is not None and TARGET.in_scene(scene):
+        cols[f"{scene.body_names[TARGET.static(scene).body]}_entanglement"] = np.asarray(entanglement.level)
     return cols
 
 

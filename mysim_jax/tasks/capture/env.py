@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from mysim_jax.contact.broad_phase import BROAD_PHASE
 from mysim_jax.control.setpoint import setpoint_from_action
 from mysim_jax.effects.target import spawn_target
 from mysim_jax.sim import step as sim_step
@@ -119,10 +120,10 @@ class CaptureEnv(VerdictMixin, ObservationsMixin, PerceptionErrorsMixin, Randomi
             "episode_length": steps,
             "done": done,
         }
-        if "capsule_broad_phase" in sim.effects:
+        if BROAD_PHASE.in_scene(self.scene):
             # control periods of this team step that fell back to all sphere-capsule pairs,
             # and that began with a contact the broad phase had not chosen (must stay 0)
-            before, now = state.sim.effects["capsule_broad_phase"], sim.effects["capsule_broad_phase"]
+            before, now = BROAD_PHASE.memory(state.sim), BROAD_PHASE.memory(sim)
             info["broad_phase_overflow"] = now.overflow - before.overflow
             info["broad_phase_missed"] = now.missed - before.missed
         errors = (self._step_errors(jax.random.fold_in(key, 2), state.perception, params, dtype, state.sim, sim)

@@ -12,6 +12,7 @@ import numpy as np
 
 from mysim_jax.core import rng
 from mysim_jax.core.types import Params
+from mysim_jax.effects.target import TARGET
 from mysim_jax.tasks.capture.types import Episode, EnvParams, Ranges
 
 
@@ -37,9 +38,9 @@ class RandomisationMixin:
         ratio = ep.target_mass / sim.body_mass[t]
         body_mass = body_mass.at[t].set(ep.target_mass)
         inertia = inertia.at[t].multiply(ratio)
-        tp = sim.effects["target"].replace(flee_acceleration=ep.flee_acceleration,
-                                           jink_acceleration=ep.jink_acceleration, max_speed=ep.max_speed)
-        sim = sim.replace(body_mass=body_mass, body_inertia=inertia, effects={**sim.effects, "target": tp})
+        tp = TARGET.params(sim).replace(flee_acceleration=ep.flee_acceleration,
+                                        jink_acceleration=ep.jink_acceleration, max_speed=ep.max_speed)
+        sim = TARGET.with_params(sim.replace(body_mass=body_mass, body_inertia=inertia), tp)
         if self.randomized_wind:
             qp = sim.quadrotor
             sim = sim.replace(quadrotor=qp.replace(wind_force=qp.wind_force + ep.wind_force[None, :]))

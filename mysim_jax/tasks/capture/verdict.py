@@ -12,6 +12,7 @@ import numpy as np
 from mysim_jax.config.env import COST_TERMS, CRASHES, MISSES, OUTCOME_TERMS, REWARD_TERMS, SHAPING_TERMS
 from mysim_jax.core.types import Params, State
 from mysim_jax.dynamics.quaternion import quat_rotate
+from mysim_jax.effects.entanglement import ENTANGLEMENT
 from mysim_jax.tasks.capture.types import EnvParams, EnvState
 from mysim_jax.tasks.rewards import Snapshot, checks, cost_terms, hold_reached, outcome_terms, potential_terms
 
@@ -106,7 +107,7 @@ class VerdictMixin:
             knot_pos=phys.point_pos[knots], knot_vel=phys.point_vel[knots],
             border=phys.point_pos[np.asarray(self.border_points, dtype=np.int32)], attach=attach,
             line_a=phys.point_pos[a], line_b=phys.point_pos[b],
-            entanglement=sim.effects["entanglement"].level if "entanglement" in sim.effects else None)
+            entanglement=ENTANGLEMENT.memory(sim).level if ENTANGLEMENT.in_scene(self.scene) else None)
 
     def flags(self, snap: Snapshot):
         return checks(snap, target_radius=self.target_radius, line_radius=self.line_radius,
