@@ -141,7 +141,7 @@ def _arrays(dtype):
     return arr
 
 
-def _quadrotor_scene(quads, body_names, marker_names, gimbals) -> QuadrotorScene:
+def _quadrotor_scene(quads, body_names, marker_names, gimbals, wind_input: bool) -> QuadrotorScene:
     body_index = {n: i for i, n in enumerate(body_names)}
     return QuadrotorScene(
         body=tuple(body_index[q.body] for q in quads),
@@ -151,7 +151,7 @@ def _quadrotor_scene(quads, body_names, marker_names, gimbals) -> QuadrotorScene
         setpoint_mode=quads[0].controller.setpoint_mode if quads[0].controller else "position",
         has_motor_lag=any(q.rotors.time_constant is not None for q in quads),
         has_drag=any(q.drag is not None for q in quads),
-        has_wind=any(q.wind is not None for q in quads),
+        has_wind=wind_input or any(q.wind is not None for q in quads),
         gimbal_marker_i=tuple(marker_names.index(f"{quads[qi].body}.{c.name}_mount") for qi, c in gimbals),
         gimbal_marker_j=tuple(marker_names.index(f"{c.name}.mount") for _, c in gimbals),
         camera_names=tuple(c.name for q in quads for c in q.cameras),
@@ -247,10 +247,12 @@ def _control_params(quads, masses, com, inertias, arr) -> ControlParams:
     )
 
 
-def build_quadrotors(config: SceneConfig, body_names, marker_names, dtype):
+def build_quadrotors(config: SceneConfig, body_names, marker_names, dtype, wind_input: bool = False):
     """``(QuadrotorScene, QuadrotorParams, ControlParams | None, ControlState)`` or all None.
 
-    ``config`` must already be expanded (:func:`expand_cameras`).
+    ``config`` must already be expanded (:func:`expand_cameras`). ``wind_input``: the scene
+    takes a wind force on every quadrotor even where none has ``wind:`` (an environment
+    that draws one per episode adds it to ``QuadrotorParams.wind_force``).
     """
     quads = config.quadrotors
     if not quads:
@@ -259,7 +261,7 @@ def build_quadrotors(config: SceneConfig, body_names, marker_names, dtype):
     _check_servo_stability(config, bodies)
     arr = _arrays(dtype)
     gimbals = [(qi, c) for qi, q in enumerate(quads) for c in q.cameras if c.mount == "gimbal"]
-    qs = _quadrotor_scene(quads, body_names, marker_names, gimbals)
+    qs = _quadrotor_scene(quads, body_names, marker_names, gimbals, wind_input)
     qp = _quadrotor_params(quads, gimbals, arr)
     masses, com, inertias = _vehicles(quads, bodies)
     speeds = _hover_speeds(quads, masses, com, float(np.linalg.norm(config.gravity)))

@@ -4,8 +4,6 @@ its :class:`~mysim_jax.tasks.capture.types.EnvParams` (traced)."""
 
 from __future__ import annotations
 
-import dataclasses
-
 import jax.numpy as jnp
 import numpy as np
 
@@ -45,8 +43,6 @@ def make_env(config) -> tuple[CaptureEnv, EnvParams]:
         raise ValueError(f"scene '{config.name}': no env: block (add `env: {{}}` for the defaults)")
     env_cfg, net = config.env, config.net
     scene, params, state = build(config)
-    if env_cfg.randomize.wind_force is not None and not scene.quadrotor.has_wind:
-        scene = dataclasses.replace(scene, quadrotor=dataclasses.replace(scene.quadrotor, has_wind=True))
     team = team_policy(config.model_copy(update={"team": config.team or _default_team()}), scene)
     quads = [q.body for q in config.quadrotors]
     bodies = {b.name: b for b in config.bodies}
