@@ -58,7 +58,7 @@ def force_stages(scene: Scene) -> tuple[tuple[str, ForceStage], ...]:
 
     Each stage is ``fn(scene, params, phys, nodes, inputs) -> Loads`` with ``nodes`` the
     ``(node_pos, node_vel)`` table and ``inputs`` the actuator commands held over the step
-    (``None`` when the scene has no actuators). Registered effects (:mod:`mysim_jax.effects.registry`)
+    (``None`` when the scene has no actuators). Registered effects (docs/effects.md)
     add their stages after these, each called with what its own update holds instead of
     ``inputs``; new effects register there, not here.
     """
@@ -214,7 +214,7 @@ def held_inputs(scene: Scene, params: Params, state: State, control=None):
 
 
 def effect_updates(scene: Scene, params: Params, state: State):
-    """Run the update of every effect the scene has (:mod:`mysim_jax.effects.registry`), once per
+    """Run the update of every effect the scene has (docs/effects.md), once per
     environment step. Returns ``(held, memory)``: what each effect's stages hold over the
     step, and the effects' new memory (both dicts by effect name)."""
     held, memory = {}, dict(state.effects)

@@ -8,7 +8,7 @@
   constants, gravity, Baumgarte constants. Traced, differentiable, vmappable.
 * :class:`State` — a pytree: the multibody state :class:`PhysState`, the time, (with
   quadrotors) the controller memory and the memory of registered effects
-  (:mod:`mysim_jax.effects.registry`; the target's PRNG key lives there).
+  (docs/effects.md; the target's PRNG key lives there).
 
 Attachment points ("nodes") are numbered in one table so that springs and rope segments
 can join anything with plain index arrays::
@@ -91,7 +91,7 @@ class Scene:
     contact: ContactScene | None = None
     # --- quadrotors, their controller and cameras (mysim_jax/dynamics/quadrotor.py) ----
     quadrotor: object | None = None   # mysim_jax.dynamics.quadrotor.QuadrotorScene
-    # --- registered effects (mysim_jax/effects/registry.py): ((name, static part), ...) ---------
+    # --- registered effects (docs/effects.md): ((name, static part), ...) ---------------------
     effects: tuple[tuple[str, object], ...] = ()
 
     @property
