@@ -576,6 +576,8 @@ def dump_config(config: SceneConfig) -> str:
     reloads as it is, under the level's name, and refuses to give another level) and drops
     the other levels, which were relative to the original file."""
     data = config.model_dump(mode="json")
+    if not data["effects"]:        # a file without effect blocks dumps as it did before they existed
+        del data["effects"]
     if data["level"] != FULL_LEVEL:
         name = data["level"]
         entry = data["levels"][name]
