@@ -4,6 +4,7 @@ pyproject.toml) and where imports may sit."""
 from __future__ import annotations
 
 import ast
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -73,3 +74,15 @@ def test_no_function_is_longer_than_80_lines_without_saying_why():
                 if length > 80 and "kept whole" not in (ast.get_docstring(node) or "").lower():
                     long.append(f"{path.relative_to(ROOT)}:{node.lineno} {node.name} ({length} lines)")
     assert not long, "functions over 80 lines: " + ", ".join(long)
+
+
+def test_effect_data_is_reached_through_the_effects_typed_accessors():
+    """No code spells an effect's name to index its parts (``params.effects["target"]``,
+    ``dict(scene.effects)[...]``): it asks the effect (``TARGET.params(params)``,
+    docs/effects.md), whose base class (core/effect.py) is the one place that indexes."""
+    pattern = re.compile(r"\.effects\[|dict\([\w.]+\.effects\)\[|\.effects\.get\(")
+    paths = [p for p in sorted(PACKAGE.rglob("*.py")) + sorted((ROOT / "scripts").glob("*.py"))
+             if p != PACKAGE / "core" / "effect.py"]
+    found = [f"{path.relative_to(ROOT)}:{i}" for path in paths
+             for i, line in enumerate(path.read_text().splitlines(), 1) if pattern.search(line)]
+    assert not found, "effect data indexed by name (use the effect's accessors): " + ", ".join(found)
