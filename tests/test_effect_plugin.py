@@ -171,3 +171,20 @@ def test_a_schema_given_by_its_path_is_imported_when_a_file_has_the_block():
         "assert 'jax' not in sys.modules, 'jax imported'\n")
     res = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True)
     assert res.returncode == 0, res.stderr[-2000:]
+
+
+def test_a_name_is_registered_once(push):
+    class Other(Push):
+        pass
+    with pytest.raises(ValueError, match="'toy_push' is registered already"):
+        registry.register(Other())
+    registry.register(PUSH)                 # the same effect again changes nothing
+    assert registry.EFFECTS["toy_push"] is PUSH
+
+
+def test_every_effect_with_a_block_has_its_schema_in_the_config_registry():
+    """A library effect with a YAML block lists its schema (or its path) in EFFECT_BLOCKS,
+    so that a file with the block validates without importing the effect."""
+    missing = [name for name, effect in registry.EFFECTS.items()
+               if effect.schema is not None and EFFECT_BLOCKS.get(name) != effect.schema]
+    assert not missing, missing

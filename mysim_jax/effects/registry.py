@@ -25,7 +25,10 @@ EFFECTS = {effect.name: effect for effect in (BROAD_PHASE, LINE_DRAG, ENTANGLEME
 def register(effect) -> None:
     """Register ``effect`` (after those registered before it): in :data:`EFFECTS` and, if it
     has a YAML block (``effect.schema``), its schema in
-    :data:`~mysim_jax.config.effect_blocks.EFFECT_BLOCKS`. One line adds an effect."""
+    :data:`~mysim_jax.config.effect_blocks.EFFECT_BLOCKS`. One line adds an effect; a second
+    effect under a name already taken is a ValueError."""
+    if EFFECTS.get(effect.name, effect) is not effect:
+        raise ValueError(f"an effect named {effect.name!r} is registered already ({EFFECTS[effect.name]!r})")
     EFFECTS[effect.name] = effect
     if getattr(effect, "schema", None) is not None:
         EFFECT_BLOCKS[effect.name] = effect.schema
