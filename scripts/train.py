@@ -5,6 +5,7 @@
     python scripts/train.py configs/train_capture_falling.yaml --profile scratch   # no cloning
     python scripts/train.py CONFIG --set algo.lr=1e-3 --set run.seed=2 --out runs/mine
     python scripts/train.py --resume runs/mine          # continue a stopped run
+    python scripts/train.py configs/train_capture_falling.yaml --seeds 3   # 3 seeds, one program
 
 CONFIG is a training file with ``env:`` (a capture scene file and its overrides, or a
 builtin toy task), ``algo:`` (MAPPO's settings) and ``run:`` (seed, checkpoints,
@@ -20,6 +21,10 @@ guard, and a run it stops says so in summary.json and curves.png). It writes int
 the final policy (``policy/``, usable as ``scripts/evaluate.py --policy OUT/policy``),
 and at the end the evaluation report of ``scripts/evaluate.py`` (``eval/``) on
 ``run.eval_episodes`` episodes, and ``summary.json``.
+
+``--seeds N`` (``run.seeds``) trains the seeds ``run.seed`` to ``run.seed + N - 1`` side by
+side in one program (vmapped): each seed's files go to ``OUT/seed_<seed>/``, and
+``OUT/seeds.md`` tables them (mean, spread and each seed).
 
 ``--resume OUT`` continues from OUT's last complete checkpoint (a run killed at any
 moment loses at most one checkpoint interval) and finishes as the uninterrupted run would.
@@ -55,6 +60,8 @@ def build_parser() -> argparse.ArgumentParser:
     add_set_argument(parser, "algo.lr=1e-3", "a training-file value")
     parser.add_argument("--profile", default=None, metavar="NAME",
                         help="apply the training file's profile NAME (its profiles: block) before --set")
+    parser.add_argument("--seeds", type=int, default=None, metavar="N",
+                        help="train N seeds (run.seed, run.seed + 1, ...) in one program (sets run.seeds)")
     parser.add_argument("--out", default=None, help="run folder to create (default runs/<name>)")
     parser.add_argument("--resume", default=None, metavar="RUN_DIR", help="continue the run in RUN_DIR")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bars")
@@ -80,10 +87,15 @@ def main(argv=None) -> int:
     from mysim_jax.io.output import OutputError
     from mysim_jax.mappo.run import describe_run, prepare, train_run
 
-    if args.resume is not None and (args.config is not None or args.out is not None or args.profile is not None):
-        return _error("--resume RUN_DIR takes no training file, --out or --profile (the run folder holds them)")
+    if args.resume is not None and (args.config is not None or args.out is not None or args.profile is not None
+                                    or args.seeds is not None):
+        return _error("--resume RUN_DIR takes no training file, --out, --profile or --seeds (the run folder holds "
+                      "them)")
+    if args.seeds is not None and args.seeds < 1:
+        return _error(f"--seeds {args.seeds}: give at least 1")
+    overrides = list(args.overrides) + ([] if args.seeds is None else [f"run.seeds={args.seeds}"])
     try:
-        prepared = prepare(args.config, args.overrides, args.out, args.resume, args.profile)
+        prepared = prepare(args.config, overrides, args.out, args.resume, args.profile)
     except (ConfigError, OutputError) as err:
         return _error(str(err))
     if args.coordinator is not None:

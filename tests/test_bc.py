@@ -62,7 +62,8 @@ def test_the_clone_matches_the_scripted_team_on_held_out_states():
 
     trainer = _trainer("env.level=train")
     ts = trainer.init(jax.random.PRNGKey(0))
-    state, report = bc.clone(trainer, ts, jax.random.PRNGKey(1))
+    state, stats = bc.clone(trainer, ts, jax.random.PRNGKey(1))
+    report = bc.report(trainer, stats)
     assert report["pairs"] == 32 * 16 * 4 and report["holdout_environments"] == 6
     # measured: held-out RMSE 0.04 of actions in [-1, 1] whose spread is ~0.25 horizontally (on
     # both levels)
@@ -102,5 +103,6 @@ def test_dagger_rounds_let_the_clone_fly_and_label_its_states_with_the_scripted_
     # nonzero actions although the clone flew with zero actions)
     np.testing.assert_allclose(flown_by_team.actions[0], flown_by_clone.actions[0], atol=1e-6)
     assert float(np.max(np.abs(flown_by_clone.actions[1:]))) > 1e-3
-    state, report = bc.clone(trainer, ts, jax.random.PRNGKey(4))
+    state, stats = bc.clone(trainer, ts, jax.random.PRNGKey(4))
+    report = bc.report(trainer, stats)
     assert report["pairs"] == 2 * 8 * 6 * 4 and len(report["dagger"]) == 1

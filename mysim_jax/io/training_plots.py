@@ -112,7 +112,8 @@ def plot_runs(runs: dict[str, list[dict]], path: Path, title: str) -> Path | Non
         ax.set_xlabel("wall time of the run [min] (cloning, training, selection)")
         ax.set_ylim(-0.02, 1.02)
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7, loc="lower right")
+        if ax.get_legend_handles_labels()[0]:      # a panel without any run's curve has no legend
+            ax.legend(fontsize=7, loc="lower right")
     axes[0].set_ylabel("success rate")
     fig.suptitle(title)
     fig.tight_layout()

@@ -2,8 +2,11 @@
 
 * :mod:`mysim_jax.mappo.config` — training files (``env:``, ``algo:``, ``run:``), checked
   without JAX;
-* :mod:`mysim_jax.mappo.trainer` — :class:`~mysim_jax.mappo.trainer.Trainer` and
-  :func:`~mysim_jax.mappo.trainer.make_train`;
+* :mod:`mysim_jax.mappo.trainer` — :class:`~mysim_jax.mappo.trainer.Trainer`: MAPPO's
+  state, iteration and scan of iterations;
+* :mod:`mysim_jax.mappo.networks` — the actor, the critic and the deterministic policy;
+* :mod:`mysim_jax.mappo.algorithm` — a whole run as a pure function of a key
+  (:func:`~mysim_jax.mappo.algorithm.make_train`: start, warm start, iterations);
 * :mod:`mysim_jax.mappo.losses` — GAE, the clipped objectives, running normalisers;
 * :mod:`mysim_jax.mappo.checkpoint` — orbax checkpoints and the saved policy;
 * :mod:`mysim_jax.mappo.run` — a training run, from the training file to the evaluated

@@ -2,7 +2,12 @@
 saved policy (``algo.init: policy``, :func:`from_policy`).
 
     demos = collect(trainer, key)                 # the vmapped environment, scripted team + noise
-    state, report = fit(trainer, state, demos, key)
+    state, stats = fit(trainer, state, demos, key)
+    state, stats = clone(trainer, state, key)     # collect and fit, with DAgger's rounds
+    report(trainer, stats)                        # a JSON-ready dict of the fit (bc.json)
+
+All three are pure functions of their arguments (no host transfer): a training run's start
+(:func:`mysim_jax.mappo.algorithm.start`) jits them with the rest, and vmaps them over seeds.
 
 **Demonstrations** (:func:`collect`): ``bc.num_envs`` environments run ``bc.steps`` policy
 steps side by side (the trainer's batch-last layout). At every step each environment's
@@ -22,8 +27,6 @@ optimiser is reset.
 """
 
 from __future__ import annotations
-
-import time
 
 import jax
 import jax.numpy as jnp
@@ -92,15 +95,21 @@ def _r2(pred, target):
     return 1.0 - sse / jnp.maximum(sst, 1e-12)
 
 
-def fit(trainer, ts, demos: Demonstrations, key):
-    """``(state, report)``: ``ts`` with the actor cloned from ``demos`` (module docstring)."""
-    c = trainer.config
-    bc = c.bc
-    t0 = time.perf_counter()
-    steps, envs = demos.obs.shape[:2]
+def _held_out(bc, envs: int) -> int:
+    """How many of ``envs`` environments are held out."""
     n_hold = max(1, int(round(bc.holdout * envs)))
     if n_hold >= envs:
         raise ValueError(f"algo.bc: {envs} environment(s) leave none to train on after holding out {n_hold}")
+    return n_hold
+
+
+def fit(trainer, ts, demos: Demonstrations, key):
+    """``(state, stats)``: ``ts`` with the actor cloned from ``demos`` (module docstring);
+    ``stats`` the fit's measures as arrays (:func:`report` makes them a dict)."""
+    c = trainer.config
+    bc = c.bc
+    steps, envs = demos.obs.shape[:2]
+    n_hold = _held_out(bc, envs)
     obs_size, act = demos.obs.shape[-1], demos.actions.shape[-1]
     train_obs = demos.obs[:, : envs - n_hold].reshape(-1, obs_size)
     train_act = demos.actions[:, : envs - n_hold].reshape(-1, act)
@@ -152,20 +161,17 @@ def fit(trainer, ts, demos: Demonstrations, key):
         return (jnp.sqrt(jnp.mean((pred_t - train_act) ** 2)), jnp.sqrt(jnp.mean((pred_h - hold_act) ** 2)),
                 _r2(pred_h, hold_act), jnp.std(hold_act, axis=0))
 
-    rmse_train, rmse_hold, r2_hold, spread = jax.device_get(measure(actor_params))
+    rmse_train, rmse_hold, r2_hold, spread = measure(actor_params)
     params = {**ts.params, "actor": actor_params}
     arrays = {"actor": actor_params, "obs_mean": obs_stats.mean, "obs_var": obs_stats.var}
     state = ts.replace(params=params, opt_state=trainer.tx.init(params), obs_stats=obs_stats, anchor=arrays)
-    report = {
-        "pairs": demos.pairs, "train_pairs": int(n),
-        "holdout_environments": n_hold, "episodes_ended": int(jnp.sum(demos.done)),
-        "teacher_success_rate": float(jnp.sum(demos.success) / jnp.maximum(jnp.sum(demos.done), 1)),
-        "epochs": bc.epochs, "final_train_loss": float(history[-1]),
-        "rmse_train": float(rmse_train), "rmse_holdout": float(rmse_hold),
-        "r2_holdout": [float(v) for v in r2_hold], "label_std_holdout": [float(v) for v in spread],
-        "fit_s": round(time.perf_counter() - t0, 2),
+    stats = {
+        "episodes_ended": jnp.sum(demos.done),
+        "teacher_success_rate": jnp.sum(demos.success) / jnp.maximum(jnp.sum(demos.done), 1),
+        "final_train_loss": history[-1], "rmse_train": rmse_train, "rmse_holdout": rmse_hold,
+        "r2_holdout": r2_hold, "label_std_holdout": spread,
     }
-    return state, report
+    return state, stats
 
 
 def _joined(a: Demonstrations, b: Demonstrations) -> Demonstrations:
@@ -174,33 +180,48 @@ def _joined(a: Demonstrations, b: Demonstrations) -> Demonstrations:
 
 
 def clone(trainer, ts, key):
-    """``(state, report)``: collect demonstrations and fit the actor to them; then, for each
+    """``(state, stats)``: collect demonstrations and fit the actor to them; then, for each
     of ``bc.dagger_rounds``, let the clone fly, label the states it visits with the
     scripted team's actions, add them to the data and fit again (DAgger, Ross et al. 2011).
-    The report's ``dagger`` lists each round's episodes and the clone's success in them."""
+    ``stats``: the last fit's measures, and each round's episodes and the clone's success
+    in them (``dagger_episodes``, ``dagger_success`` ``(rounds,)``)."""
     rounds = trainer.config.bc.dagger_rounds
     keys = jax.random.split(key, 2 * (rounds + 1))
-    t0 = time.perf_counter()
     demos = collect(trainer, keys[0])
-    jax.block_until_ready(demos.obs)
-    collect_s = time.perf_counter() - t0
-    state, report = fit(trainer, ts, demos, keys[1])
-    flown = []
+    state, stats = fit(trainer, ts, demos, keys[1])
+    ended, success = [], []
     for r in range(rounds):
-        t0 = time.perf_counter()
         more = collect(trainer, keys[2 + 2 * r], arrays=trainer.policy_arrays(state))
-        jax.block_until_ready(more.obs)
-        collect_s += time.perf_counter() - t0
-        ended = int(jnp.sum(more.done))
-        flown.append({"episodes_ended": ended,
-                      "clone_success_rate": float(jnp.sum(more.success) / max(ended, 1))})
+        ended.append(jnp.sum(more.done))
+        success.append(jnp.sum(more.success) / jnp.maximum(jnp.sum(more.done), 1))
         demos = _joined(demos, more)
-        state, report = fit(trainer, ts, demos, keys[3 + 2 * r])
-    report["collect_s"] = round(collect_s, 2)
-    report["team_steps"] = int(demos.obs.shape[0] * demos.obs.shape[1])
-    if rounds:
-        report["dagger"] = flown
-    return state, report
+        state, stats = fit(trainer, ts, demos, keys[3 + 2 * r])
+    stats["dagger_episodes"] = jnp.asarray(ended, jnp.int32).reshape(rounds)
+    stats["dagger_success"] = jnp.asarray(success, jnp.float32).reshape(rounds)
+    return state, stats
+
+
+def report(trainer, stats: dict) -> dict:
+    """:func:`clone`'s ``stats`` (of one run) as a JSON-ready dict: the data's sizes from
+    the settings, the fit's measures, each DAgger round's episodes and the clone's success."""
+    bc = trainer.config.bc
+    n_agents = trainer.env.action_shape[0]
+    n_hold = _held_out(bc, bc.num_envs)
+    steps = bc.steps * (bc.dagger_rounds + 1)
+    s = jax.device_get(stats)
+    out = {
+        "pairs": steps * bc.num_envs * n_agents, "train_pairs": steps * (bc.num_envs - n_hold) * n_agents,
+        "holdout_environments": n_hold, "episodes_ended": int(s["episodes_ended"]),
+        "teacher_success_rate": float(s["teacher_success_rate"]), "epochs": bc.epochs,
+        "final_train_loss": float(s["final_train_loss"]), "rmse_train": float(s["rmse_train"]),
+        "rmse_holdout": float(s["rmse_holdout"]), "r2_holdout": [float(v) for v in s["r2_holdout"]],
+        "label_std_holdout": [float(v) for v in s["label_std_holdout"]],
+        "team_steps": steps * bc.num_envs,
+    }
+    if bc.dagger_rounds:
+        out["dagger"] = [{"episodes_ended": int(e), "clone_success_rate": float(r)}
+                         for e, r in zip(s["dagger_episodes"], s["dagger_success"])]
+    return out
 
 
 def from_policy(trainer, ts, meta: dict, arrays: dict, where: str):

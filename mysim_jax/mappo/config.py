@@ -262,6 +262,9 @@ class RunConfig(StrictModel):
     """Bookkeeping of a run."""
 
     seed: NonNegInt = 0
+    # seeds trained side by side in one program (jax.vmap over the run): seed, seed + 1, ...
+    # each in its own folder OUT/seed_<seed>/, with a table of them in OUT/seeds.md
+    seeds: PosInt = 1
     checkpoint_every: PosInt = 10          # iterations between checkpoints
     keep_checkpoints: PosInt = 2
     # an optional guard: stop training after this many minutes (then evaluate). A run it
@@ -311,6 +314,13 @@ class TrainConfig(StrictModel):
             raise ValueError("algo.residual: the builtin environment has no scripted team to add a residual to")
         if self.algo.init == "bc" and self.env.builtin is not None:
             raise ValueError("algo.init: bc clones the scripted team, which the builtin environment does not have")
+        return self
+
+    @model_validator(mode="after")
+    def _seeds_on_one_device(self):
+        if self.run.seeds > 1 and self.run.devices not in (None, 1):
+            raise ValueError(f"run.seeds {self.run.seeds} with run.devices {self.run.devices}: several seeds train "
+                             "in one program on one device; split environments over devices with one seed")
         return self
 
 
@@ -528,7 +538,9 @@ def describe(config: TrainConfig) -> str:
     a = config.algo
     guard = ("" if config.run.time_limit_min is None else
              f"; time guard run.time_limit_min = {config.run.time_limit_min:g} min (stops earlier on a slow machine)")
+    seeds = "" if config.run.seeds == 1 else (f"; seeds {config.run.seed}-{config.run.seed + config.run.seeds - 1}"
+                                               " in one program")
     return (f"{a.num_iterations} iterations of {a.num_envs} envs x {a.num_steps} steps = {a.batch_size:,} team steps "
             f"({a.num_minibatches} minibatches of {a.minibatch_size:,}, {a.update_epochs} epochs); "
-            f"{a.num_iterations * a.batch_size:,} team steps in all (the step budget, algo.total_env_steps){guard}")
+            f"{a.num_iterations * a.batch_size:,} team steps in all (the step budget, algo.total_env_steps){guard}{seeds}")
 

@@ -40,7 +40,7 @@ import jax
 import jax.numpy as jnp
 
 from mysim_jax.mappo.checkpoint import is_policy_folder, load_policy
-from mysim_jax.mappo.trainer import Actor, deterministic_policy
+from mysim_jax.mappo.networks import Actor, deterministic_policy
 from mysim_jax.tasks.contract import contract_differences, environment_contract
 from mysim_jax.tasks.evaluate import random_policy, scripted_policy
 

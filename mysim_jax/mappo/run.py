@@ -1,6 +1,16 @@
 """A training run on disk: what ``scripts/train.py`` does, as library code (the folder's
-files and the checked run: :mod:`mysim_jax.mappo.run_files`; its curves:
-:mod:`mysim_jax.io.training_plots`).
+files and the checked run: :mod:`mysim_jax.mappo.run_files`; what it writes at the end:
+:mod:`mysim_jax.mappo.run_outputs`).
+
+**What trains** is :mod:`mysim_jax.mappo.algorithm`'s, with the same keys: the start
+(networks, environments, the warm start of ``algo.init``), then PPO iterations (the
+curriculum inside them), run a chunk at a time (:meth:`Trainer.advance`, one compiled
+``lax.scan`` of :func:`chunk_length` iterations; every checkpoint and selection falls on
+a chunk's end). Between chunks the host writes the metrics, flies the selection episodes
+(model selection keeps the best policy; it does not change what trains), checkpoints and
+checks the optional time guard. With ``run.seeds`` N > 1, the N seeds ``run.seed``,
+``run.seed + 1``, ... train side by side in one program (every step ``jax.vmap``-ped over
+a leading seed axis of the state), each as it would alone.
 
 A run folder ``OUT`` holds
 
@@ -12,13 +22,18 @@ A run folder ``OUT`` holds
 * ``metrics.csv`` — one row per iteration (env steps, wall time, return, success rate,
   losses, ...), and the same scalars as TensorBoard events under ``tb/``;
 * ``curves.png`` — learning curves;
-* ``checkpoints/<iteration>/`` — orbax checkpoints of the whole trainer state, every
-  ``run.checkpoint_every`` iterations and at the end;
+* ``checkpoints/<iteration>/`` — orbax checkpoints of the whole trainer state (every
+  seed's), every ``run.checkpoint_every`` iterations and at the end;
 * ``policy/`` — the final deterministic policy (``scripts/evaluate.py --policy OUT/policy``);
 * ``eval/`` — the final evaluation, the report of ``scripts/evaluate.py``
   (:func:`mysim_jax.tasks.report.write_evaluation`);
 * ``summary.json`` — iterations, env steps, training wall time and throughput, the
   evaluation's success rate.
+
+With several seeds, each seed's ``metrics.csv``, ``tb/``, ``curves.png``, ``policy/``,
+``eval/``, ``bc.json`` and ``summary.json`` are in ``OUT/seed_<seed>/``, and ``OUT``
+adds ``seeds.json`` and ``seeds.md`` (each seed's evaluation and the mean, spread and
+range over seeds) and ``curves.png`` (every seed's curves).
 
 **Resuming** continues from the last complete checkpoint: rows of ``metrics.csv`` after it
 are dropped and recomputed, so a run killed at any moment (SIGKILL included) loses at most
@@ -29,6 +44,7 @@ run bit for bit (same machine and JAX build).
 from __future__ import annotations
 
 import json
+import math
 import time
 from dataclasses import dataclass
 from typing import Callable
@@ -41,22 +57,20 @@ from tensorboardX import SummaryWriter
 from tqdm.auto import tqdm
 
 from mysim_jax.core import parallel
-from mysim_jax.core.machine import machine
 from mysim_jax.core.config_base import ConfigError
-from mysim_jax.io.training_plots import plot_curves
 from mysim_jax.mappo import bc
-from mysim_jax.mappo.checkpoint import Checkpoints, load_policy, save_policy
+from mysim_jax.mappo.algorithm import curriculum_of, run_keys, warm_start
+from mysim_jax.mappo.checkpoint import Checkpoints, load_policy
 from mysim_jax.mappo.config import TrainConfig, check_memory_needs, init_policy_path
-from mysim_jax.mappo.curriculum import Curriculum
 from mysim_jax.mappo.policies import PolicyError, check_trained_on
-from mysim_jax.mappo.run_files import (CSV_FIELDS, EVAL_SCENE_FILE, SCENE_FILE, Prepared, describe_run,
-                                       load_run_config, prepare, read_rows, write_rows, write_run_files)
+from mysim_jax.mappo.run_files import (CSV_FIELDS, Prepared, describe_run, load_run_config, prepare, read_rows,
+                                       write_rows, write_run_files)
+from mysim_jax.mappo.run_outputs import FinalEvaluation, SeedRun, Trained, summary, write_seed, write_seeds_table
 from mysim_jax.mappo.toy import ReachEnv
-from mysim_jax.mappo.trainer import Trainer, deterministic_policy, deterministic_policy_fn
-from mysim_jax.tasks.capture import make_env, scaled_target_ranges
-from mysim_jax.tasks.contract import environment_contract
+from mysim_jax.mappo.networks import deterministic_policy
+from mysim_jax.mappo.trainer import Trainer
+from mysim_jax.tasks.capture import make_env
 from mysim_jax.tasks.evaluate import Evaluator
-from mysim_jax.tasks.report import comparison_line, summary_line, write_comparison, write_evaluation
 from mysim_jax.tasks.sweep import wilson_interval
 
 # a run from a training file: prepare (or load_run_config) -> train_run; the first three
@@ -71,10 +85,12 @@ def _silent(*args, **kwargs) -> None:
 
 def training_mesh(config, source: str):
     """The devices a run splits its environments over (``run.devices``): None for one
-    device, else a :func:`mysim_jax.core.parallel.env_mesh`. Raises ConfigError when more devices
+    device (always with several seeds), else a :func:`mysim_jax.core.parallel.env_mesh`. Raises ConfigError when more devices
     are asked for than JAX sees, or when ``algo.num_envs`` does not split into them."""
     available = jax.devices()
     n = len(available) if config.run.devices is None else config.run.devices
+    if config.run.seeds > 1:           # several seeds: one program on one device
+        return None
     if n > len(available):
         raise ConfigError(f"{source}: run.devices {n}: JAX sees {len(available)} device(s) here "
                           f"({available[0].platform})")
@@ -142,6 +158,16 @@ def _selection_row(stats) -> dict:
     return {"select_success": float(stats.success.mean()), "select_return": float(stats.returns.mean())}
 
 
+def _one(state, i: int | None):
+    """Seed ``i``'s state of a state with a seed axis (``i`` None: ``state`` has none)."""
+    return state if i is None else jax.tree.map(lambda x: x[i], state)
+
+
+def _put(state, i: int | None, one):
+    """``state`` with seed ``i``'s state replaced by ``one``."""
+    return one if i is None else jax.tree.map(lambda x, y: x.at[i].set(y), state, one)
+
+
 @dataclass
 class _Session:
     """What the stages of one training run share (:func:`train_run`)."""
@@ -155,9 +181,9 @@ class _Session:
     env_params: object
     trainer: Trainer
     ckpt: Checkpoints
+    seeds: list                # a SeedRun per seed (run.seeds)
     eval_env: object = None    # the evaluation scene's environment (capture scenes, when evaluating)
     eval_params: object = None
-    curriculum: Curriculum | None = None
     evaluator: Evaluator | None = None    # model selection on fixed episodes
     select_key: object = None
 
@@ -166,17 +192,29 @@ class _Session:
         return self.p.config
 
     @property
+    def stacked(self) -> bool:
+        """The state holds several seeds along a leading axis (run.seeds > 1)."""
+        return len(self.seeds) > 1
+
+    @property
+    def indices(self) -> list:
+        """Each seed's index into the state's seed axis (None: the state has none)."""
+        return list(range(len(self.seeds))) if self.stacked else [None]
+
+    @property
     def selection(self):
         return self.c.run.selection if self.p.scene is not None else None
 
-    def select(self, state):
-        """Fly the selection episodes with the current policy; keep it if it is the best."""
-        arrays = self.trainer.policy_arrays(state)
+    def select(self, state, i=None):
+        """Fly the selection episodes with seed ``i``'s current policy; keep it if it is the
+        best: ``(state, stats)``."""
+        one = _one(state, i)
+        arrays = self.trainer.policy_arrays(one)
         if self.many:                 # on this process's device: the networks as host arrays
             arrays = jax.device_get(arrays)
         stats = self.evaluator(self.select_key, self.selection.episodes, arrays)
-        state = self.trainer.keep_if_best(state, int(stats.success.sum()), float(stats.returns.mean()))
-        return state, stats
+        one = self.trainer.keep_if_best(one, int(stats.success.sum()), float(stats.returns.mean()))
+        return _put(state, i, one), stats
 
     def say(self, bar, msg: str) -> None:
         if bar is not None:
@@ -185,12 +223,24 @@ class _Session:
             self.log(msg)
 
 
+def _seed_runs(p: Prepared) -> list[SeedRun]:
+    """The run's seeds and their folders: the run folder itself for one seed,
+    ``OUT/seed_<seed>/`` for several."""
+    run = p.config.run
+    if run.seeds == 1:
+        return [SeedRun(run.seed, p.out)]
+    return [SeedRun(run.seed + i, p.out / f"seed_{run.seed + i}") for i in range(run.seeds)]
+
+
 def _open_session(p: Prepared, progress: bool, evaluate: bool, log) -> _Session:
     """Everything that can refuse the run, checked before the run folder is written and
     before anything compiles: the environments, a starting policy, the devices, the memory."""
     c = p.config
     lead = jax.process_index() == 0
     many = jax.process_count() > 1
+    if many and c.run.seeds > 1:
+        raise ConfigError(f"{p.source}: run.seeds {c.run.seeds} with several processes: several seeds train in "
+                          "one program on one device")
     if not lead:
         log = _silent
         progress = False
@@ -208,19 +258,43 @@ def _open_session(p: Prepared, progress: bool, evaluate: bool, log) -> _Session:
             check_trained_on(load_policy(folder)[0], env, env_params, f"{p.source}: algo.init_policy {folder}")
         except PolicyError as err:
             raise ConfigError(str(err)) from None
-    trainer = Trainer(c.algo, env, env_params, mesh=training_mesh(c, p.source))
-    check_memory_needs(trainer.memory_needs(), p.source)
+    curriculum = curriculum_of(c.env.curriculum) if p.scene is not None else None
+    trainer = Trainer(c.algo, env, env_params, mesh=training_mesh(c, p.source), curriculum=curriculum)
+    needs = trainer.memory_needs()
+    if c.run.seeds > 1:
+        needs = {k: (b * c.run.seeds, f"{fields} x run.seeds") for k, (b, fields) in needs.items()}
+    check_memory_needs(needs, p.source)
     if not p.resume and lead:
         write_run_files(p)
+    seeds = _seed_runs(p)
+    if lead:
+        for one in seeds:
+            one.out.mkdir(parents=True, exist_ok=True)
     return _Session(p=p, log=log, progress=progress, lead=lead, many=many, env=env, env_params=env_params,
                     trainer=trainer, ckpt=Checkpoints(p.out / "checkpoints", keep=c.run.keep_checkpoints),
-                    eval_env=eval_env, eval_params=eval_params,
-                    curriculum=Curriculum(c.env.curriculum) if p.scene is not None and c.env.curriculum else None)
+                    seeds=seeds, eval_env=eval_env, eval_params=eval_params)
 
 
-def _restore(s: _Session, state) -> tuple[object, int, bool, list[dict]]:
+def _keys(s: _Session):
+    """``(k_init, k_warm)`` of the run (a leading seed axis with several seeds): seed
+    ``run.seed + i``'s are those of a run of that one seed."""
+    if not s.stacked:
+        return run_keys(jax.random.PRNGKey(s.c.run.seed))
+    seeds = jnp.asarray([one.seed for one in s.seeds], jnp.uint32)
+    return jax.vmap(lambda seed: run_keys(jax.random.PRNGKey(seed)))(seeds)
+
+
+def _fresh(s: _Session, k_init):
+    """A fresh state (networks, environments, the curriculum's first stage): the start of a
+    new run, and the structure a resumed run's checkpoint restores into."""
+    if not s.stacked:
+        return s.trainer.init(k_init)
+    return jax.jit(jax.vmap(s.trainer._init_state))(k_init)
+
+
+def _restore(s: _Session, state) -> tuple[object, int, bool]:
     """The state to start from (the newest intact checkpoint when resuming), its iteration,
-    whether it was restored, and the metrics rows up to it."""
+    and whether it was restored; each seed's metrics rows up to it."""
     start_iteration, restored = 0, False
     if s.p.resume:
         try:
@@ -229,31 +303,24 @@ def _restore(s: _Session, state) -> tuple[object, int, bool, list[dict]]:
             s.ckpt.close()               # orbax's threads end before the error reaches the script
             raise
         if last is not None:
-            start_iteration, restored = int(state.iteration), True
-    rows = read_rows(s.p.out / "metrics.csv", start_iteration)
+            start_iteration = int(np.max(jax.device_get(state.iteration)))
+            restored = True
+    for one in s.seeds:
+        one.rows = read_rows(one.out / "metrics.csv", start_iteration)
     if s.p.resume:
         s.log(f"resuming {s.p.out} at iteration {start_iteration} of {s.c.algo.num_iterations}")
-    return state, start_iteration, restored, rows
-
-
-def _start_curriculum(s: _Session, state):
-    """``state`` with the curriculum at its first stage and the training episodes drawn from
-    that stage's ranges (a fresh run; a resumed one's checkpoint replaces both)."""
-    if s.curriculum is None:
-        return state
-    cs = s.curriculum.start()
-    return s.trainer.with_episode_ranges(state.replace(curriculum=cs),
-                                         scaled_target_ranges(s.env_params.ranges, s.curriculum.fraction(cs)))
+    return state, start_iteration, restored
 
 
 def _start_selection(s: _Session, state) -> None:
     """Say where the curriculum stands (from the state: a resumed run's checkpoint holds it)
     and build the selection evaluator."""
-    c = s.c
-    if s.curriculum is not None:
-        fraction = s.curriculum.fraction(state.curriculum)
-        s.log(f"curriculum: stage {int(state.curriculum.stage) + 1} of {len(c.env.curriculum.stages)} (the target's "
-              f"speed, jink and flee ranges x {fraction:g})")
+    c, cur = s.c, s.trainer.curriculum
+    if cur is not None:
+        stages = sorted({cur.stage(_one(state.curriculum, i)) for i in s.indices})
+        s.log(f"curriculum: stage {', '.join(str(k + 1) for k in stages)} of {len(cur.config.stages)} (the "
+              "target's speed, jink and flee ranges x "
+              f"{', '.join(f'{cur.config.stages[k]:g}' for k in stages)})")
     # model selection on fixed episodes (capture environments; the builtin task has its own evaluation)
     if s.selection is not None:
         s.evaluator = Evaluator(s.env, s.env_params, s.trainer.policy_fn(),
@@ -261,266 +328,208 @@ def _start_selection(s: _Session, state) -> None:
         s.select_key = jax.random.PRNGKey(s.selection.seed)
 
 
-def _warm_start(s: _Session, state, k_bc, t_start: float, rows: list[dict]):
+def _warm_start(s: _Session, state, k_warm, t_start: float):
     """A new run: clone the scripted team (``algo.init: bc``) or start from a saved policy
-    (``algo.init: policy``), fly the selection episodes once before training, and
-    checkpoint iteration 0. Returns ``(state, rows)``."""
+    (``algo.init: policy``) (:func:`mysim_jax.mappo.algorithm.warm_start`, jitted; vmapped
+    over seeds), fly the selection episodes once before training, and checkpoint iteration
+    0. Returns the state."""
     c = s.c
+    init_policy = None
     if c.algo.init == "policy":
         folder = init_policy_path(c, s.p.source)
         meta, arrays = load_policy(folder)
-        state = bc.from_policy(s.trainer, state, meta, arrays, f"algo.init_policy {folder}")
+        init_policy = (meta, arrays)
         s.log(f"starting from the policy {folder} (iteration {meta.get('selected_iteration')} of "
               f"{meta.get('train')}): exploration std {c.algo.bc.std:g}, critic warm-up "
               f"{c.algo.bc.critic_warmup} iterations")
     if c.algo.init == "bc":
-        s.log(f"behaviour cloning the scripted team: {c.algo.bc.num_envs} environments x {c.algo.bc.steps} steps")
-        state, report = bc.clone(s.trainer, state, k_bc)
-        if s.lead:
-            (s.p.out / "bc.json").write_text(json.dumps(report, indent=2))
-        s.log(f"cloned in {report['collect_s'] + report['fit_s']:.0f} s: {report['pairs']:,} pairs, held-out RMSE "
-              f"{report['rmse_holdout']:.3f}, R2 {', '.join(f'{v:.3f}' for v in report['r2_holdout'])}")
+        s.log(f"behaviour cloning the scripted team: {c.algo.bc.num_envs} environments x {c.algo.bc.steps} steps"
+              + (f", {len(s.seeds)} seeds in one program" if s.stacked else ""))
+    if c.algo.init != "none":
+        t0 = time.perf_counter()
+
+        def warm(ts, key):
+            return warm_start(s.trainer, ts, key, init_policy)
+
+        state, stats = jax.jit(jax.vmap(warm) if s.stacked else warm)(state, k_warm)
+        state = jax.block_until_ready(s.trainer.place(state) if not s.stacked else state)
+        wall = time.perf_counter() - t0
+        if c.algo.init == "bc":
+            for i, one in zip(s.indices, s.seeds):
+                report = {**bc.report(s.trainer, _one(stats, i)), "wall_s": round(wall, 2)}
+                if s.lead:
+                    (one.out / "bc.json").write_text(json.dumps(report, indent=2))
+                who = f"seed {one.seed}: " if s.stacked else ""
+                s.log(f"{who}cloned in {wall:.0f} s: {report['pairs']:,} pairs, held-out RMSE "
+                      f"{report['rmse_holdout']:.3f}, R2 {', '.join(f'{v:.3f}' for v in report['r2_holdout'])}")
     if s.evaluator is not None:
-        state, stats = s.select(state)
-        rows = [{"iteration": 0, "env_steps": 0, "wall_s": round(time.perf_counter() - t_start, 3),
-                 **_selection_row(stats)}]
-        s.log(f"selection episodes before training: success {stats.success.mean():.1%}")
+        for i, one in zip(s.indices, s.seeds):
+            state, stats = s.select(state, i)
+            one.rows = [{"iteration": 0, "env_steps": 0, "wall_s": round(time.perf_counter() - t_start, 3),
+                         **_selection_row(stats)}]
+            who = f" (seed {one.seed})" if s.stacked else ""
+            s.log(f"selection episodes before training{who}: success {stats.success.mean():.1%}")
     if s.trainer.uses_anchor or s.evaluator is not None:
         if s.lead:
-            write_rows(s.p.out / "metrics.csv", rows)
-        s.ckpt.save(0, s.trainer.place(state))
-    return state, rows
+            for one in s.seeds:
+                write_rows(one.out / "metrics.csv", one.rows)
+        s.ckpt.save(0, state if s.stacked else s.trainer.place(state))
+    return state
 
 
-def _iteration_row(s: _Session, state, iteration: int, dt: float, m: dict, bar):
-    """One iteration's metrics row, and the state with the curriculum advanced on the
-    iteration's success: ``(state, row)``."""
-    row = {"iteration": iteration, "env_steps": iteration * s.c.algo.batch_size,
-           "iteration_s": round(dt, 4), "lr": s.trainer.learning_rate(iteration - 1),
-           **{k: m[k] for k in CSV_FIELDS if k in m}}
-    cur = s.curriculum
-    if cur is not None:
-        row.update(curriculum_stage=cur.stage(state.curriculum), curriculum_fraction=cur.fraction(state.curriculum))
-        cs, moved = cur.update(state.curriculum, m["success_rate"])
-        state = state.replace(curriculum=cs)
-        if moved:
-            state = s.trainer.with_episode_ranges(state, scaled_target_ranges(s.env_params.ranges, cur.fraction(cs)))
-            s.say(bar, f"curriculum: stage {int(cs.stage) + 1} of {len(s.c.env.curriculum.stages)} from "
-                       f"iteration {iteration + 1} (ranges x {cur.fraction(cs):g})")
-    return state, row
+def chunk_length(c: TrainConfig, selection) -> int:
+    """Iterations the run loop advances at a time (one compiled scan): every checkpoint
+    and selection falls on a chunk's end (the greatest common divisor of their intervals),
+    at most the run's length."""
+    every = c.run.checkpoint_every if selection is None else math.gcd(c.run.checkpoint_every, selection.every)
+    return max(1, min(every, c.algo.num_iterations))
 
 
-def _show_progress(s: _Session, bar, row: dict, m: dict, dt: float) -> None:
+def _chunk_rows(s: _Session, first: int, n: int, m: dict, wall0: float, dt: float, bar) -> None:
+    """The rows of iterations ``first + 1 .. first + n`` (metrics ``m`` stacked ``(n,)``,
+    per seed ``(seeds, n)``) appended to each seed's rows; a curriculum stage change said."""
+    cur = s.trainer.curriculum
+    for i, one in zip(s.indices, s.seeds):
+        for j in range(n):
+            it = first + j + 1
+            mj = {k: float(v[j] if i is None else v[i, j]) for k, v in m.items()}
+            row = {"iteration": it, "env_steps": it * s.c.algo.batch_size, "iteration_s": round(dt / n, 4),
+                   "lr": s.trainer.learning_rate(it - 1), **{k: mj[k] for k in CSV_FIELDS if k in mj},
+                   "wall_s": round(wall0 + dt * (j + 1) / n, 3)}
+            if cur is not None:
+                row["curriculum_stage"] = int(mj["curriculum_stage"])
+                previous = one.rows[-1].get("curriculum_stage") if one.rows else None
+                if previous not in (None, "") and int(float(previous)) != row["curriculum_stage"]:
+                    who = f"seed {one.seed}: " if s.stacked else ""
+                    s.say(bar, f"{who}curriculum: stage {row['curriculum_stage'] + 1} of {len(cur.config.stages)} "
+                               f"from iteration {it} (ranges x {row['curriculum_fraction']:g})")
+            one.rows.append(row)
+
+
+def _show_progress(s: _Session, bar, n: int, dt: float) -> None:
     if bar is None:
         return
-    bar.update(1)
-    sel = f", selection {row['select_success']:.0%}" if "select_success" in row else ""
-    if "curriculum_stage" in row:
-        sel += f", stage {row['curriculum_stage'] + 1}"
-    bar.set_postfix_str(f"return {m['mean_return']:.2f}, success {m['success_rate']:.0%}{sel}, "
-                        f"{s.c.algo.batch_size / dt:,.0f} team steps/s")
+    bar.update(n)
+    last = [one.rows[-1] for one in s.seeds]
+    mean = lambda k: float(np.mean([float(r[k]) for r in last]))      # noqa: E731
+    sel = ""
+    if all("select_success" in r for r in last):
+        sel = f", selection {mean('select_success'):.0%}"
+    if "curriculum_stage" in last[0]:
+        sel += f", stage {int(last[0]['curriculum_stage']) + 1}"
+    seeds = f" (mean of {len(last)} seeds)" if s.stacked else ""
+    bar.set_postfix_str(f"return {mean('mean_return'):.2f}, success {mean('success_rate'):.0%}{sel}{seeds}, "
+                        f"{len(last) * s.c.algo.batch_size * n / dt:,.0f} team steps/s")
 
 
-@dataclass
-class _Trained:
-    state: object
-    rows: list
-    iteration: int
-    iteration_times: list
-    stopped_early: bool
-
-
-def _train_loop(s: _Session, state, rows: list[dict], start_iteration: int, previous_wall: float,
-                t_start: float) -> _Trained:
-    """PPO iterations until the planned number or the time limit; rows, TensorBoard,
-    selection and checkpoints as configured."""
+def _train_loop(s: _Session, state, start_iteration: int, previous_wall: float, t_start: float) -> Trained:
+    """PPO iterations until the planned number or the time limit, a chunk of iterations
+    (:func:`chunk_length`, one compiled scan) at a time; rows, TensorBoard, selection and
+    checkpoints between chunks."""
     c = s.c
-    writer = SummaryWriter(str(s.p.out / "tb"), purge_step=start_iteration + 1) if s.lead else None
+    writers = ([SummaryWriter(str(one.out / "tb"), purge_step=start_iteration + 1) for one in s.seeds]
+               if s.lead else [])
     bar = None
     if s.progress:
         bar = tqdm(total=c.algo.num_iterations, initial=start_iteration, desc=f"training {c.name}", unit="it")
     limit_s = None if c.run.time_limit_min is None else 60.0 * c.run.time_limit_min
-    iteration_times, stopped_early, iteration = [], False, start_iteration
+    length = chunk_length(c, s.selection)
+    iteration_times, stopped_early, iteration, chunks = [], False, start_iteration, 0
     while iteration < c.algo.num_iterations:
+        # to the next multiple of the chunk length (a run stopped elsewhere by the time guard
+        # and resumed gets back in step), and not past the run's end
+        n = min(length - iteration % length, c.algo.num_iterations - iteration)
+        wall0 = previous_wall + time.perf_counter() - t_start
         t0 = time.perf_counter()
-        state, m = s.trainer.iteration(state)
-        m = {k: float(v) for k, v in jax.device_get(m).items()}
+        state, m = s.trainer.advance(state, n, length, seeds=s.stacked)
+        m = {k: np.asarray(v)[..., :n] for k, v in jax.device_get(m).items()}
         dt = time.perf_counter() - t0
-        iteration += 1
-        if iteration > start_iteration + 1:     # the first call of a process compiles
-            iteration_times.append(dt)
+        chunks += 1
+        if chunks > 1:                  # a process's first chunk compiles
+            iteration_times.append(dt / n)
+        _chunk_rows(s, iteration, n, m, wall0, dt, bar)
+        iteration += n
         last_iteration = iteration == c.algo.num_iterations
         over_time = limit_s is not None and previous_wall + time.perf_counter() - t_start > limit_s
         if s.many and limit_s is not None:      # the first process's clock decides for all
             over_time = bool(multihost_utils.broadcast_one_to_all(np.bool_(over_time)))
-        state, row = _iteration_row(s, state, iteration, dt, m, bar)
         if s.evaluator is not None and (iteration % s.selection.every == 0 or last_iteration or over_time):
-            state, stats = s.select(state)
-            row.update(_selection_row(stats))
-        row["wall_s"] = round(previous_wall + time.perf_counter() - t_start, 3)
-        rows.append(row)
-        for k, v in row.items():
-            if k != "iteration" and writer is not None:
-                writer.add_scalar(f"train/{k}", float(v), iteration)
-        _show_progress(s, bar, row, m, dt)
+            for i, one in zip(s.indices, s.seeds):
+                state, stats = s.select(state, i)
+                one.rows[-1].update(_selection_row(stats))
+                one.rows[-1]["wall_s"] = round(previous_wall + time.perf_counter() - t_start, 3)
+        for one, writer in zip(s.seeds, writers):
+            for row in one.rows[-n:]:
+                for k, v in row.items():
+                    if k != "iteration":
+                        writer.add_scalar(f"train/{k}", float(v), int(row["iteration"]))
+        _show_progress(s, bar, n, dt)
         if iteration % c.run.checkpoint_every == 0 or last_iteration or over_time:
             if s.lead:
-                write_rows(s.p.out / "metrics.csv", rows)
-                writer.flush()
-            s.ckpt.save(iteration, s.trainer.place(state))
+                for one, writer in zip(s.seeds, writers):
+                    write_rows(one.out / "metrics.csv", one.rows)
+                    writer.flush()
+            s.ckpt.save(iteration, state if s.stacked else s.trainer.place(state))
         if over_time and not last_iteration:
             stopped_early = True
             s.log(f"time limit of {c.run.time_limit_min:g} min reached after iteration {iteration}")
             break
     if bar is not None:
         bar.close()
-    if writer is not None:
+    for writer in writers:
         writer.close()
     s.ckpt.close()
-    return _Trained(state, rows, iteration, iteration_times, stopped_early)
-
-
-def _summary(s: _Session, run: _Trained, train_wall: float) -> dict:
-    """``summary.json`` before the final evaluation."""
-    c, rows, iteration = s.c, run.rows, run.iteration
-    n_agents, _ = s.env.action_shape
-    # None (JSON null) when no iteration after the first ran in this process (it compiles)
-    per_iteration = float(np.median(run.iteration_times)) if run.iteration_times else None
-    summary = {
-        "name": c.name, "config": s.p.source, "iterations": iteration, "planned_iterations": c.algo.num_iterations,
-        # what ended training: the step budget (algo.total_env_steps), or the optional time
-        # guard (run.time_limit_min), which makes the result depend on the machine's speed
-        "stopped_by": "time_limit" if run.stopped_early else "step_budget",
-        "stopped_by_time_limit": run.stopped_early, "env_steps": iteration * c.algo.batch_size,
-        "planned_env_steps": c.algo.num_iterations * c.algo.batch_size,
-        "agent_steps": iteration * c.algo.batch_size * n_agents,
-        "training_wall_s_this_process": round(train_wall, 1),
-        "training_wall_s_total": float(rows[-1]["wall_s"]) if rows else 0.0,
-        "median_iteration_s": per_iteration,
-        "env_steps_per_s_with_update": c.algo.batch_size / per_iteration if per_iteration else None,
-        "final_train_success_rate": float(rows[-1]["success_rate"]) if rows and "success_rate" in rows[-1] else None,
-        "init": c.algo.init,
-        "init_policy": c.algo.init_policy,
-        "machine": machine(),              # what the wall times above were measured on
-        "devices": 1 if s.trainer.mesh is None else s.trainer.mesh.size,
-        "processes": jax.process_count(),
-    }
-    bc_path = s.p.out / "bc.json"
-    if bc_path.exists():
-        summary["behaviour_cloning"] = json.loads(bc_path.read_text())
-    if s.curriculum is not None:
-        # the first iteration drawn from the full ranges (None: never reached), from the rows
-        # so that a resumed run reports it too
-        full = [int(float(r["iteration"])) for r in rows
-                if r.get("curriculum_stage") not in ("", None)
-                and int(float(r["curriculum_stage"])) == len(c.env.curriculum.stages) - 1]
-        summary["curriculum"] = {"stages": list(c.env.curriculum.stages),
-                                 "final_stage": s.curriculum.stage(run.state.curriculum),
-                                 "full_range_from_iteration": full[0] if full else None}
-    if s.selection is not None:
-        score = [float(x) for x in jax.device_get(run.state.best_score)]
-        summary["selection"] = {"episodes": s.selection.episodes, "seed": s.selection.seed,
-                                "every": s.selection.every, "selected_iteration": int(run.state.best_iteration),
-                                "successes": int(score[0]), "mean_return": score[1]}
-    return summary
-
-
-def _save_policy(s: _Session, run: _Trained, arrays) -> None:
-    c = s.c
-    n_agents, act = s.env.action_shape
-    best_iteration = int(run.state.best_iteration)
-    meta = {"kind": "mappo", "obs_size": int(s.env.obs_size), "action_shape": [n_agents, act],
-            "hidden": list(c.algo.hidden), "activation": c.algo.activation, "normalize_obs": c.algo.normalize_obs,
-            "residual": c.algo.residual,
-            "env": "builtin:" + c.env.builtin if c.env.builtin else SCENE_FILE, "iteration": run.iteration,
-            "selected_iteration": best_iteration if best_iteration >= 0 else run.iteration, "train": c.name}
-    if s.p.scene is not None:
-        # what the policy's observations and actions mean: evaluating it elsewhere is checked against it
-        meta["environment"] = environment_contract(s.env, s.env_params)
-    save_policy(s.p.out / "policy", arrays, meta)
-
-
-def _evaluate_capture(s: _Session, arrays, summary: dict) -> None:
-    """The policy (and, with ``run.eval_baseline``, the scripted team) on the same fresh
-    episodes of the evaluation scene; ``eval/`` and the summary's evaluation entries."""
-    c, p, eval_env = s.c, s.p, s.eval_env
-    # on the evaluation scene (env.eval_level): the policy's residual base, if any, is that
-    # scene's scripted team
-    eval_base = eval_env.scripted_actions if c.algo.residual else None
-    net = deterministic_policy_fn(s.trainer.actor, c.algo.normalize_obs, eval_base)
-    eval_policy = deterministic_policy(s.trainer.actor, arrays, c.algo.normalize_obs, eval_base)
-
-    # one compiled program flies both teams: the argument says whose actions are used
-    def either(key, obs, state, params, args):
-        arrays, scripted = args
-        return jnp.where(scripted, eval_env.scripted_actions(state, params), net(key, obs, state, params, arrays))
-
-    final = Evaluator(eval_env, s.eval_params, either, batch=c.run.eval_batch)
-    eval_key = jax.random.PRNGKey(c.run.eval_seed)
-    stats = final(eval_key, c.run.eval_episodes, (arrays, jnp.bool_(False)), progress=s.progress,
-                  desc="evaluation")
-    eval_scene = p.eval_scene if p.evaluates_elsewhere else p.scene
-    eval_file = EVAL_SCENE_FILE if p.evaluates_elsewhere else SCENE_FILE
-    metrics = write_evaluation(p.out / "eval", eval_scene, eval_env, s.eval_params, eval_policy,
-                               policy_name=str(p.out / "policy"), episodes=c.run.eval_episodes,
-                               batch=c.run.eval_batch, seed=c.run.eval_seed,
-                               config_path=str(p.out / eval_file), progress=s.progress, animate=False, stats=stats)
-    s.log(summary_line(p.scene.name, f"trained (MAPPO), evaluated at level {eval_scene.level}"
-                       if p.evaluates_elsewhere else "trained (MAPPO)", metrics, p.out / "eval"))
-    summary["evaluation"] = {k: metrics[k] for k in ("episodes", "success", "failures", "timeout",
-                                                     "mean_return", "mean_length_steps", "wall_s")}
-    summary["evaluation"]["level"] = eval_scene.level
-    summary["evaluation"]["scene"] = eval_file
-    summary["training_level"] = p.scene.level
-    if c.run.eval_baseline:
-        base_stats = final(eval_key, c.run.eval_episodes, (arrays, jnp.bool_(True)), progress=s.progress,
-                           desc="scripted team")
-        comparison = write_comparison(p.out / "eval", stats, base_stats, names=("trained", "scripted"),
-                                      seed=c.run.eval_seed)
-        s.log(comparison_line(comparison))
-        summary["baseline"] = comparison
+    for i, one in zip(s.indices, s.seeds):
+        one.state = _one(state, i)
+    return Trained(s.seeds, iteration, iteration_times, stopped_early)
 
 
 def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=print) -> dict:
     """Train (or resume) the run ``p`` to its end, evaluate, write everything. Returns
-    ``summary.json``'s dict. With several processes (jax.distributed) every one computes;
-    the first writes the run folder, the logs and the evaluation, and decides when to stop."""
+    ``summary.json``'s dict (with several seeds, the first seed's, with the table of all
+    under ``"seeds"``). With several processes (jax.distributed) every one computes; the
+    first writes the run folder, the logs and the evaluation, and decides when to stop."""
     s = _open_session(p, progress, evaluate, log)
     c = s.c
-    k_init, k_bc = jax.random.split(jax.random.PRNGKey(c.run.seed))
+    k_init, k_warm = _keys(s)
     t_compile = time.perf_counter()
-    # a fresh state (with the curriculum's first stage): the start of a new run, and the
-    # structure a resumed run's checkpoint restores into
-    state, start_iteration, restored, rows = _restore(s, _start_curriculum(s, s.trainer.init(k_init)))
-    previous_wall = float(rows[-1]["wall_s"]) if rows else 0.0
+    state, start_iteration, restored = _restore(s, _fresh(s, k_init))
+    rows0 = s.seeds[0].rows
+    previous_wall = float(rows0[-1]["wall_s"]) if rows0 else 0.0
     _start_selection(s, state)
     t_start = time.perf_counter()
     if not restored:
-        state, rows = _warm_start(s, state, k_bc, t_start, rows)
-    run = _train_loop(s, state, rows, start_iteration, previous_wall, t_start)
+        state = _warm_start(s, state, k_warm, t_start)
+    run = _train_loop(s, state, start_iteration, previous_wall, t_start)
     train_wall = time.perf_counter() - t_compile
-    arrays = jax.device_get(s.trainer.run_policy(run.state)) if s.many else s.trainer.run_policy(run.state)
+    policies = [jax.device_get(s.trainer.run_policy(one.state)) if s.many or s.stacked
+                else s.trainer.run_policy(one.state) for one in run.seeds]
     if not s.lead:
         # the others end here; the first process writes and evaluates, then all leave together
         multihost_utils.sync_global_devices("mysim_jax run written")
         return {}
-    write_rows(p.out / "metrics.csv", run.rows)
-    best_iteration = int(run.state.best_iteration)
-    plot_curves(run.rows, p.out / "curves.png", c.name, best_iteration if best_iteration >= 0 else None,
-                (run.iteration, c.algo.num_iterations) if run.stopped_early else None)
-    _save_policy(s, run, arrays)
-    summary = _summary(s, run, train_wall)
-    if evaluate:
-        t_eval = time.perf_counter()
-        if p.scene is None:
-            base = s.env.scripted_actions if c.algo.residual else None
-            policy = deterministic_policy(s.trainer.actor, arrays, c.algo.normalize_obs, base)
-            summary["evaluation"] = evaluate_builtin(s.env, s.env_params, policy, c.run.eval_episodes,
-                                                     c.run.eval_seed)
-        else:
-            _evaluate_capture(s, arrays, summary)
-        summary["evaluation_wall_s"] = round(time.perf_counter() - t_eval, 1)
-    (p.out / "summary.json").write_text(json.dumps(summary, indent=2))
+    final = FinalEvaluation(s) if evaluate and p.scene is not None else None
+    summaries = []
+    for one, arrays in zip(run.seeds, policies):
+        write_seed(s, one, run, arrays)
+        sm = summary(s, one, run, train_wall)
+        if evaluate:
+            t_eval = time.perf_counter()
+            if p.scene is None:
+                base = s.env.scripted_actions if c.algo.residual else None
+                policy = deterministic_policy(s.trainer.actor, arrays, c.algo.normalize_obs, base)
+                sm["evaluation"] = evaluate_builtin(s.env, s.env_params, policy, c.run.eval_episodes,
+                                                    c.run.eval_seed)
+            else:
+                final(one, arrays, sm)
+            sm["evaluation_wall_s"] = round(time.perf_counter() - t_eval, 1)
+        (one.out / "summary.json").write_text(json.dumps(sm, indent=2))
+        summaries.append(sm)
+    result = summaries[0]
+    if s.stacked:
+        table = write_seeds_table(p.out, c.name, summaries, run.seeds)
+        s.log(f"{len(run.seeds)} seeds: {p.out / 'seeds.md'}")
+        result = {**result, "seeds": table}
     if s.many:
         multihost_utils.sync_global_devices("mysim_jax run written")
-    return summary
+    return result

@@ -5,9 +5,10 @@
     for _ in range(config.algo.num_iterations):
         state, metrics = trainer.iteration(state)      # one jitted call
 
-or ``train = make_train(config.algo, env, env_params); state, history = train(key)``.
+or ``state, metrics = trainer.iterations(state, n)`` (n iterations as one ``lax.scan``);
+the whole run as a pure function of a key is :func:`mysim_jax.mappo.algorithm.make_train`.
 
-**Networks** (flax): the actor maps one agent's observation (its one-hot id is part of
+**Networks** (flax, :mod:`mysim_jax.mappo.networks`): the actor maps one agent's observation (its one-hot id is part of
 it, so one network serves every UAV) to the mean of a diagonal Gaussian over its action;
 the log standard deviations are free parameters, one per action dimension. Sampled
 actions are clipped to ``[-1, 1]`` by the environment; the log-probabilities are those of
@@ -47,9 +48,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property
-from typing import Any, Callable
+from typing import Any
 
-import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -60,46 +60,9 @@ from jax.sharding import NamedSharding, PartitionSpec as P
 from mysim_jax.core import batching, parallel
 from mysim_jax.mappo.config import network_memory_bytes
 from mysim_jax.mappo.curriculum import CurriculumState
+from mysim_jax.mappo.networks import Actor, Critic, deterministic_policy_fn
 from mysim_jax.mappo.losses import (RunningStats, gae, gaussian_entropy, gaussian_log_prob, normalize_advantages,
                                     policy_loss, value_loss)
-
-_ACTIVATIONS = {"tanh": nn.tanh, "relu": nn.relu}
-
-
-class Actor(nn.Module):
-    """One agent's observation ``(..., obs_size)`` -> Gaussian mean ``(..., action_dim)``
-    and log standard deviation ``(action_dim,)``."""
-
-    action_dim: int
-    hidden: tuple[int, ...]
-    activation: str = "tanh"
-    init_std: float = 0.3
-
-    @nn.compact
-    def __call__(self, obs):
-        act = _ACTIVATIONS[self.activation]
-        x = obs
-        for width in self.hidden:
-            x = act(nn.Dense(width, kernel_init=nn.initializers.orthogonal(np.sqrt(2.0)))(x))
-        mean = nn.Dense(self.action_dim, kernel_init=nn.initializers.orthogonal(0.01))(x)
-        log_std = self.param("log_std", nn.initializers.constant(np.log(self.init_std)), (self.action_dim,))
-        return mean, log_std
-
-
-class Critic(nn.Module):
-    """Global state with an agent's one-hot id ``(..., state_size + n_agents)`` -> that
-    agent's (normalised) value ``(...)``."""
-
-    hidden: tuple[int, ...]
-    activation: str = "tanh"
-
-    @nn.compact
-    def __call__(self, x):
-        act = _ACTIVATIONS[self.activation]
-        for width in self.hidden:
-            x = act(nn.Dense(width, kernel_init=nn.initializers.orthogonal(np.sqrt(2.0)))(x))
-        return nn.Dense(1, kernel_init=nn.initializers.orthogonal(1.0))(x)[..., 0]
-
 
 @struct.dataclass
 class TrainerState:
@@ -158,8 +121,11 @@ class Trainer:
     env: Any
     env_params: Any
     mesh: Any = None          # a jax.sharding.Mesh with the axis "env" (None: one device)
+    curriculum: Any = None    # a mysim_jax.mappo.curriculum.Curriculum over env_params.ranges (None: none)
 
     def __post_init__(self):
+        if self.curriculum is not None and getattr(self.env_params, "ranges", None) is None:
+            raise ValueError("a curriculum scales episode ranges: this environment has none")
         if self.mesh is not None and self.config.num_envs % self.mesh.size:
             raise ValueError(f"algo.num_envs {self.config.num_envs} is not divisible by the {self.mesh.size} devices "
                              "the environments are split over (run.devices)")
@@ -227,12 +193,36 @@ class Trainer:
         ``bc.anchor_iterations`` or ``bc.critic_warmup`` run the same program."""
         return self._iteration_jit(self.place(ts), self._knobs)
 
-    def iterations(self, ts: "TrainerState", n: int):
+    def iterations(self, ts: "TrainerState", n, length: int | None = None):
         """``n`` iterations as one ``lax.scan``: ``(state after them, metrics)``, each metric
-        stacked ``(n,)``. Traceable (no placement, no host transfer): :func:`make_train`
-        scans a whole run with it."""
+        stacked ``(n,)``. With ``length``, the scan has ``length`` steps of which the first
+        ``n`` (then an array, at most ``length``) are iterations and the rest leave the state
+        as it is (their metrics zeros): one compiled program runs any number of iterations
+        up to ``length``, which is how the run loop (:func:`mysim_jax.mappo.run.train_run`)
+        advances between checkpoints and selections. Traceable (no placement, no host
+        transfer): :func:`~mysim_jax.mappo.algorithm.make_train` scans a whole run with it,
+        and ``jax.vmap`` maps it over seeds (``n`` shared)."""
         knobs = self.knobs()
-        return jax.lax.scan(lambda carry, _: self._iteration(carry, knobs), ts, None, length=n)
+        if length is None:
+            return jax.lax.scan(lambda carry, _: self._iteration(carry, knobs), ts, None, length=n)
+        idle = jax.tree.map(lambda m: jnp.zeros(m.shape, m.dtype), jax.eval_shape(self._iteration, ts, knobs)[1])
+
+        def body(carry, i):
+            return jax.lax.cond(i < n, lambda c: self._iteration(c, knobs), lambda c: (c, idle), carry)
+
+        return jax.lax.scan(body, ts, jnp.arange(length))
+
+    @cached_property
+    def _advance_jit(self):
+        return {False: jax.jit(self.iterations, static_argnums=2),
+                True: jax.jit(jax.vmap(self.iterations, in_axes=(0, None, None)), static_argnums=2)}
+
+    def advance(self, ts: "TrainerState", n: int, length: int, seeds: bool = False):
+        """:meth:`iterations` ``(ts, n, length)`` jitted, on the trainer's devices; with
+        ``seeds``, ``ts`` holds one run per seed along a leading axis (vmapped, one program)."""
+        if seeds and self.mesh is not None:
+            raise ValueError("several seeds in one program run on one device (no mesh)")
+        return self._advance_jit[seeds](ts if seeds else self.place(ts), jnp.int32(n), length)
 
     def place(self, ts: "TrainerState") -> "TrainerState":
         """``ts`` on the trainer's devices: the environments' leaves split over the mesh, the
@@ -284,6 +274,8 @@ class Trainer:
         checkpoint keeps it. Model selection and evaluation keep ``env_params``' own."""
         if ts.ranges is None:
             raise ValueError("with_episode_ranges: this environment has no episode ranges")
+        if self.curriculum is not None:
+            raise ValueError("with_episode_ranges: this trainer's curriculum sets the ranges every iteration")
         if jax.tree.structure(ranges) != jax.tree.structure(ts.ranges):
             raise ValueError("with_episode_ranges: ranges of another environment")
         ranges = jax.tree.map(lambda new, o: jnp.asarray(new, o.dtype).reshape(o.shape), ranges, ts.ranges)
@@ -353,11 +345,15 @@ class Trainer:
         obs_stats = RunningStats.create((obs.shape[-1],)).update(obs)
         state_stats = RunningStats.create((gstate.shape[-1],)).update(gstate)
         arrays = _policy_arrays(params, obs_stats)
-        return TrainerState(params=params, opt_state=self.tx.init(params), obs_stats=obs_stats,
+        state = TrainerState(params=params, opt_state=self.tx.init(params), obs_stats=obs_stats,
                             state_stats=state_stats, ret_stats=RunningStats.create(), env_state=env_state, obs=obs,
                             global_state=gstate, key=k_run, iteration=jnp.int32(0), anchor=arrays, best=arrays,
                             best_score=jnp.full((2,), -jnp.inf, jnp.float32), best_iteration=jnp.int32(-1),
                             ranges=getattr(self.env_params, "ranges", None), curriculum=CurriculumState.start())
+        if self.curriculum is not None:       # the first stage, and its episode ranges
+            cs = self.curriculum.start()
+            return state.replace(curriculum=cs, ranges=self.curriculum.ranges(self.env_params.ranges, cs))
+        return state
 
     def init(self, key) -> TrainerState:
         """A fresh run from ``key``: networks, optimiser, ``num_envs`` reset environments
@@ -518,6 +514,13 @@ class Trainer:
         new = ts.replace(params=params, opt_state=opt_state, obs_stats=obs_stats, state_stats=state_stats,
                          ret_stats=ret_stats, env_state=env_state, obs=obs, global_state=gstate, key=key,
                          iteration=ts.iteration + 1)
+        if self.curriculum is not None:
+            # the stage this iteration trained in; the next draws from the stage the rule gives
+            metrics["curriculum_stage"] = ts.curriculum.stage
+            metrics["curriculum_fraction"] = self.curriculum.fraction_of(ts.curriculum)
+            rate = jnp.where(n_ended > 0, metrics["success_rate"], jnp.nan)
+            cs, _ = self.curriculum.update(ts.curriculum, rate)
+            new = new.replace(curriculum=cs, ranges=self.curriculum.ranges(self.env_params.ranges, cs))
         return new, metrics
 
     # --- the trained policy ------------------------------------------------------------
@@ -547,49 +550,3 @@ class Trainer:
         return deterministic_policy_fn(self.actor, self.config.normalize_obs,
                                        self.env.scripted_actions if self.config.residual else None)
 
-
-def deterministic_policy_fn(actor: Actor, normalize_obs: bool = True, base: Callable | None = None) -> Callable:
-    """``policy(key, obs, state, params, arrays) -> actions``: :func:`deterministic_policy`
-    with the arrays an argument (traced), so one compiled evaluation serves every set."""
-
-    def policy(key, obs, state, params, arrays):
-        stats = RunningStats(mean=jnp.asarray(arrays["obs_mean"]), var=jnp.asarray(arrays["obs_var"]),
-                             count=jnp.asarray(1.0))
-        x = stats.normalize(obs.astype(jnp.float32)) if normalize_obs else obs.astype(jnp.float32)
-        mean, _ = actor.apply(arrays["actor"], x)
-        if base is not None:
-            mean = mean + base(state, params)
-        return jnp.clip(mean, -1.0, 1.0).astype(obs.dtype)
-
-    return policy
-
-
-def deterministic_policy(actor: Actor, arrays: dict, normalize_obs: bool = True, base: Callable | None = None
-                         ) -> Callable:
-    """``policy(key, obs, state, params) -> actions`` of one environment: the Gaussian's
-    mean, clipped to ``[-1, 1]`` (the interface of :mod:`mysim_jax.tasks.evaluate`).
-    ``base(state, params)``: actions the mean is added to (a residual policy's team)."""
-    with_arrays = deterministic_policy_fn(actor, normalize_obs, base)
-
-    def policy(key, obs, state, params):
-        return with_arrays(key, obs, state, params, arrays)
-
-    return policy
-
-
-def make_train(config, env, env_params):
-    """``train(key) -> (state, metrics)``: networks and ``config.num_envs`` environments
-    from ``key``, then ``config.num_iterations`` iterations as one ``lax.scan``; ``metrics``
-    holds each iteration's metrics stacked, ``(num_iterations,)`` per key. ``train`` is a
-    pure function of ``key``: ``jax.jit(train)`` compiles the whole run, and
-    ``jax.vmap(train)(keys)`` trains one seed per key in one program (``(n_seeds, ...)``
-    leaves). Plain PPO from random networks on one device: ``scripts/train.py`` adds
-    cloning, model selection, the curriculum, checkpoints and evaluation. ``train.trainer``
-    is the :class:`Trainer`."""
-    trainer = Trainer(config, env, env_params)
-
-    def train(key):
-        return trainer.iterations(trainer._init_state(key), config.num_iterations)
-
-    train.trainer = trainer
-    return train
