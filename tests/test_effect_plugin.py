@@ -188,3 +188,13 @@ def test_every_effect_with_a_block_has_its_schema_in_the_config_registry():
     missing = [name for name, effect in registry.EFFECTS.items()
                if effect.schema is not None and EFFECT_BLOCKS.get(name) != effect.schema]
     assert not missing, missing
+
+
+def test_an_effect_without_build_cannot_be_made():
+    """``build`` is abstract: an effect that forgets it fails where it is created, before
+    any scene is built."""
+    class NoBuild(Effect):
+        name = "no_build"
+
+    with pytest.raises(TypeError, match="build"):
+        NoBuild()

@@ -13,6 +13,7 @@ Pure Python (no JAX): the accessors only index the ``effects`` fields.
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from typing import Generic, TypeVar
 
 StaticT = TypeVar("StaticT")
@@ -20,9 +21,9 @@ ParamsT = TypeVar("ParamsT")
 MemoryT = TypeVar("MemoryT")
 
 
-class Effect(Generic[StaticT, ParamsT, MemoryT]):
+class Effect(ABC, Generic[StaticT, ParamsT, MemoryT]):
     """Base of an effect (docs/effects.md): ``name``, the YAML block's ``schema`` (a pydantic
-    model, or its ``"module:Class"`` path; None: no block), ``build`` to implement, and
+    model, or its ``"module:Class"`` path; None: no block), ``build`` to implement (abstract), and
     defaults for the rest of the protocol (no update, no memory change, no start state,
     no force stages). Type it with its static part, params and memory:
     ``class _Target(Effect[TargetScene, TargetParams, TargetMemory])``."""
@@ -31,8 +32,10 @@ class Effect(Generic[StaticT, ParamsT, MemoryT]):
     schema: object = None
 
     # --- the protocol (docs/effects.md) ---------------------------------------------------
+    @abstractmethod
     def build(self, config, ctx):
-        raise NotImplementedError(f"effect {self.name!r}: build(config, ctx) is the one method every effect has")
+        """The one method every effect implements (docs/effects.md): a subclass without it
+        cannot be instantiated."""
 
     def update(self, scene, params, state):
         return None, self.memory_or_none(state)
