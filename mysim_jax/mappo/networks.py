@@ -5,6 +5,12 @@ The actor maps one agent's observation to the mean of a diagonal Gaussian over i
 agent's one-hot id to that agent's value (:mod:`mysim_jax.mappo.trainer` trains both).
 :func:`deterministic_policy` is the actor's mean, clipped to the action bounds: what a
 saved policy does when it is evaluated.
+
+The weight matrices start orthogonal (:func:`orthogonal`). Under ``jax.vmap`` (seeds
+trained in one program) their QR factorisations run one matrix at a time: jaxlib's CPU
+LAPACK kernels split a batch of factorisations over XLA's intra-op thread pool and wait
+for it, so two batched factorisations running at once (the actor's and the critic's) can
+hold every thread of a small pool and wait for each other forever.
 """
 
 from __future__ import annotations
@@ -12,12 +18,25 @@ from __future__ import annotations
 from typing import Callable
 
 import flax.linen as nn
+import jax
 import jax.numpy as jnp
 import numpy as np
 
 from mysim_jax.mappo.losses import RunningStats
 
 _ACTIVATIONS = {"tanh": nn.tanh, "relu": nn.relu}
+
+
+def orthogonal(scale: float) -> Callable:
+    """flax's orthogonal initialiser with gain ``scale``, the same values, whose
+    ``jax.vmap`` over keys factorises one matrix at a time
+    (``jax.custom_batching.sequential_vmap``) instead of as one batched LAPACK call."""
+    init = nn.initializers.orthogonal(scale)
+
+    def kernel_init(key, shape, dtype=jnp.float32):
+        return jax.custom_batching.sequential_vmap(lambda k: init(k, shape, dtype))(key)
+
+    return kernel_init
 
 
 class Actor(nn.Module):
@@ -34,8 +53,8 @@ class Actor(nn.Module):
         act = _ACTIVATIONS[self.activation]
         x = obs
         for width in self.hidden:
-            x = act(nn.Dense(width, kernel_init=nn.initializers.orthogonal(np.sqrt(2.0)))(x))
-        mean = nn.Dense(self.action_dim, kernel_init=nn.initializers.orthogonal(0.01))(x)
+            x = act(nn.Dense(width, kernel_init=orthogonal(np.sqrt(2.0)))(x))
+        mean = nn.Dense(self.action_dim, kernel_init=orthogonal(0.01))(x)
         log_std = self.param("log_std", nn.initializers.constant(np.log(self.init_std)), (self.action_dim,))
         return mean, log_std
 
@@ -51,8 +70,8 @@ class Critic(nn.Module):
     def __call__(self, x):
         act = _ACTIVATIONS[self.activation]
         for width in self.hidden:
-            x = act(nn.Dense(width, kernel_init=nn.initializers.orthogonal(np.sqrt(2.0)))(x))
-        return nn.Dense(1, kernel_init=nn.initializers.orthogonal(1.0))(x)[..., 0]
+            x = act(nn.Dense(width, kernel_init=orthogonal(np.sqrt(2.0)))(x))
+        return nn.Dense(1, kernel_init=orthogonal(1.0))(x)[..., 0]
 
 
 def deterministic_policy_fn(actor: Actor, normalize_obs: bool = True, base: Callable | None = None) -> Callable:
