@@ -41,6 +41,7 @@ from typing import Annotated, Any, Literal
 from pydantic import Field, ValidationError, model_validator
 import yaml
 
+from mysim_jax.config.capture_checks import env_problems
 from mysim_jax.config.env import drawn_value_problems
 from mysim_jax.config.overrides import apply_override
 from mysim_jax.config.scene import load_config
@@ -482,8 +483,6 @@ def _check_learner_discount(config: TrainConfig, scene, where: str):
     """``scene``, its reward ranking checked with ``algo.gamma``: the shaping's discount in
     training is the learner's (potential-based shaping keeps the optimal policy only with
     the discount the learner optimises; the run passes it to ``make_env(discount=)``)."""
-    from mysim_jax.config.capture_checks import env_problems
-
     gamma = config.algo.gamma
     problems = [] if gamma == scene.env.discount else env_problems(scene, discount=gamma)
     if problems:
