@@ -16,6 +16,7 @@ from mysim_jax.core.types import Params, State
 CONFIG_NAMES = {"uav_pos": "uav_position", "uav_vel": "uav_velocity", "target_pos": "target_position",
                 "target_vel": "target_velocity"}
 
+
 @struct.dataclass
 class ObservationNoise:
     """Standard deviations of the Gaussian noise on what each agent measures (``env.noise``,
