@@ -8,7 +8,6 @@ the scripted and random teams on configs/capture_env_falling.yaml.
 
 from __future__ import annotations
 
-import functools
 import math
 
 import jax
@@ -327,14 +326,16 @@ def test_target_on_the_ground_terminates_and_resets(small):
     final = np.asarray(info["final_obs"])
     assert final[0, 13 + 2] + final[0, 2] < 0.3 and obs2[0, 13 + 2] + obs2[0, 2] > 5.0
     np.testing.assert_array_equal(np.asarray(info["global_state"]), np.asarray(env.global_state(new)))
-    # without the auto-reset the step returns the ended episode's state and observation,
-    # the same outcome and reward
-    obs3, ended, reward3, term3, _, info3 = jax.jit(functools.partial(env.step, auto_reset=False))(
-        jax.random.PRNGKey(1), state, jnp.zeros((4, 3)), params)
+    # step_env (no auto-reset) returns the ended episode's state and observation, the same
+    # outcome and reward, and its final_* entries are what it returns
+    obs3, ended, reward3, term3, _, info3 = jax.jit(env.step_env)(jax.random.PRNGKey(1), state, jnp.zeros((4, 3)),
+                                                                  params)
     assert bool(term3) and bool(info3["missed"]) and int(ended.steps) == 1
     for x, y in zip(jax.tree.leaves(ended), jax.tree.leaves(info["final_state"])):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
     np.testing.assert_array_equal(np.asarray(obs3), final)
+    np.testing.assert_array_equal(np.asarray(info3["final_obs"]), final)
+    np.testing.assert_array_equal(np.asarray(info3["global_state"]), np.asarray(info["final_global_state"]))
     np.testing.assert_array_equal(np.asarray(reward3), np.asarray(reward))
 
 
@@ -416,7 +417,10 @@ def test_randomisation_draws_inside_the_ranges():
         v = getattr(ep, name)
         assert v.min() >= lo and v.max() <= hi and v.max() - v.min() > 0.8 * (hi - lo), name
     assert np.all(np.abs(ep.wind_force[:, 0]) <= 0.3) and np.all(ep.wind_force[:, 2] == 0.0) and ep.wind_force[:, 0].std() > 0.1
-    np.testing.assert_array_equal(ep.noise[:, 2], np.float32(0.1))
+    # the noise's named standard deviations: only the target position's is set
+    np.testing.assert_array_equal(ep.noise.target_pos, np.float32(0.1))
+    for name in ("uav_pos", "uav_vel", "target_vel"):
+        np.testing.assert_array_equal(getattr(ep.noise, name), 0.0)
     spawn = np.asarray(states.sim.phys.body_pos[:, env.target_body])
     assert spawn[:, 2].min() >= 6.0 and spawn[:, 2].max() <= 7.0 and np.ptp(spawn[:, 0]) > 2.5
     # the draws reach the physics of the episode
@@ -454,6 +458,12 @@ def test_an_env_needs_a_net_and_a_target():
         load_config("configs/capture_falling.yaml", SMALL + ["net=null", "contact=null", "output.plot=[uav0]"])
     with pytest.raises(ValueError, match="no env: block"):
         make_env(load_config("configs/capture_falling.yaml", SMALL[1:]))
+
+
+@pytest.mark.parametrize("discount", [0.0, 1.5, float("nan")])
+def test_a_discount_outside_0_1_is_refused(discount):
+    with pytest.raises(ValueError, match=r"discount: .*expected a value in \(0, 1\]"):
+        make_env(load_config("configs/capture_falling.yaml", SMALL), discount=discount)
 
 
 # --- the baselines on the environment configuration -------------------------------------

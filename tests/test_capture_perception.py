@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from mysim_jax.config.scene import ConfigError, load_config
-from mysim_jax.tasks.capture import make_env
+from mysim_jax.tasks.capture import GaussMarkovLevel, make_env
 
 SMALL = ["env={}", "net.knots=3", "net.tethers.n_masses=1", "sim.t_end=0.4", "sim.precision=float32",
          "output.plot=[target, uav0]"]
@@ -30,8 +30,8 @@ def envs():
 def test_zero_errors_see_exactly_the_true_states(envs):
     (env, params), (env0, params0), _ = envs
     assert not env.perception and env0.perception
-    np.testing.assert_array_equal(np.asarray(params.perception), 0.0)
-    np.testing.assert_array_equal(np.asarray(params0.perception), 0.0)
+    for levels in (params.perception, params0.perception):
+        np.testing.assert_array_equal(np.asarray(jax.tree.leaves(levels)), 0.0)
     key = jax.random.PRNGKey(3)
     (obs, state), (obs0, state0) = jax.jit(env.reset)(key, params), jax.jit(env0.reset)(key, params0)
     assert state.perception is None and float(jnp.abs(state0.perception.uav_pos).max()) == 0.0
@@ -42,14 +42,19 @@ def test_zero_errors_see_exactly_the_true_states(envs):
 
 def test_observations_and_scripted_team_use_the_estimates(envs):
     _, _, (env, params) = envs
-    levels = np.asarray(params.perception)
-    np.testing.assert_allclose(levels[0], (0.05, np.exp(-0.04 / 0.2)), rtol=1e-6)     # 25 Hz policy
-    np.testing.assert_array_equal(levels[1], (np.float32(0.02), 0.0))                 # white
+    levels = params.perception      # named after the errors, from the file's entries of the same quantity
+    np.testing.assert_allclose((levels.uav_pos.sigma, levels.uav_pos.rho), (0.05, np.exp(-0.04 / 0.2)),
+                               rtol=1e-6)                                             # 25 Hz policy
+    np.testing.assert_array_equal((levels.uav_vel.sigma, levels.uav_vel.rho), (np.float32(0.02), 0.0))  # white
+    np.testing.assert_allclose((levels.target_vel.sigma, levels.target_vel.rho), (0.4, np.exp(-0.04 / 0.04)),
+                               rtol=1e-6)
     reset = jax.jit(env.reset)
     obs, state = reset(jax.random.PRNGKey(1), params)
     phys, e = state.sim.phys, state.perception
     # the error levels are traced: doubling sigma doubles the draws, without a new compile
-    _, twice = reset(jax.random.PRNGKey(1), params.replace(perception=params.perception.at[:, 0].multiply(2.0)))
+    _, twice = reset(jax.random.PRNGKey(1), params.replace(perception=jax.tree.map(
+        lambda level: level.replace(sigma=2.0 * level.sigma), params.perception,
+        is_leaf=lambda x: isinstance(x, GaussMarkovLevel))))
     np.testing.assert_allclose(np.asarray(twice.perception.uav_pos), 2 * np.asarray(e.uav_pos), rtol=1e-6)
     assert reset._cache_size() == 1
     quads = list(env.quad_bodies)
@@ -134,8 +139,8 @@ def test_errors_are_gauss_markov_with_the_configured_statistics(envs):
         return first, jax.lax.scan(body, first, jax.random.split(jax.random.fold_in(key, 1), 10))[1]
 
     first, steps = jax.jit(jax.vmap(episode))(jax.random.split(jax.random.PRNGKey(0), 20_000))
-    for name, (sigma, rho) in zip(("uav_pos", "uav_vel", "target_pos", "target_vel"),
-                                  np.asarray(params.perception).tolist()):
+    for name in ("uav_pos", "uav_vel", "target_pos", "target_vel"):
+        sigma, rho = (float(x) for x in (getattr(params.perception, name).sigma, getattr(params.perception, name).rho))
         e = np.concatenate([np.asarray(getattr(first, name))[:, None], np.asarray(getattr(steps, name))], axis=1)
         e = e.reshape(e.shape[0], e.shape[1], -1)                # (episodes, 11 times, values)
         assert e.std() == pytest.approx(sigma, rel=0.01), name

@@ -107,6 +107,33 @@ def test_running_stats_equal_the_pooled_moments():
 SMALL = dict(num_envs=32, num_steps=16, lr=3e-3, init_std=0.5)
 
 
+def test_reach_step_is_step_env_then_the_reset_of_an_ended_episode():
+    """The reach task has the capture environment's pair: ``step_env`` returns the state the
+    step reached, ``step`` the same unless the episode ended, then a fresh one from the key
+    (the same reward and flags either way; ``final_global_state`` the ended episode's)."""
+    env = ReachEnv(max_steps=2)
+    params = env.default_params()
+    _, state = env.reset(jax.random.PRNGKey(0), params)
+    actions = jnp.full(env.action_shape, 0.5)
+    key = jax.random.PRNGKey(1)
+    for t in range(2):
+        obs, reset, reward, term, trunc, info = env.step(key, state, actions, params)
+        obs_e, after, reward_e, term_e, trunc_e, info_e = env.step_env(key, state, actions, params)
+        np.testing.assert_array_equal(reward, reward_e)
+        assert bool(trunc) == bool(trunc_e) == (t == 1) and not bool(term) and not bool(term_e)
+        np.testing.assert_array_equal(info["final_global_state"], env.global_state(after))
+        np.testing.assert_array_equal(info_e["global_state"], info_e["final_global_state"])
+        np.testing.assert_array_equal(obs_e, env.observe(after))
+        if t == 0:      # not ended: the same step
+            np.testing.assert_array_equal(reset.pos, after.pos)
+            np.testing.assert_array_equal(obs, obs_e)
+        else:           # ended: a fresh episode
+            assert int(reset.steps) == 0 and int(after.steps) == 2
+            np.testing.assert_array_equal(reset.goal, env.reset(key, params)[1].goal)
+            np.testing.assert_array_equal(info["global_state"], env.global_state(reset))
+        state = after
+
+
 def test_learning_happens_on_the_reach_task_and_the_same_seed_gives_the_same_curve():
     """40 iterations (20,480 team steps, a few seconds) as one compiled scan: the mean step
     reward rises by more than 0.25 from the first iterations to the last, and the success
@@ -175,6 +202,22 @@ def test_bad_algo_settings_name_the_field(algo, field):
     with pytest.raises(ConfigError) as err:
         train_config_from_dict(_raw(**algo), "t.yaml")
     assert field in str(err.value)
+
+
+def test_the_run_s_environments_shape_with_algo_gamma():
+    """The run's environment takes the learner's discount as a parameter
+    (``make_env(discount=algo.gamma)``) while its scene keeps its own ``env.discount``; a
+    gamma under which the scene's outcomes no longer outweigh the shaping is refused,
+    naming algo.gamma."""
+    from mysim_jax.mappo.run import load_run_config, make_environment
+
+    p = load_run_config("configs/train_capture_falling.yaml", ["algo.gamma=0.97", "env.level=train"])
+    assert p.scene.env.discount == 0.99
+    _, params = make_environment(p)
+    assert params.discount.dtype == jnp.float32 and params.discount == np.float32(0.97)
+    with pytest.raises(ConfigError, match=r"env.scene: with the learner's discount algo.gamma = 0.5 .*"
+                                          r"env.rewards.success = .* must exceed"):
+        load_run_config("configs/train_capture_falling.yaml", ["algo.gamma=0.5"])
 
 
 def test_env_section_needs_exactly_one_source():

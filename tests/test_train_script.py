@@ -421,7 +421,7 @@ def test_capture_environment_end_to_end_tiny(tmp_path):
     assert "note: run.eval_batch 4 is more than run.eval_episodes 2: the final evaluation runs 2 side by side" \
         in res.stdout
     # the run folder is self-contained: its scene is the resolved training scene (velocity
-    # setpoints, the shaping's discount the trainer's gamma, the level train), and the
+    # setpoints, the scene's own discount, the level train), and the
     # evaluation's scene is the level full with the same overrides
     scene_text = (out / "scene.yaml").read_text()
     assert "setpoint_mode: velocity" in scene_text and "discount: 0.99" in scene_text and "level: train" in scene_text

@@ -84,7 +84,9 @@ def team_problems(scene) -> list[str]:
     return problems
 
 
-def env_problems(scene) -> list[str]:
+def env_problems(scene, discount: float | None = None) -> list[str]:
+    """The problems of a capture scene's ``env:`` block; the reward ranking checked with
+    the shaping's discount ``discount`` (None: the block's ``env.discount``)."""
     env = scene.env
     if env is None:
         return []
@@ -104,5 +106,6 @@ def env_problems(scene) -> list[str]:
         problems.append(f"env.policy_rate: sim.t_end = {scene.sim.t_end:g} s is shorter than one policy period")
     else:
         max_steps = int(round(scene.sim.t_end / (round(ratio) * scene.sim.dt)))
-        problems += ranking_problems(env.weights(), max(len(scene.quadrotors), 1), max_steps, env.discount)
+        problems += ranking_problems(env.weights(), max(len(scene.quadrotors), 1), max_steps,
+                                     env.discount if discount is None else discount)
     return problems

@@ -273,8 +273,9 @@ class EnvConfig(StrictModel):
 
     policy_rate: PosFloat = 25.0           # Hz
     rewards: dict[str, NonNegFloat] = {}   # term -> weight; missing terms keep their default
-    # γ of the shaping F = γ Φ(s') − Φ(s): the learner's discount (scripts/train.py sets it
-    # to algo.gamma), so that the shaping leaves the optimal policy unchanged
+    # γ of the shaping F = γ Φ(s') − Φ(s): the learner's discount, so that the shaping leaves
+    # the optimal policy unchanged (scripts/train.py's environments take algo.gamma instead:
+    # make_env(config, discount=))
     discount: Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)] = 0.99
     reward_scales: RewardScales = RewardScales()
     success: SuccessConfig = SuccessConfig()

@@ -41,6 +41,7 @@ from typing import Annotated, Any, Literal
 from pydantic import Field, ValidationError, model_validator
 import yaml
 
+from mysim_jax.config.capture_checks import env_problems
 from mysim_jax.config.env import drawn_value_problems
 from mysim_jax.config.overrides import apply_override
 from mysim_jax.config.scene import load_config
@@ -430,7 +431,7 @@ def load_eval_scene(config: TrainConfig, train_path: str | Path, scene=None):
         if not path.exists():
             raise ConfigError(f"{train_path}: env.eval_scene: no such file {path} "
                               "(paths are relative to the training file)")
-        return load_config(path, [f"env.discount={config.algo.gamma!r}"])
+        return _check_learner_discount(config, load_config(path), f"{train_path}: env.eval_scene")
     if config.env.eval_level is None:
         return scene if scene is not None else load_scene(config, train_path)
     try:
@@ -455,12 +456,10 @@ def load_scene(config: TrainConfig, train_path: str | Path, level: str | None = 
     if missing:
         raise ConfigError(f"{train_path}: env.scene: {path} is not a capture environment: it has no "
                           f"{' and no '.join(missing)} block")
-    # the shaping's discount is the learner's (potential-based shaping keeps the optimal
-    # policy only with the discount the learner optimises)
     level = config.env.level if level is None else level
     level_set = [] if level is None else [f"level={level}"]
     try:
-        scene = load_config(path, [*config.env.set, *level_set, f"env.discount={config.algo.gamma!r}"])
+        scene = load_config(path, [*config.env.set, *level_set])
     except ConfigError as err:
         if str(err).startswith("--set "):          # an entry of env.set that is not key=value
             raise ConfigError(f"{train_path}: env.set: {err}") from None
@@ -477,6 +476,18 @@ def load_scene(config: TrainConfig, train_path: str | Path, level: str | None = 
         raise ConfigError(f"{train_path}: env.curriculum scales an evading target's speed, jink and flee ranges; "
                           f"the target of {path} is '{scene.target.behaviour}' (remove env.curriculum or use a "
                           "scene with target.behaviour: maneuvering)")
+    return _check_learner_discount(config, scene, f"{train_path}: env.scene")
+
+
+def _check_learner_discount(config: TrainConfig, scene, where: str):
+    """``scene``, its reward ranking checked with ``algo.gamma``: the shaping's discount in
+    training is the learner's (potential-based shaping keeps the optimal policy only with
+    the discount the learner optimises; the run passes it to ``make_env(discount=)``)."""
+    gamma = config.algo.gamma
+    problems = [] if gamma == scene.env.discount else env_problems(scene, discount=gamma)
+    if problems:
+        raise ConfigError(f"{where}: with the learner's discount algo.gamma = {gamma:g} as the shaping's: "
+                          + "; ".join(problems))
     return scene
 
 

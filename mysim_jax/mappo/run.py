@@ -110,7 +110,7 @@ def make_environment(p: Prepared):
     if p.scene.sim.precision == "float64":
         jax.config.update("jax_enable_x64", True)
 
-    return make_env(p.scene)
+    return make_env(p.scene, discount=p.config.algo.gamma)
 
 
 def make_eval_environment(p: Prepared, env, env_params):
@@ -121,7 +121,7 @@ def make_eval_environment(p: Prepared, env, env_params):
     if not p.evaluates_elsewhere:
         return env, env_params
 
-    eval_env, eval_params = make_env(p.eval_scene)
+    eval_env, eval_params = make_env(p.eval_scene, discount=p.config.algo.gamma)
     if (eval_env.obs_size, tuple(eval_env.action_shape)) != (env.obs_size, tuple(env.action_shape)):
         raise ConfigError(f"{p.source}: env.eval_level: the evaluation scene's observations/actions "
                           f"({eval_env.obs_size}, {tuple(eval_env.action_shape)}) differ from training's "

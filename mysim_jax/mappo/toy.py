@@ -83,7 +83,18 @@ class ReachEnv:
         state = self._fresh(key)
         return self.observe(state), state
 
-    def step(self, key, state: ReachState, actions, params: ReachParams, auto_reset: bool = True):
+    def step(self, key, state: ReachState, actions, params: ReachParams):
+        """``(obs, state, reward, terminated, truncated, info)``: :meth:`step_env`, then a
+        fresh episode drawn from ``key`` where this one ended (auto-reset; ``info`` describes
+        the ended episode, ``info["global_state"]`` is the new one's)."""
+        _, after, reward, success, timeout, info = self.step_env(key, state, actions, params)
+        new = jax.tree.map(lambda f, a_: jnp.where(info["done"], f, a_), self._fresh(key), after)
+        info["global_state"] = self.global_state(new)
+        return self.observe(new), new, reward, success, timeout, info
+
+    def step_env(self, key, state: ReachState, actions, params: ReachParams):
+        """One step without the reset: the state the step reached even when the episode
+        ends (``info["final_global_state"]`` equals ``info["global_state"]``)."""
         a = jnp.clip(jnp.where(jnp.isfinite(actions), actions, 0.0), -1.0, 1.0)
         pos = state.pos + params.speed * self.dt * a
         dist = jnp.linalg.norm(pos - state.goal, axis=-1)
@@ -93,13 +104,10 @@ class ReachEnv:
         timeout = (steps >= self.max_steps) & ~success
         returns = state.returns + reward
         after = ReachState(pos=pos, goal=state.goal, steps=steps, returns=returns)
-        done = success | timeout
-        fresh = self._fresh(key)
-        new = jax.tree.map(lambda f, a_: jnp.where(done, f, a_), fresh, after) if auto_reset else after
         info = {
-            "success": success, "done": done, "timeout": timeout,
+            "success": success, "done": success | timeout, "timeout": timeout,
             "episode_return": returns, "episode_length": steps,
             "final_global_state": self.global_state(after),
-            "global_state": self.global_state(new),
+            "global_state": self.global_state(after),
         }
-        return self.observe(new), new, reward, success, timeout, info
+        return self.observe(after), after, reward, success, timeout, info

@@ -65,7 +65,7 @@ def episode_rollout(env, params, policy, key, index=0):
     gave them), ``reward``, ``terms`` (weighted, per agent),
     ``success``, ``failures``, ``timeout``, ``held``, ``touching``, ``done``, ``returns``
     (the episode's return so far, per agent). The environment does not reset
-    (``auto_reset=False``): rows after the first ``done`` step on from the ended episode's
+    (``step_env``): rows after the first ``done`` step on from the ended episode's
     state, and :func:`record_episode` drops them.
     """
     k_reset, _, _ = episode_keys(key, index, 0)
@@ -76,7 +76,7 @@ def episode_rollout(env, params, policy, key, index=0):
         k, obs, state = carry
         _, k_act, k_step = episode_keys(key, index, t)
         actions = policy(k_act, obs, state, params)
-        obs, state, reward, _, _, info = env.step(k_step, state, actions, params, auto_reset=False)
+        obs, state, reward, _, _, info = env.step_env(k_step, state, actions, params)
         sim = state.sim
         row = {"sim": sim, "actions": actions, "reward": reward, "terms": info["terms"], "success": info["success"],
                "failures": jnp.stack([info["failures"][f] for f in FAILURES]), "timeout": info["timeout"],

@@ -127,7 +127,7 @@ class Evaluator:
             obs, state, ep, t, nxt, term_sum = carry
             _, k_act, k_step = episode_keys(key, jnp.maximum(ep, 0), t)
             actions = policy(k_act, obs, state, params, args)
-            obs2, state2, _, _, _, info = env.step(k_step, state, actions, params, auto_reset=False)
+            obs2, state2, _, _, _, info = env.step_env(k_step, state, actions, params)
             done = info["done"]
             finishing = done & (ep >= 0)
             terms = jnp.stack([jnp.mean(info["terms"][k]) for k in REWARD_TERMS])

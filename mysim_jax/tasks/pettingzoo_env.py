@@ -24,8 +24,9 @@ agent. Values outside ``[-1, 1]`` are clipped to it (by the functional env).
 
 **Observations** ``float32 (obs_size,)`` per agent; ``state()`` the noise-free global state
 ``float32 (state_size,)`` for a centralised critic. At the step that ends an episode both
-are the episode's last (the functional env's ``info["final_obs"]`` and
-``info["final_global_state"]``, taken before its auto-reset).
+are the episode's last, as is the state ``render()`` draws until ``reset``: the wrapper
+steps with the functional env's ``step_env``, which does not reset (``reset`` starts the
+next episode).
 
 **Infos** per agent at each step: ``terms`` (the agent's weighted reward terms, floats,
 summing to its reward), ``success``, ``failed``, ``failures`` (name -> bool, the checks of
@@ -73,9 +74,9 @@ def _reset(env: CaptureEnv, key, params: EnvParams):
 
 @functools.partial(jax.jit, static_argnums=0)
 def _step(env: CaptureEnv, key, state, actions, params: EnvParams):
-    """``(key, state, (obs, reward, terminated, truncated, info))``: one policy step."""
+    """``(key, state, (obs, reward, terminated, truncated, info))``: one policy step (no reset)."""
     key, sub = jax.random.split(key)
-    obs, state, reward, terminated, truncated, info = env.step(sub, state, actions, params)
+    obs, state, reward, terminated, truncated, info = env.step_env(sub, state, actions, params)
     return key, state, (obs, reward, terminated, truncated, info)
 
 
@@ -150,8 +151,7 @@ class CaptureParallelEnv(ParallelEnv):
         stacked = self._check_actions(actions)
         self._key, self._state, out = _step(self.capture_env, self._key, self._state, stacked, self.env_params)
         obs, reward, terminated, truncated, info = jax.device_get(out)
-        obs = info["final_obs"]       # the episode's own last observation, also at its end
-        self._global_state = np.asarray(info["final_global_state"], np.float32)
+        self._global_state = np.asarray(info["global_state"], np.float32)
         terminated, truncated = bool(terminated), bool(truncated)
         agents = self.agents
         observations = self._per_agent(obs)

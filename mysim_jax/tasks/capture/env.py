@@ -1,9 +1,9 @@
 """The capture environment's static structure (:class:`CaptureEnv`, hashable) and its
-functional API: ``reset`` and ``step`` with auto-reset, the action checks, and the scripted
-and random baselines' actions. The environment's other jobs are its mixins: the
-per-episode draws (:mod:`.randomisation`), the estimation errors (:mod:`.perception_errors`),
-the observations (:mod:`.observations`) and the rewards and episode ends (:mod:`.verdict`).
-The package docstring (:mod:`mysim_jax.tasks.capture`) describes the API."""
+functional API: ``reset``, ``step`` with auto-reset and ``step_env`` without, the action
+checks, and the scripted and random baselines' actions. The environment's other jobs are
+its mixins: the per-episode draws (:mod:`.randomisation`), the estimation errors
+(:mod:`.perception_errors`), the observations (:mod:`.observations`) and the rewards and
+episode ends (:mod:`.verdict`). The package docstring (:mod:`mysim_jax.tasks.capture`) describes the API."""
 
 from __future__ import annotations
 
@@ -78,11 +78,27 @@ class CaptureEnv(VerdictMixin, ObservationsMixin, PerceptionErrorsMixin, Randomi
         obs = self._observe(jax.random.fold_in(key, 1), state, params)
         return obs, state
 
-    def step(self, key, state: EnvState, actions, params: EnvParams, auto_reset: bool = True):
-        """``(obs, state, reward, terminated, truncated, info)`` (package docstring).
-        ``auto_reset=False`` (a Python bool) returns the state after the step even when the
-        episode ends, and leaves the reset's code out of the traced program: for callers
-        that start episodes themselves (:class:`mysim_jax.tasks.evaluate.Evaluator`)."""
+    def step(self, key, state: EnvState, actions, params: EnvParams):
+        """``(obs, state, reward, terminated, truncated, info)``: :meth:`step_env`, then the
+        reset of an episode that ended (auto-reset, package docstring): its ``obs``,
+        ``state`` and ``info["global_state"]`` are then the new episode's first, and
+        ``info["final_obs"]``, ``info["final_global_state"]`` and ``info["final_state"]``
+        the ended episode's last."""
+        obs, after, reward, terminated, truncated, info = self.step_env(key, state, actions, params)
+        done = info["done"]
+        key_reset, key_obs = jax.random.split(key)
+        fresh = self._reset_state(key_reset, params)
+        state = jax.tree.map(lambda a, b: jnp.where(done, a, b), fresh, after)
+        obs = jnp.where(done, self._observe(key_obs, state, params), obs)
+        info["global_state"] = jnp.where(done, self.global_state(state), info["final_global_state"])
+        return obs, state, reward, terminated, truncated, info
+
+    def step_env(self, key, state: EnvState, actions, params: EnvParams):
+        """``(obs, state, reward, terminated, truncated, info)`` of one policy step without
+        the reset: the state the step reached even when the episode ends (``info`` as in
+        :meth:`step`, its ``final_*`` entries equal to the returned values), and no reset's
+        code in the traced program. For callers that start episodes themselves
+        (:class:`mysim_jax.tasks.evaluate.Evaluator`); :meth:`step` resets from here."""
         dtype = state.sim.phys.body_pos.dtype
         nan = ~jnp.isfinite(self.check_actions(actions))
         actions = self.clean_actions(actions, dtype)
@@ -130,22 +146,12 @@ class CaptureEnv(VerdictMixin, ObservationsMixin, PerceptionErrorsMixin, Randomi
                   if self.perception else state.perception)
         after = EnvState(sim=sim, episode=state.episode, steps=steps, held=flags.held, held_time=held_time,
                          touched=touched, returns=returns, potential=potential, perception=errors)
-        key_reset, key_obs = jax.random.split(key)
-        if not auto_reset:
-            obs = self._observe(key_obs, after, params)
-            info["final_obs"], info["final_state"] = obs, after
-            info["final_global_state"] = info["global_state"] = self.global_state(after)
-            return obs, after, reward, terminated, timeout, info
-        fresh = self._reset_state(key_reset, params)
-        # the episode's last observation (before the reset), e.g. to bootstrap a value
-        # on truncation
-        info["final_obs"] = self._observe(key_obs, after, params)
-        info["final_global_state"] = self.global_state(after)
-        info["final_state"] = after
-        state = jax.tree.map(lambda a, b: jnp.where(done, a, b), fresh, after)
-        obs = jnp.where(done, self._observe(key_obs, state, params), info["final_obs"])
-        info["global_state"] = jnp.where(done, self.global_state(state), info["final_global_state"])
-        return obs, state, reward, terminated, timeout, info
+        # the key's second half draws the observation's noise (step resets from its first)
+        _, key_obs = jax.random.split(key)
+        obs = self._observe(key_obs, after, params)
+        info["final_obs"], info["final_state"] = obs, after
+        info["final_global_state"] = info["global_state"] = self.global_state(after)
+        return obs, after, reward, terminated, timeout, info
 
     # --- pieces ---------------------------------------------------------------------
     def check_actions(self, actions):

@@ -36,11 +36,15 @@ def line_contact_radius(scene, params, target_body: int, line_springs, default: 
     return float(max(radii)) if radii else default
 
 
-def make_env(config) -> tuple[CaptureEnv, EnvParams]:
+def make_env(config, discount: float | None = None) -> tuple[CaptureEnv, EnvParams]:
     """The environment of a capture SceneConfig with an ``env:`` block (ValueError
-    naming what is missing otherwise)."""
+    naming what is missing otherwise). ``discount``: γ of the potential-based shaping
+    (``EnvParams.discount``; a trainer passes its own, ``algo.gamma``, so that the shaping
+    leaves the optimal policy unchanged), in (0, 1]; None: the file's ``env.discount``."""
     if config.env is None:
         raise ValueError(f"scene '{config.name}': no env: block (add `env: {{}}` for the defaults)")
+    if discount is not None and not 0.0 < discount <= 1.0:
+        raise ValueError(f"discount: {discount!r}, expected a value in (0, 1] (γ of the reward shaping)")
     env_cfg, net = config.env, config.net
     scene, params, state = build(config)
     team = team_policy(config.model_copy(update={"team": config.team or _default_team()}), scene)
@@ -83,10 +87,10 @@ def make_env(config) -> tuple[CaptureEnv, EnvParams]:
     weights = env_cfg.weights()
     env_params = EnvParams(sim=params, start=state,
                            weights=jnp.asarray([weights[k] for k in REWARD_TERMS], scene.dtype),
-                           discount=jnp.asarray(env_cfg.discount, scene.dtype),
+                           discount=jnp.asarray(env_cfg.discount if discount is None else discount, scene.dtype),
                            ranges=episode_ranges(config, scene.dtype, len(quads)),
-                           perception=jnp.asarray(perception_levels(env_cfg.perception, control_steps * config.sim.dt),
-                                                  scene.dtype),
+                           perception=perception_levels(env_cfg.perception, control_steps * config.sim.dt,
+                                                        scene.dtype),
                            target_delay=jnp.asarray(target_delay(env_cfg.perception, control_steps * config.sim.dt),
                                                     scene.dtype),
                            target_dropout=jnp.asarray(target_dropout(env_cfg.perception,

@@ -44,14 +44,14 @@ class ObservationsMixin:
         n = self.n_agents
         quads = np.asarray(self.quad_bodies, dtype=np.int32)
         knots = np.asarray(self.knot_points, dtype=np.int32)
-        sigma = state.episode.noise.astype(dtype)
+        noise = jax.tree.map(lambda s: s.astype(dtype), state.episode.noise)
         est_pos, est_vel, est_tpos, est_tvel = self.estimates(state, params)
         if self.observation_noise:
             xi = rng.normal_each(jax.random.split(key, 4), [(n, 3)] * 4, dtype)
-            pos = est_pos + sigma[0] * xi[0]
-            vel = est_vel + sigma[1] * xi[1]
-            tpos = est_tpos + sigma[2] * xi[2]
-            tvel = est_tvel + sigma[3] * xi[3]
+            pos = est_pos + noise.uav_pos * xi[0]
+            vel = est_vel + noise.uav_vel * xi[1]
+            tpos = est_tpos + noise.target_pos * xi[2]
+            tvel = est_tvel + noise.target_vel * xi[3]
         else:   # sigma is 0 in every episode: the same values without the draws' code
             pos, vel, tpos, tvel = (jnp.broadcast_to(x, (n, 3)) for x in (est_pos, est_vel, est_tpos, est_tvel))
         c_net = jnp.mean(phys.point_pos[knots], axis=0)

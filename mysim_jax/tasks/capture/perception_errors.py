@@ -15,7 +15,8 @@ from mysim_jax.config.env import dropout_per_step
 from mysim_jax.core import rng
 from mysim_jax.core.config_base import ConfigError
 from mysim_jax.core.types import State
-from mysim_jax.tasks.capture.types import EnvParams, EnvState, PerceptionErrors
+from mysim_jax.tasks.capture.types import (CONFIG_NAMES, EnvParams, EnvState, GaussMarkovLevel, PerceptionErrors,
+                                           PerceptionLevels)
 
 
 class PerceptionErrorsMixin:
@@ -34,10 +35,9 @@ class PerceptionErrorsMixin:
     def _draw_errors(self, key, params: EnvParams, dtype, sim: State) -> PerceptionErrors:
         """Errors drawn from their stationary distributions (an episode's first state ``sim``)."""
         keys = jax.random.split(key, 4)
-        sigma = params.perception[:, 0].astype(dtype)
         shapes = self._error_shapes()
         xi = rng.normal_each(keys, list(shapes.values()), dtype)
-        e = {name: sigma[i] * xi[i] for i, name in enumerate(shapes)}
+        e = {name: getattr(params.perception, name).sigma.astype(dtype) * xi[i] for i, name in enumerate(shapes)}
         now = self._target_now(sim)
         return PerceptionErrors(**e, **now, target_lost=jnp.zeros((), bool),
                                 target_last_pos=now["target_pos_before"] + e["target_pos"],
@@ -52,12 +52,14 @@ class PerceptionErrorsMixin:
         (seen) it is regained (lost) with probability ``params.target_dropout[1]`` (``[0]``);
         while seen, the estimate is remembered, while lost it ages."""
         keys = jax.random.split(key, 4)
-        sigma, rho = params.perception[:, 0].astype(dtype), params.perception[:, 1].astype(dtype)
-        drive = sigma * jnp.sqrt(jnp.maximum(1.0 - rho * rho, 0.0))
         shapes = self._error_shapes()
         xi = rng.normal_each(keys, list(shapes.values()), dtype)
-        new = {name: (rho[i] * getattr(errors, name) + drive[i] * xi[i]).astype(dtype)
-               for i, name in enumerate(shapes)}
+        new = {}
+        for i, name in enumerate(shapes):
+            level = getattr(params.perception, name)
+            sigma, rho = level.sigma.astype(dtype), level.rho.astype(dtype)
+            drive = sigma * jnp.sqrt(jnp.maximum(1.0 - rho * rho, 0.0))
+            new[name] = (rho * getattr(errors, name) + drive * xi[i]).astype(dtype)
         u = jax.random.uniform(jax.random.fold_in(key, 7), (), dtype)
         p_lose, p_regain = params.target_dropout[0].astype(dtype), params.target_dropout[1].astype(dtype)
         lost = jnp.where(errors.target_lost, u >= p_regain, u < p_lose)
@@ -101,17 +103,16 @@ class PerceptionErrorsMixin:
         return phys.body_pos[quads] + e.uav_pos, phys.body_vel[quads] + e.uav_vel, tpos, tvel
 
 
-def perception_levels(config, policy_dt: float) -> list:
-    """``[(sigma, rho), ...]`` of ``env.perception``'s four errors per policy step (zeros
-    when there is none)."""
-    if config is None:
-        return [(0.0, 0.0)] * 4
-    out = []
-    for name in ("uav_position", "uav_velocity", "target_position", "target_velocity"):
-        gm = getattr(config, name)
-        tau = gm.correlation_time
-        out.append((float(gm.sigma), float(np.exp(-policy_dt / tau)) if tau > 0 else 0.0))
-    return out
+def perception_levels(config, policy_dt: float, dtype) -> PerceptionLevels:
+    """The levels of ``env.perception``'s four errors per policy step (``config``; zeros
+    when it is None), in ``dtype``."""
+    def level(gm):
+        sigma, tau = (0.0, 0.0) if gm is None else (float(gm.sigma), gm.correlation_time)
+        rho = float(np.exp(-policy_dt / tau)) if tau > 0 else 0.0
+        return GaussMarkovLevel(sigma=jnp.asarray(sigma, dtype), rho=jnp.asarray(rho, dtype))
+
+    return PerceptionLevels(**{name: level(None if config is None else getattr(config, field))
+                               for name, field in CONFIG_NAMES.items()})
 
 
 def target_delay(config, policy_dt: float) -> float:

@@ -13,7 +13,7 @@ import numpy as np
 from mysim_jax.core import rng
 from mysim_jax.core.types import Params
 from mysim_jax.effects.target import TARGET
-from mysim_jax.tasks.capture.types import Episode, EnvParams, Ranges
+from mysim_jax.tasks.capture.types import CONFIG_NAMES, Episode, EnvParams, ObservationNoise, Ranges
 
 
 class RandomisationMixin:
@@ -21,12 +21,16 @@ class RandomisationMixin:
     fields these methods read)."""
 
     def draw_episode(self, key, ranges: Ranges) -> Episode:
-        leaves_low, treedef = jax.tree.flatten(ranges.low)
-        leaves_high = jax.tree.leaves(ranges.high)
+        """One episode's draws, uniform in ``ranges``: one draw per field (the scene's
+        dtype), each from its own key, in field order; the observation noise's four
+        standard deviations are one ``(4,)`` draw."""
+        low, high = (r.replace(noise=r.noise.stacked()) for r in (ranges.low, ranges.high))
+        leaves_low, treedef = jax.tree.flatten(low)
+        leaves_high = jax.tree.leaves(high)
         keys = jax.random.split(key, len(leaves_low))
-        # one draw for every field (the scene's dtype), each from its own key
         drawn = rng.uniform_each(keys, [lo.shape for lo in leaves_low], leaves_low[0].dtype, leaves_low, leaves_high)
-        return jax.tree.unflatten(treedef, drawn)
+        episode = jax.tree.unflatten(treedef, drawn)
+        return episode.replace(noise=ObservationNoise.unstacked(episode.noise))
 
     def episode_params(self, params: EnvParams, ep: Episode) -> Params:
         """The physics parameters of one episode: the nominal ones with its draws."""
@@ -93,8 +97,8 @@ def episode_ranges(config, dtype, n_agents: int) -> Ranges:
         "flee_acceleration": rng(r.flee_acceleration, prop.flee_acceleration if prop else 0.0),
         "jink_acceleration": rng(r.jink_acceleration, prop.jink_acceleration if prop else 0.0),
         "max_speed": rng(r.max_speed, prop.max_speed if prop else 0.0),
-        "noise": tuple(jnp.asarray([getattr(getattr(env.noise, f), side) for f in
-                                    ("uav_position", "uav_velocity", "target_position", "target_velocity")], dtype)
+        "noise": tuple(ObservationNoise(**{name: jnp.asarray(getattr(getattr(env.noise, field), side), dtype)
+                                           for name, field in CONFIG_NAMES.items()})
                        for side in ("low", "high")),
     }
     if r.thrust_loss is not None:

@@ -1,6 +1,7 @@
 """The capture environment's pytrees: its traced parameters (:class:`EnvParams`), one
 environment's state (:class:`EnvState`) and what they hold (the per-episode draws
-:class:`Episode` and their :class:`Ranges`, the estimation errors :class:`PerceptionErrors`).
+:class:`Episode` with their :class:`ObservationNoise`, and their :class:`Ranges`; the
+estimation errors' levels :class:`PerceptionLevels` and the errors :class:`PerceptionErrors`).
 Trained policies and checkpoints rely on their structure and field order."""
 
 from __future__ import annotations
@@ -9,6 +10,32 @@ import jax.numpy as jnp
 from flax import struct
 
 from mysim_jax.core.types import Params, State
+
+# the fields of ObservationNoise and PerceptionLevels (the errors of PerceptionErrors) and the
+# entries of a scene file's env.noise and env.perception they come from
+CONFIG_NAMES = {"uav_pos": "uav_position", "uav_vel": "uav_velocity", "target_pos": "target_position",
+                "target_vel": "target_velocity"}
+
+
+@struct.dataclass
+class ObservationNoise:
+    """Standard deviations of the Gaussian noise on what each agent measures (``env.noise``,
+    drawn per episode; every agent's noise is drawn independently, per axis). Each ``()``
+    in the scene's dtype."""
+
+    uav_pos: jnp.ndarray          # () m, on its own position (env.noise.uav_position)
+    uav_vel: jnp.ndarray          # () m/s, on its own velocity (env.noise.uav_velocity)
+    target_pos: jnp.ndarray       # () m, on the target's position (env.noise.target_position)
+    target_vel: jnp.ndarray       # () m/s, on the target's velocity (env.noise.target_velocity)
+
+    def stacked(self) -> jnp.ndarray:
+        """The four as one ``(4,)`` array, in field order (the episode draws them as one)."""
+        return jnp.stack([self.uav_pos, self.uav_vel, self.target_pos, self.target_vel])
+
+    @classmethod
+    def unstacked(cls, values) -> "ObservationNoise":
+        """The inverse of :meth:`stacked`: ``values`` ``(4,)`` in field order."""
+        return cls(uav_pos=values[0], uav_vel=values[1], target_pos=values[2], target_vel=values[3])
 
 
 @struct.dataclass
@@ -21,7 +48,7 @@ class Episode:
     flee_acceleration: jnp.ndarray  # () m/s^2
     jink_acceleration: jnp.ndarray  # () m/s^2
     max_speed: jnp.ndarray        # () m/s
-    noise: jnp.ndarray            # (4,) sigma of UAV position [m], UAV velocity [m/s], target position, velocity
+    noise: ObservationNoise       # the observation noise's standard deviations
     # env.randomize.thrust_loss only (None otherwise: no draws, the same state as without the effect)
     thrust_fraction: jnp.ndarray | None = None   # () of the faulty UAV's nominal maximum thrust
     thrust_loss_time: jnp.ndarray | None = None  # () s, when the fault starts
@@ -37,6 +64,26 @@ class Ranges:
 
 
 @struct.dataclass
+class GaussMarkovLevel:
+    """One first-order Gauss-Markov estimation error per policy step, independent per axis:
+    ``e' = rho e + sigma √(1 - rho²) ξ``, started from its stationary distribution."""
+
+    sigma: jnp.ndarray            # () stationary standard deviation, the quantity's unit (m or m/s)
+    rho: jnp.ndarray              # () correlation over one policy step, exp(-policy_dt / correlation_time) (0: white)
+
+
+@struct.dataclass
+class PerceptionLevels:
+    """The levels of the estimation errors the team flies on (``env.perception``; all zero
+    when the team sees true states), named as the errors of :class:`PerceptionErrors`."""
+
+    uav_pos: GaussMarkovLevel     # m, each UAV's own position estimate (env.perception.uav_position)
+    uav_vel: GaussMarkovLevel     # m/s, its own velocity (env.perception.uav_velocity)
+    target_pos: GaussMarkovLevel  # m, the team's fused target position (env.perception.target_position)
+    target_vel: GaussMarkovLevel  # m/s, its velocity (env.perception.target_velocity)
+
+
+@struct.dataclass
 class EnvParams:
     """Traced environment parameters (vmap or change them without recompiling)."""
 
@@ -45,10 +92,7 @@ class EnvParams:
     weights: jnp.ndarray          # (n_terms,) reward weights, REWARD_TERMS order, >= 0
     discount: jnp.ndarray         # () γ of the potential-based shaping
     ranges: Ranges
-    # (4, 2) (sigma, rho per policy step) of the estimation errors of UAV position [m], UAV
-    # velocity [m/s], target position, target velocity (env.perception; rho = exp(-policy_dt
-    # / correlation_time)); zeros when the team sees true states
-    perception: jnp.ndarray
+    perception: PerceptionLevels  # the estimation errors' levels (zeros: the team sees true states)
     target_delay: jnp.ndarray     # () the target estimate's latency over the policy period, in [0, 1]
     # (2,) per policy step: the probability of losing the target estimate while it is seen,
     # and of regaining it while lost (env.perception.target_dropout); zeros: never lost
