@@ -204,6 +204,11 @@ class AlgoConfig(StrictModel):
     normalize_obs: bool = True             # running mean / std of observations and states
     value_norm: bool = True                # running mean / std of the value targets
     residual: bool = False                 # act = the scripted team's action + the policy's
+    # how the rollout batches the environment step: batch_last (mysim_jax.core.batching.vmap,
+    # the batch axis last in memory, in cache-sized blocks: for CPUs) or vmap (jax.vmap, the
+    # batch axis first); auto: batch_last on a CPU, vmap on a GPU or TPU
+    # (batching.resolve_batching). Both train the same policy to float round-off
+    batching: Literal["auto", "batch_last", "vmap"] = "auto"
     # bc: clone the scripted team first (bc:); policy: start from the saved policy
     # init_policy (fine-tuning it: the same networks, its observation normalisation, a
     # fresh critic warmed up for bc.critic_warmup iterations, the anchor on it)
