@@ -40,7 +40,7 @@ from mysim_jax.config.capture import TargetConfig, TeamConfig
 from mysim_jax.config.capture_checks import capture_problems
 from mysim_jax.config.effect_blocks import validate_effect_blocks
 from mysim_jax.config.env import EnvConfig
-from mysim_jax.config.overrides import apply_override, unaliased
+from mysim_jax.config.overrides import apply_override, override_list, unaliased
 from mysim_jax.config.quadrotor import QuadrotorConfig
 from mysim_jax.config.scene_checks import reference_problems
 from mysim_jax.contact.config import ContactConfig
@@ -501,7 +501,7 @@ def config_from_dict(raw: Any, source: str = "<dict>", overrides: list[str] | tu
         for name in config.levels:
             if name != config.level:
                 try:
-                    _config_at_level(original, source, (f"level={name}",))
+                    _config_at_level(original, source, override_list(level=name))
                 except ConfigError as err:
                     raise ConfigError(f"{source}: levels.{name}: the level does not load:\n{err}") from None
     return config
