@@ -59,8 +59,8 @@ ADAPTIVE_INTEGRATORS = ("tsit5", "kvaerno5")
 # Conjugate-gradient iterations per step of ``implicit_euler`` (sim.implicit_iterations):
 # the default and the largest accepted. 20 keeps randomised nets stable up to 20x the
 # explicit step (twice what ``substeps: auto`` takes; with 10 iterations a 44-mass net
-# blows up at 20x) and solves the capture nets to ~1e-13 at their own step (docs/scenes.md,
-# "Stiff ropes at large steps").
+# blows up at 20x) and solves the capture nets at their own step to a small relative residual
+# (docs/scenes.md, "Stiff ropes at large steps", gives both measurements).
 IMPLICIT_ITERATIONS = 20
 MAX_IMPLICIT_ITERATIONS = 10_000
 
