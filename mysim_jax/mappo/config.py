@@ -206,7 +206,8 @@ class AlgoConfig(StrictModel):
     # how the rollout batches the environment step: batch_last (mysim_jax.core.batching.vmap,
     # the batch axis last in memory, in cache-sized blocks: for CPUs) or vmap (jax.vmap, the
     # batch axis first); auto: batch_last on a CPU, vmap on a GPU or TPU
-    # (batching.resolve_batching). Both train the same policy to float round-off
+    # (batching.resolve_batching). The two differ by float round-off only (which PPO's
+    # updates amplify over a run, as they do any round-off)
     batching: Literal["auto", "batch_last", "vmap"] = "auto"
     # bc: clone the scripted team first (bc:); policy: start from the saved policy
     # init_policy (fine-tuning it: the same networks, its observation normalisation, a
