@@ -85,6 +85,7 @@ def _checked_inputs(args):
     note when the scene had no env: block, and the perception block; before JAX is imported.
     Raises ConfigError, OutputError or PolicyError."""
     from mysim_jax.config.env import drawn_value_problems
+    from mysim_jax.config.overrides import override_list
     from mysim_jax.config.scene import ConfigError, load_config
     from mysim_jax.io.output import check_output_dir
     from mysim_jax.mappo.policies import check_policy_spec
@@ -93,7 +94,7 @@ def _checked_inputs(args):
     perception = None
     if args.perception is not None:
         perception = read_perception_block(args.perception)
-        args.overrides = [*args.overrides, "env.perception=" + json.dumps(perception)]
+        args.overrides = override_list(args.overrides, then={"env.perception": json.dumps(perception)})
     config = load_config(args.config, args.overrides)
     ignored = drawn_value_problems(config, args.overrides)
     if ignored:
@@ -104,7 +105,7 @@ def _checked_inputs(args):
         raise ConfigError(f"{args.config}: not a capture scene: it has no {' and no '.join(missing)} block")
     env_note = None
     if config.env is None:
-        config = load_config(args.config, ["env={}", *args.overrides])
+        config = load_config(args.config, override_list(args.overrides, first=["env={}"]))
         env_note = f"note: {args.config} has no env: block; evaluating with the defaults (env: {{}})"
     out = check_output_dir(args.out)
     check_policy_spec(args.policy)

@@ -49,6 +49,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
 
+    from mysim_jax.config.overrides import override_list
     from mysim_jax.config.scene import ConfigError, check_output_memory, load_config
     from mysim_jax.io.output import OutputError, check_output_dir
 
@@ -57,7 +58,7 @@ def main(argv=None) -> int:
         if args.gains is not None:
             from mysim_jax.config.quadrotor import gain_overrides
 
-            overrides = gain_overrides(args.gains, args.config) + overrides
+            overrides = override_list(overrides, first=gain_overrides(args.gains, args.config))
         config = load_config(args.config, overrides)
         # a run without a team: block flies the quadrotors' references, so a controlled
         # quadrotor needs one (a scene without them is driven by setpoints passed to step)

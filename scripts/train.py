@@ -83,6 +83,7 @@ def main(argv=None) -> int:
         return _error(f"--process-id {args.process_id} with --num-processes {args.num_processes}: the id must be "
                       "0 to N-1 and N at least 1")
 
+    from mysim_jax.config.overrides import override_list
     from mysim_jax.core.config_base import ConfigError
     from mysim_jax.io.output import OutputError
     from mysim_jax.mappo.run import describe_run, prepare, train_run
@@ -93,7 +94,7 @@ def main(argv=None) -> int:
                       "them)")
     if args.seeds is not None and args.seeds < 1:
         return _error(f"--seeds {args.seeds}: give at least 1")
-    overrides = list(args.overrides) + ([] if args.seeds is None else [f"run.seeds={args.seeds}"])
+    overrides = override_list(args.overrides, then={"run.seeds": args.seeds})
     try:
         prepared = prepare(args.config, overrides, args.out, args.resume, args.profile)
     except (ConfigError, OutputError) as err:

@@ -239,6 +239,19 @@ def test_override_errors():
     assert cfg.ropes[2].EA == 2e5 and cfg.gravity == (0, 0, -1.62)
 
 
+def test_an_override_list_puts_its_parts_in_the_order_they_apply():
+    """``override_list``: ``first`` (a profile, gains), then ``--set``, then ``level=``, then
+    the program's own values (None left out); applied, a later entry wins on the same key."""
+    from mysim_jax.config.overrides import apply_overrides, override_list
+
+    assert override_list(["a=1"], first=["a=0", "b=0"], level="train", then={"c": 2, "d": None}) == [
+        "a=0", "b=0", "a=1", "level=train", "c=2"]
+    assert override_list() == [] and override_list(level="fast") == ["level=fast"]
+    raw = {"a": {"x": 1}}
+    assert apply_overrides(raw, override_list(["a.x=3"], first=["a.x=2", "a.y=2"])) == {"a": {"x": 3, "y": 2}}
+    assert raw == {"a": {"x": 1}}
+
+
 def test_float64_without_x64_is_a_clear_error():
     if jax.config.jax_enable_x64:
         pytest.skip("x64 is globally enabled in this process (JAX_ENABLE_X64); nothing to check")

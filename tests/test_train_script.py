@@ -294,6 +294,8 @@ def test_a_starting_policy_of_another_environment_is_refused_before_anything_is_
     ("name: t\nenv: {scene: missing.yaml}\n", [], "env.scene: no such file"),
     ("name: t\nenv: {scene: ../configs/rope_net.yaml}\n", [], "not a capture environment"),
     ("name: t\nenv: {builtin: reach}\nrun: {checkpoint_every: 0}\n", [], "run.checkpoint_every"),
+    ("name: t\nenv: {builtin: reach}\n", ["algo.batching=batch_first"],
+     "algo.batching: Input should be 'auto', 'batch_last' or 'vmap'"),
     ("name: t\nenv: {builtin: reach}\nalgo: {init: policy, init_policy: nowhere}\n", [],
      "algo.init_policy nowhere: no saved policy there"),
     ("name: t\nenv: {builtin: reach}\nalgo: {init: policy}\n", [], "give its folder as init_policy"),

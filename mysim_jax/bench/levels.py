@@ -43,6 +43,7 @@ from tqdm.auto import tqdm
 from mysim_jax.bench.environment import env_call, env_variant
 from mysim_jax.bench.report import CAPTURE_ENV
 from mysim_jax.bench.timing import contention_note, median, time_round_robin, wait_for_quiet
+from mysim_jax.config.overrides import override_list
 from mysim_jax.config.scene import load_config
 from mysim_jax.core import batching
 from mysim_jax.dynamics.forces import spring_tension
@@ -231,7 +232,7 @@ def section_i(cfg, results) -> list[str]:
     top = 1024 if 1024 in batches else batches[-1]
     calls, envs, rows, outcomes, measures = {}, {}, {}, {}, {}
     for level in tqdm(names, desc="(i) levels: compile", leave=False):
-        envs[level] = env_variant([f"level={level}", "env.policy_rate=10.0"])
+        envs[level] = env_variant(override_list(level=level, then={"env.policy_rate": 10.0}))
         for b in batches:
             calls[level, b] = env_call(*envs[level], b, 1)
     timed, repeats = {}, {}
@@ -244,7 +245,7 @@ def section_i(cfg, results) -> list[str]:
         env, params = envs[level]
         stats = _level_outcomes(env, params, n_eps)
         outcomes[level] = stats.success
-        rec_config = load_config(CAPTURE_ENV, [f"level={level}", f"env.policy_rate={CATCH_RATE}"])
+        rec_config = load_config(CAPTURE_ENV, override_list(level=level, then={"env.policy_rate": CATCH_RATE}))
         rec_env, rec_params = make_env(rec_config)
         measures[level] = catch_measures(rec_env, rec_params, rec_config.net, jax.random.PRNGKey(CATCH_SEED), n_catch)
         rows[level] = dict(substeps=env.control_steps * env.scene.substeps, points=env.scene.n_points,

@@ -40,7 +40,7 @@ from mysim_jax.config.capture import TargetConfig, TeamConfig
 from mysim_jax.config.capture_checks import capture_problems
 from mysim_jax.config.effect_blocks import validate_effect_blocks
 from mysim_jax.config.env import EnvConfig
-from mysim_jax.config.overrides import apply_override, unaliased
+from mysim_jax.config.overrides import apply_override, override_list, unaliased
 from mysim_jax.config.quadrotor import QuadrotorConfig
 from mysim_jax.config.scene_checks import reference_problems
 from mysim_jax.contact.config import ContactConfig
@@ -59,8 +59,8 @@ ADAPTIVE_INTEGRATORS = ("tsit5", "kvaerno5")
 # Conjugate-gradient iterations per step of ``implicit_euler`` (sim.implicit_iterations):
 # the default and the largest accepted. 20 keeps randomised nets stable up to 20x the
 # explicit step (twice what ``substeps: auto`` takes; with 10 iterations a 44-mass net
-# blows up at 20x) and solves the capture nets to ~1e-13 at their own step (docs/scenes.md,
-# "Stiff ropes at large steps").
+# blows up at 20x) and solves the capture nets at their own step to a small relative residual
+# (docs/scenes.md, "Stiff ropes at large steps", gives both measurements).
 IMPLICIT_ITERATIONS = 20
 MAX_IMPLICIT_ITERATIONS = 10_000
 
@@ -501,7 +501,7 @@ def config_from_dict(raw: Any, source: str = "<dict>", overrides: list[str] | tu
         for name in config.levels:
             if name != config.level:
                 try:
-                    _config_at_level(original, source, (f"level={name}",))
+                    _config_at_level(original, source, override_list(level=name))
                 except ConfigError as err:
                     raise ConfigError(f"{source}: levels.{name}: the level does not load:\n{err}") from None
     return config

@@ -56,7 +56,13 @@ from jax import lax
 from mysim_jax.core.batch_last_eval import eval_batch_last
 from mysim_jax.core.batch_last_ops import FALLBACK_COUNTS, to_back, to_front
 
-__all__ = ["vmap", "chunk_for", "to_batch_last", "from_batch_last", "eval_batch_last", "FALLBACK_COUNTS"]
+__all__ = ["vmap", "chunk_for", "to_batch_last", "from_batch_last", "eval_batch_last", "FALLBACK_COUNTS",
+           "BATCHINGS", "resolve_batching", "batch"]
+
+BATCHINGS = ("batch_last", "vmap")
+"""How batched code can be compiled: ``batch_last`` (:func:`vmap`, the batch axis last) or
+``vmap`` (``jax.vmap``, the batch axis first). ``auto`` picks one by platform
+(:func:`resolve_batching`)."""
 
 
 def to_batch_last(tree):
@@ -112,6 +118,35 @@ def vmap(fun: Callable, in_axes: int | None | Sequence[int | None] = 0, chunk: i
         return jax.tree.map(lambda x: x.reshape((size,) + x.shape[2:]), out)
 
     return chunked_fun
+
+
+def resolve_batching(choice: str, platform: str | None = None) -> str:
+    """``choice`` (``auto`` or one of :data:`BATCHINGS`) made definite for ``platform``
+    (``"cpu"``, ``"gpu"``, ``"tpu"``, ...; default: JAX's default backend). ``auto`` is
+    ``batch_last`` on a CPU, which is what it is for: contiguous batch rows for the CPU's
+    vector units and caches (the module docstring; BENCHMARKS.md, sections a and f, time it
+    against ``jax.vmap`` on a CPU). On any other platform ``auto`` is ``vmap``: a GPU or TPU
+    compiler assigns the memory layouts of a ``jax.vmap`` program itself, and no benchmark
+    of the project has measured batch-last there."""
+    if choice == "auto":
+        platform = jax.default_backend() if platform is None else platform
+        return "batch_last" if platform == "cpu" else "vmap"
+    if choice not in BATCHINGS:
+        raise ValueError(f"batching must be auto, {' or '.join(BATCHINGS)}; got {choice!r}")
+    return choice
+
+
+def batch(fun: Callable, batching: str, in_axes: int | None | Sequence[int | None] = 0,
+          chunk: int | None = None) -> Callable:
+    """``fun`` batched the way ``batching`` (one of :data:`BATCHINGS`) says: ``batch_last``
+    is :func:`vmap` ``(fun, in_axes, chunk)``, ``vmap`` is ``jax.vmap(fun, in_axes)``
+    (``chunk`` unused: one block). Either way the arguments and results are batch-first
+    (``in_axes`` 0 or None) and the results equal to round-off."""
+    if batching == "batch_last":
+        return vmap(fun, in_axes, chunk)
+    if batching == "vmap":
+        return jax.vmap(fun, in_axes=tuple(in_axes) if isinstance(in_axes, list) else in_axes)
+    raise ValueError(f"batching must be {' or '.join(BATCHINGS)}; got {batching!r}")
 
 
 def tree_nbytes(tree) -> int:

@@ -33,7 +33,6 @@ naming the field.
 
 from __future__ import annotations
 
-import copy
 import json
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -43,7 +42,7 @@ import yaml
 
 from mysim_jax.config.capture_checks import env_problems
 from mysim_jax.config.env import drawn_value_problems
-from mysim_jax.config.overrides import apply_override
+from mysim_jax.config.overrides import apply_overrides, override_list
 from mysim_jax.config.scene import load_config
 from mysim_jax.core.config_base import (ConfigError, Name, PosFloat, StrictModel, available_memory_bytes,
                                         format_validation_error, read_yaml_file)
@@ -205,6 +204,12 @@ class AlgoConfig(StrictModel):
     normalize_obs: bool = True             # running mean / std of observations and states
     value_norm: bool = True                # running mean / std of the value targets
     residual: bool = False                 # act = the scripted team's action + the policy's
+    # how the rollout batches the environment step: batch_last (mysim_jax.core.batching.vmap,
+    # the batch axis last in memory, in cache-sized blocks: for CPUs) or vmap (jax.vmap, the
+    # batch axis first); auto: batch_last on a CPU, vmap on a GPU or TPU
+    # (batching.resolve_batching). The two differ by float round-off only (which PPO's
+    # updates amplify over a run, as they do any round-off)
+    batching: Literal["auto", "batch_last", "vmap"] = "auto"
     # bc: clone the scripted team first (bc:); policy: start from the saved policy
     # init_policy (fine-tuning it: the same networks, its observation normalisation, a
     # fresh critic warmed up for bc.critic_warmup iterations, the anchor on it)
@@ -361,14 +366,6 @@ def check_init_policy(config: TrainConfig, train_path: str | Path) -> None:
                           "set them as the policy has them")
 
 
-def apply_overrides(raw: dict, overrides) -> dict:
-    """``key=value`` overrides (``algo.lr=1e-3``) applied to a copy of a raw dict."""
-    raw = copy.deepcopy(raw)
-    for ov in overrides:
-        apply_override(raw, ov)
-    return raw
-
-
 def train_config_from_dict(raw: Any, source: str = "<dict>", overrides=(), profile: str | None = None) -> TrainConfig:
     """Validate a raw training file: the overrides of ``profile`` (one of its
     ``profiles``) first, then ``overrides``. Each profile is checked on its own too, so a
@@ -387,12 +384,11 @@ def train_config_from_dict(raw: Any, source: str = "<dict>", overrides=(), profi
             raise ConfigError(f"{source}: profiles.{name}: {err}") from None
         if name != profile:
             _validate(applied, f"{source} (profile {name})")
-    if profile is not None:
-        if profile not in profiles:
-            known = ", ".join(map(str, profiles)) or "none"
-            raise ConfigError(f"{source}: --profile {profile}: the file has no such profile (it has: {known})")
-        raw = apply_overrides(raw, profiles[profile])
-    return _validate(apply_overrides(raw, overrides), source if profile is None else f"{source} (profile {profile})")
+    if profile is not None and profile not in profiles:
+        known = ", ".join(map(str, profiles)) or "none"
+        raise ConfigError(f"{source}: --profile {profile}: the file has no such profile (it has: {known})")
+    chosen = override_list(overrides, first=profiles[profile] if profile is not None else ())
+    return _validate(apply_overrides(raw, chosen), source if profile is None else f"{source} (profile {profile})")
 
 
 def _validate(raw: dict, source: str) -> TrainConfig:
@@ -457,7 +453,7 @@ def load_scene(config: TrainConfig, train_path: str | Path, level: str | None = 
         raise ConfigError(f"{train_path}: env.scene: {path} is not a capture environment: it has no "
                           f"{' and no '.join(missing)} block")
     level = config.env.level if level is None else level
-    level_set = [] if level is None else [f"level={level}"]
+    level_set = override_list(level=level)
     try:
         scene = load_config(path, [*config.env.set, *level_set])
     except ConfigError as err:

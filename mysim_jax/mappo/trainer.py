@@ -20,8 +20,9 @@ centralised critic, one value per agent because rewards are per agent. With
 learns corrections to it); the log-probabilities are those of the residual.
 
 **Iteration** (:meth:`Trainer.iteration`, one ``jax.jit``): a ``lax.scan`` of
-``num_steps`` policy steps of ``num_envs`` environments (the environment step batched with
-:func:`mysim_jax.core.batching.vmap`, batch axis last, in cache-sized blocks), then GAE, then
+``num_steps`` policy steps of ``num_envs`` environments (the environment step batched as
+``algo.batching`` says: :func:`mysim_jax.core.batching.vmap`, batch axis last, in cache-sized
+blocks, on a CPU; ``jax.vmap`` on a GPU or TPU; :attr:`Trainer.env_batching`), then GAE, then
 ``update_epochs`` passes over ``num_minibatches`` shuffled minibatches of team transitions
 with Adam on ``policy loss + vf_coef * value loss − ent_coef * entropy``, the gradient's
 global norm clipped to ``max_grad_norm``, the learning rate constant or decaying linearly to
@@ -161,9 +162,23 @@ class Trainer:
         return jax.eval_shape(lambda k: self.env.reset(k, self.env_params)[1], jax.random.PRNGKey(0))
 
     @cached_property
-    def block(self) -> int:
-        """The environments :func:`~mysim_jax.core.batching.vmap` steps at a time."""
+    def block(self) -> int | None:
+        """The environments :func:`~mysim_jax.core.batching.vmap` steps at a time (None: all)."""
         return batching.chunk_for(self._one_state)
+
+    @cached_property
+    def env_batching(self) -> str:
+        """How the rollout batches the environment step, ``"batch_last"`` or ``"vmap"``:
+        ``algo.batching``, with ``auto`` resolved for the platform of the devices the
+        trainer runs on (:func:`~mysim_jax.core.batching.resolve_batching`)."""
+        platform = None if self.mesh is None else self.mesh.devices.flat[0].platform
+        return batching.resolve_batching(self.config.batching, platform)
+
+    def batch(self, fun, in_axes=0):
+        """``fun`` (written for one environment) batched over environments as this trainer
+        batches its rollout (:attr:`env_batching`; batch-last in blocks of :attr:`block`)."""
+        kind = self.env_batching
+        return batching.batch(fun, kind, in_axes, chunk=self.block if kind == "batch_last" else None)
 
     def memory_needs(self) -> dict:
         """An estimate of the memory one iteration holds, ``{part: (bytes, the fields that
@@ -331,7 +346,7 @@ class Trainer:
             obs, state, reward, terminated, truncated, info = env.step(key, state, action, env_params)
             return obs, state, reward, terminated, truncated, _step_info(info)
 
-        return batching.vmap(one, chunk=self.block)
+        return self.batch(one)
 
     # --- init ------------------------------------------------------------------------
     def _init_state(self, key) -> TrainerState:

@@ -100,9 +100,9 @@ def box_touches_border(intr: Intrinsics, boxes: np.ndarray, margin_px: float = 1
 # The relative range noise the fusion assumes for a target's box-size range, by how the
 # target looks (:func:`~mysim_jax.perception.render_models.auto_target_style`). A sphere's silhouette
 # gives its range to about one pixel of its box; a drone's box changes with its attitude and
-# the view direction (the pinhole range from a drone's box is off by 18 % on average and 41 %
-# at the 95th percentile on the evading-drone tracking run, docs/tracking.md), so there the
-# bearings carry the estimate.
+# the view direction (docs/tracking.md, "Measured", gives how far the pinhole range from a
+# drone's box is off on the evading-drone tracking run), so there the bearings carry the
+# estimate.
 RANGE_SIGMA = {"sphere": 0.05, "drone": 0.3}
 
 

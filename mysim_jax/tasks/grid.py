@@ -56,6 +56,7 @@ import numpy as np  # noqa: E402
 from tqdm.auto import tqdm  # noqa: E402
 
 from mysim_jax.config.env import FAILURES, drawn_value_problems  # noqa: E402
+from mysim_jax.config.overrides import override_list  # noqa: E402
 from mysim_jax.config.scene import ConfigError, dump_config, load_config  # noqa: E402
 from mysim_jax.core.config_base import parse_yaml  # noqa: E402
 from mysim_jax.core.machine import machine  # noqa: E402
@@ -222,7 +223,7 @@ def _grid_point(scene: str, sets, axes, index: int, indices, seed: int) -> tuple
         raise ConfigError(f"{where}{capture}")
     no_env = config.env is None
     if no_env:
-        config = _load(scene, ["env={}", *sets, *overrides], where)
+        config = _load(scene, override_list([*sets, *overrides], first=["env={}"]), where)
     return GridPoint(index, tuple(indices), overrides, int(seed), config, dump_config(config)), no_env
 
 

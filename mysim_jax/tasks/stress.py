@@ -47,6 +47,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
+from mysim_jax.config.overrides import override_list  # noqa: E402
 from mysim_jax.config.scene import load_config  # noqa: E402
 from mysim_jax.config.stress import (NOMINAL, StressConfig, factor_override, load_stress,  # noqa: E402
                                      perception_block, training_range)
@@ -80,7 +81,7 @@ def plan_stress(path, out, episodes: int | None = None) -> StressPlan:
     if n < 1:
         raise ConfigError(f"episodes {n}: must be at least 1")
     out = check_output_dir(out)
-    sets = [f"level={cfg.level}"]
+    sets = override_list(level=cfg.level)
     base = load_config(cfg.scene, sets)
     if getattr(base, "env", None) is None:
         raise ConfigError(f"{cfg.scene}: a stress suite needs a capture scene with an env: block")

@@ -10,15 +10,16 @@ gains stay positive and a step in θ is a relative change; entries that start at
 (the paper's roll/pitch attitude integrators) stay zero.
 
 Long horizons (``scripts/tune_pid.py --horizon-study`` measures them; its figures are in
-docs/physics.md, "Quadrotor & control"):
+docs/physics.md, "Gradient-based tuning"):
 
 * gradient size: the closed loop is stable, so |∇L| grows with the horizon about as fast
   as the loss itself does: no exponential blow-up, finite everywhere. Full
   back-propagation through every step is used; truncated back-propagation
   (``truncate``) stays available, but its gradient points elsewhere than the full one
   on long horizons;
-* memory: plain reverse mode stores every step's residuals (about a megabyte per
-  simulated second for one UAV), which is why it is the default; ``remat=True``
+* memory: plain reverse mode stores every step's residuals, in proportion to the
+  horizon (the study's XLA temporaries per horizon are in the same section): small
+  enough for the shipped scenes' horizons, which is why it is the default; ``remat=True``
   (``--checkpoint``) puts each chunk of ``every`` steps under ``jax.checkpoint`` and
   stores one state per chunk, at the price of recomputing the steps and a slower
   compile, for long horizons or many vehicles;

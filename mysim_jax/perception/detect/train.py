@@ -299,8 +299,8 @@ def train_refine_stage(cfg: DetectorConfig, first_stage, images, labels, spec, c
 
 # Region-mode evaluation (:func:`region_hints`): the hint a tracker gives the detector, drawn
 # around the truth with the errors of the tracker's prediction on the evading-drone tracking
-# run (docs/tracking.md: centre off by 0.07 of the box's longer side at the median and 0.14
-# at the 95th percentile). Per axis the centre is off by N(0, (HINT_CENTRE_REL * side +
+# run (docs/detector.md, "Region mode: what gimbal tracking runs", gives them as fractions of
+# the box's side). Per axis the centre is off by N(0, (HINT_CENTRE_REL * side +
 # HINT_CENTRE_PX)^2) px (radial median ~0.07 side + 2 px, p95 ~0.15 side + 5 px); the side
 # is the true one times exp(N(0, HINT_SIDE_LOG^2)). A frame without a counted target gets
 # the hint at the pixel its target was drawn at (``meta["pixel"]``: an occluder drawn in
