@@ -12,7 +12,7 @@ import pytest
 
 from mysim_jax.mappo.run import evaluate_builtin
 from mysim_jax.mappo.toy import ReachEnv
-from mysim_jax.tasks.runner import first_done, numbered_keys, episode_keys, rollout, run_batch, split_keys
+from mysim_jax.tasks.runner import first_done, numbered_keys, episode_keys, rollout, run_batch, shared_key, split_keys
 
 ENV = ReachEnv()
 PARAMS = ENV.default_params()
@@ -52,6 +52,13 @@ def test_the_reach_evaluation_counts_what_the_hand_written_loop_counted():
     assert count == _old_evaluate_builtin(_noisy, 64, 3)
     assert 0 < count < 64                       # the noise makes some episodes fail: the count can differ
     assert result["episodes"] == 64 and result["success"]["rate"] == count / 64
+    # the library's batch-last vmap (run_batch's default) flies the same episodes
+    keys = jax.random.split(jax.random.PRNGKey(3), 64)
+    _, rows = run_batch(ENV, PARAMS, _noisy, keys, ENV.max_steps, step_keys=shared_key,
+                        record=lambda step, aux: {"success": step.info["success"], "done": step.info["done"]})
+    assert rows["done"].shape == (64, ENV.max_steps)
+    outcome, ended = jax.vmap(first_done)(rows)
+    assert int(np.sum(np.asarray(outcome["success"] & ended))) == count
 
 
 def test_a_rollout_draws_the_keys_of_a_hand_written_scan():

@@ -11,9 +11,8 @@ by episode (:func:`mysim_jax.tasks.sweep.paired_difference_interval`).
 :func:`run_episodes` runs ``batch`` environment slots side by side (one jitted batch-last
 :func:`mysim_jax.core.batching.vmap` of the episode runner,
 :func:`mysim_jax.tasks.runner.rollout`, over ``chunk`` policy steps per call, a progress bar
-between calls). Episodes ``0 .. batch − 1`` start in the
-slots; each slot holds the number of the episode it starts next, and when its episode
-ends it resets into that one at once. Between calls, slots that have started their next
+between calls). Episodes ``0 .. batch − 1`` start in the slots; each slot holds the number
+of the episode it starts next, and when its episode ends it resets into that one at once. Between calls, slots that have started their next
 episode are given the next number from the queue, until ``n`` episodes have been handed
 out; slots left without one idle until the last episode ends. Every episode runs to its
 own end, so short episodes (fast failures) are not favoured, and results come back in
@@ -122,7 +121,7 @@ def _outcome_row(step, slot: Slots):
     info = step.info
     return (slot.episode, info["done"] & (slot.episode >= 0), info["success"],
             jnp.stack([info["failures"][f] for f in FAILURES]), info["timeout"], info["episode_length"],
-            jnp.mean(info["episode_return"]), slot.term_sum + _terms(step.info))
+            jnp.mean(info["episode_return"]), slot.term_sum + _terms(info))
 
 
 def _next_in_slot(step, slot: Slots, fresh):
