@@ -25,23 +25,26 @@ from mysim_jax.control.setpoint import setpoint_from_action
 from mysim_jax.core import batching
 from mysim_jax.sim import step
 from mysim_jax.tasks.capture import make_env
+from mysim_jax.tasks.evaluate import scripted_policy
+from mysim_jax.tasks.runner import rollout, shared_key
 
 
 def env_call(env, params, batch: int, n_steps: int, kind: str = "env", vmap: Callable = batching.vmap,
              compiler_options: dict | None = None):
     """AOT-compiled ``jit(vmap(...))`` over ``batch`` environments reset from distinct keys
     (``vmap``: the library's batch-last ``mysim_jax.core.batching.vmap`` or ``jax.vmap``):
-    ``kind="env"``: ``n_steps`` team steps (:meth:`CaptureEnv.step` with the scripted team's
-    actions); ``kind="control"``: ``n_steps`` control periods of the physics alone
+    ``kind="env"``: ``n_steps`` team steps (the episode runner,
+    :func:`mysim_jax.tasks.runner.rollout`, with the scripted team's actions, each step's
+    key to the environment); ``kind="control"``: ``n_steps`` control periods of the physics alone
     (:func:`mysim_jax.sim.step` with the scripted team's setpoint held). Returns a Compiled."""
     keys = jax.random.split(jax.random.PRNGKey(0), batch)
-    _, states = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))(keys, params)
+    obs, states = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))(keys, params)
 
-    def run_env(key, state):
+    def run_env(key, obs, state):
         if kind == "env":
-            def body(s, k):
-                return env.step(k, s, env.scripted_actions(s, params), params)[1], None
-            return jax.lax.scan(body, state, jax.random.split(key, n_steps))[0]
+            (_, state, _), _ = rollout(env, params, scripted_policy(env), obs, state, jax.random.split(key, n_steps),
+                                       keys=shared_key)
+            return state
         sim_params = env.episode_params(params, state.episode)
         sp = setpoint_from_action(env.scene, sim_params, env.scripted_actions(state, params))
 
@@ -51,9 +54,9 @@ def env_call(env, params, batch: int, n_steps: int, kind: str = "env", vmap: Cal
 
     if vmap is batching.vmap:      # the library's batched path: cache-sized blocks of environments
         vmap = partial(batching.vmap, chunk=batching.chunk_for(jax.tree.map(lambda x: x[0], states)))
-    compiled, compile_s, memory = aot_compile(jax.jit(vmap(run_env)), keys, states,
+    compiled, compile_s, memory = aot_compile(jax.jit(vmap(run_env)), keys, obs, states,
                                               compiler_options=compiler_options)
-    return Compiled(kind, batch, n_steps, lambda: compiled(keys, states), compile_s, memory)
+    return Compiled(kind, batch, n_steps, lambda: compiled(keys, obs, states), compile_s, memory)
 
 
 def env_variant(overrides: list[str]):

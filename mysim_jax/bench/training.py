@@ -7,8 +7,9 @@ Three AOT-compiled calls on the same ``num_envs`` environments, timed round-robi
   team steps) and the update (GAE, every epoch and minibatch);
 * ``rollout`` — the rollout alone (policy sampling, critic values, environment steps);
 * ``env`` — ``num_steps`` batched environment steps with zero actions (hover in velocity
-  mode), no networks: the environment's own throughput in the same layout
-  (:func:`mysim_jax.core.batching.vmap`, the trainer's blocks).
+  mode), no networks: the environment's own throughput in the same layout (the episode
+  runner, :func:`mysim_jax.tasks.runner.rollout`, under
+  :func:`mysim_jax.core.batching.vmap` in the trainer's blocks).
 
 :func:`section_g` (BENCHMARKS.md (g)) times them on the default training file and lists the
 training runs kept in ``docs/train/`` (:func:`training_runs_lines`); ``scripts/bench.py
@@ -36,6 +37,7 @@ from mysim_jax.io.training_plots import plot_runs
 from mysim_jax.mappo.run import load_run_config, make_environment
 from mysim_jax.mappo.run_files import read_metrics
 from mysim_jax.mappo.trainer import Trainer
+from mysim_jax.tasks.runner import rollout, shared_key
 from mysim_jax.tasks.sweep import paired_difference_interval
 
 
@@ -60,19 +62,22 @@ def measure(trainer, key, repeats: int = 3, section: str = "g") -> TrainingThrou
     one = jax.eval_shape(lambda k: env.reset(k, env_params)[1], jax.random.PRNGKey(0))
     block = batching.chunk_for(one)
 
-    def env_only(k, state):
-        def body(s, kk):
-            return env.step(kk, s, jnp.zeros(env.action_shape, jnp.float32), env_params)[1], None
-        return jax.lax.scan(body, state, jax.random.split(k, c.num_steps))[0]
+    def hold(k, obs, state, params):
+        return jnp.zeros(env.action_shape, jnp.float32)
+
+    def env_only(k, obs, state):
+        (_, state, _), _ = rollout(env, env_params, hold, obs, state, jax.random.split(k, c.num_steps),
+                                   keys=shared_key)
+        return state
 
     keys = jax.random.split(jax.random.PRNGKey(1), c.num_envs)
     compiled, compile_s = {}, {}
     compiled["iteration"], compile_s["iteration"], _ = aot_compile(jax.jit(trainer._iteration), ts)
     compiled["rollout"], compile_s["rollout"], _ = aot_compile(jax.jit(trainer._rollout), ts)
     compiled["env"], compile_s["env"], _ = aot_compile(jax.jit(batching.vmap(env_only, chunk=block)), keys,
-                                                     ts.env_state)
+                                                     ts.obs, ts.env_state)
     calls = {"iteration": lambda: compiled["iteration"](ts), "rollout": lambda: compiled["rollout"](ts),
-             "env": lambda: compiled["env"](keys, ts.env_state)}
+             "env": lambda: compiled["env"](keys, ts.obs, ts.env_state)}
     times = time_round_robin(calls, repeats, section=section)
     return TrainingThroughput(c.num_envs, c.num_steps, times, compile_s)
 

@@ -10,11 +10,13 @@ All three are pure functions of their arguments (no host transfer): a training r
 (:func:`mysim_jax.mappo.algorithm.start`) jits them with the rest, and vmaps them over seeds.
 
 **Demonstrations** (:func:`collect`): ``bc.num_envs`` environments run ``bc.steps`` policy
-steps side by side (the trainer's batch-last layout). At every step each environment's
-scripted action ``a*`` (:meth:`CaptureEnv.scripted_actions`, in the action space) is the
-label, and the environment is stepped with ``a* + bc.noise · ξ`` (ξ standard normal): the
-states a slightly perturbed scripted team visits, each labelled with what the scripted
-team would do there (DART, Laskey et al. 2017), so the clone also learns to recover from
+steps side by side (the episode runner, :func:`mysim_jax.tasks.runner.rollout`, in the
+trainer's batch-last layout; each step's key split into the noise's and the
+environment's). At every step each environment's scripted action ``a*``
+(:meth:`CaptureEnv.scripted_actions`, in the action space) is the label, and the
+environment is stepped with ``a* + bc.noise · ξ`` (ξ standard normal): the states a
+slightly perturbed scripted team visits, each labelled with what the scripted team would
+do there (DART, Laskey et al. 2017), so the clone also learns to recover from
 the small errors it will make. Episodes end and reset as in training.
 
 **Fit** (:func:`fit`): the observation statistics are those of the demonstrations; the
@@ -37,6 +39,7 @@ from flax import struct
 from mysim_jax.core import batching
 from mysim_jax.mappo.losses import RunningStats
 from mysim_jax.mappo.policies import PolicyError, check_trained_on
+from mysim_jax.tasks.runner import rollout
 
 
 @struct.dataclass
@@ -64,17 +67,16 @@ def collect(trainer, key, arrays=None) -> Demonstrations:
     student = None if arrays is None else trainer.policy_fn()
 
     def one_env(key, state, obs, arrays):
-        def body(carry, k):
-            state, obs = carry
-            k_noise, k_step = jax.random.split(k)
+        def pilot(k_noise, obs, state, params):
             teacher = env.scripted_actions(state, params)
-            pilot = teacher if student is None else student(k_noise, obs, state, params, arrays).astype(teacher.dtype)
-            action = pilot + bc.noise * jax.random.normal(k_noise, teacher.shape, teacher.dtype)
-            obs2, state2, _, _, _, info = env.step(k_step, state, action, params)
-            row = (obs, teacher, info["success"] & info["done"], info["done"])
-            return (state2, obs2), row
+            flies = teacher if student is None else student(k_noise, obs, state, params, arrays).astype(teacher.dtype)
+            return flies + bc.noise * jax.random.normal(k_noise, teacher.shape, teacher.dtype)
 
-        _, rows = jax.lax.scan(body, (state, obs), jax.random.split(key, bc.steps))
+        def row(step, aux):
+            info = step.info
+            return (step.obs, env.scripted_actions(step.state, params), info["success"] & info["done"], info["done"])
+
+        _, rows = rollout(env, params, pilot, obs, state, jax.random.split(key, bc.steps), record=row)
         return rows
 
     k_reset, k_run = jax.random.split(key)

@@ -71,6 +71,7 @@ from mysim_jax.mappo.networks import deterministic_policy
 from mysim_jax.mappo.trainer import Trainer
 from mysim_jax.tasks.capture import make_env
 from mysim_jax.tasks.evaluate import Evaluator
+from mysim_jax.tasks.runner import first_done, run_batch, shared_key
 from mysim_jax.tasks.sweep import wilson_interval
 
 # a run from a training file: prepare (or load_run_config) -> train_run; the first three
@@ -130,24 +131,18 @@ def make_eval_environment(p: Prepared, env, env_params):
 
 
 def evaluate_builtin(env, env_params, policy, episodes: int, seed: int) -> dict:
-    """Success rate of ``policy`` on the builtin environment (``episodes`` episodes)."""
-    def one_episode(key):
-        k0, k1 = jax.random.split(key)
-        obs, state = env.reset(k0, env_params)
-
-        def body(carry, k):
-            obs, state, finished, success = carry
-            a = policy(k, obs, state, env_params)
-            obs, state, _, _, _, info = env.step(k, state, a, env_params)
-            success = success | (info["success"] & ~finished)
-            return (obs, state, finished | info["done"], success), None
-
-        (_, _, _, success), _ = jax.lax.scan(body, (obs, state, jnp.bool_(False), jnp.bool_(False)),
-                                             jax.random.split(k1, env.max_steps))
-        return success
+    """Success rate of ``policy`` on the builtin environment: ``episodes`` episodes, each
+    the first of an environment of :func:`mysim_jax.tasks.runner.run_batch` (keys split
+    from ``seed``, each step's key given to both the policy and the environment), judged
+    at its first ``done``."""
+    def row(step, aux):
+        return {"success": step.info["success"], "done": step.info["done"]}
 
     keys = jax.random.split(jax.random.PRNGKey(seed), episodes)
-    success = jax.device_get(jax.jit(jax.vmap(one_episode))(keys))
+    _, rows = run_batch(env, env_params, policy, keys, env.max_steps, step_keys=shared_key, record=row,
+                        vmap=jax.vmap)
+    outcome, ended = jax.vmap(first_done)(rows)
+    success = jax.device_get(outcome["success"] & ended)
 
     k = int(success.sum())
     lo, hi = wilson_interval(k, episodes)

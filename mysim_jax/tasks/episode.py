@@ -4,18 +4,18 @@
     record.trajectory      # sim.Trajectory on the policy-step grid, the format simulate() returns
     record.rewards         # (length, n_agents), and every term, flag and action per step
 
-:func:`episode_rollout` is the pure part (one ``lax.scan`` over ``env.max_steps`` policy
-steps, saving every step; jit it, vmap it); :func:`record_episode` jits it, runs it and
+:func:`episode_rollout` is the pure part (the episode runner,
+:func:`mysim_jax.tasks.runner.rollout`, over ``env.max_steps`` policy steps, saving every
+step; jit it, vmap it); :func:`record_episode` jits it, runs it and
 cuts the rows at the end of the first episode on the host.
 
-**The terminal state is the one before the reset.** :meth:`CaptureEnv.step` resets
-inside the step when an episode ends, so its returned state is already the next
-episode's; its ``info["final_state"]`` is the state before the reset, and that is what is
-saved here for every step.
+**The terminal state is the one before the reset.** The episode is stepped without
+auto-reset (the environment's ``step_env``), so the state saved after its last step is its terminal
+state, not the next episode's reset.
 
 **Keys.** ``record_episode(env, params, policy, key, index)`` draws episode ``index`` of
 an evaluation seeded with ``key`` exactly as :func:`~mysim_jax.tasks.evaluate.run_episodes`
-does (:func:`~mysim_jax.tasks.evaluate.episode_keys`): the same draws, and the same
+does (:func:`~mysim_jax.tasks.runner.episode_keys`): the same draws, and the same
 states up to floating-point rounding, which differs between compiled programs. Contact is
 chaotic: once the target touches the net, that rounding grows (millimetres within a few
 steps) and the replay can end differently from the batched episode (as two batched runs
@@ -41,7 +41,7 @@ from mysim_jax.config.env import FAILURES, REWARD_TERMS
 from mysim_jax.control.setpoint import setpoint_from_action
 from mysim_jax.io.trajectory import trajectory_columns
 from mysim_jax.sim import Trajectory, accelerations, effect_updates, held_inputs
-from mysim_jax.tasks.evaluate import episode_keys
+from mysim_jax.tasks.runner import episode_keys, numbered_keys, rollout
 from mysim_jax.tuning.tracking import motor_columns, reference_columns
 
 
@@ -53,6 +53,15 @@ def held_accelerations(env, sim_params, sim, actions):
     inputs = held_inputs(scene, sim_params, sim, setpoint)[0]
     held = effect_updates(scene, sim_params, sim)[0] if scene.effects else None
     return accelerations(scene, sim_params, sim.phys, inputs, held)
+
+
+def _step_row(step, aux=None) -> dict:
+    """:func:`episode_rollout`'s row of one policy step (its docstring)."""
+    info = step.info
+    return {"sim": step.next_state.sim, "actions": step.actions, "reward": step.reward, "terms": info["terms"],
+            "success": info["success"], "failures": jnp.stack([info["failures"][f] for f in FAILURES]),
+            "timeout": info["timeout"], "held": info["held"], "touching": info["touching"], "done": info["done"],
+            "returns": info["episode_return"]}
 
 
 def episode_rollout(env, params, policy, key, index=0):
@@ -71,20 +80,8 @@ def episode_rollout(env, params, policy, key, index=0):
     k_reset, _, _ = episode_keys(key, index, 0)
     obs, start = env.reset(k_reset, params)
     sim_params = env.episode_params(params, start.episode)
-
-    def one(carry, t):
-        k, obs, state = carry
-        _, k_act, k_step = episode_keys(key, index, t)
-        actions = policy(k_act, obs, state, params)
-        obs, state, reward, _, _, info = env.step_env(k_step, state, actions, params)
-        sim = state.sim
-        row = {"sim": sim, "actions": actions, "reward": reward, "terms": info["terms"], "success": info["success"],
-               "failures": jnp.stack([info["failures"][f] for f in FAILURES]), "timeout": info["timeout"],
-               "held": info["held"], "touching": info["touching"], "done": info["done"],
-               "returns": info["episode_return"]}
-        return (k, obs, state), row
-
-    _, rows = jax.lax.scan(one, (key, obs, start), jnp.arange(env.max_steps))
+    _, rows = rollout(env, params, policy, obs, start, jnp.arange(env.max_steps), keys=numbered_keys(key, index),
+                      record=_step_row, auto_reset=False)
     return start.sim, sim_params, rows
 
 

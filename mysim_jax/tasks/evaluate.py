@@ -9,10 +9,10 @@ evaluated with one key fly the same episodes, and their outcomes can be compared
 by episode (:func:`mysim_jax.tasks.sweep.paired_difference_interval`).
 
 :func:`run_episodes` runs ``batch`` environment slots side by side (one jitted batch-last
-:func:`mysim_jax.core.batching.vmap` of :meth:`CaptureEnv.step` scanned over ``chunk`` policy
-steps per call, a progress bar between calls). Episodes ``0 .. batch − 1`` start in the
-slots; each slot holds the number of the episode it starts next, and when its episode
-ends it resets into that one at once. Between calls, slots that have started their next
+:func:`mysim_jax.core.batching.vmap` of the episode runner,
+:func:`mysim_jax.tasks.runner.rollout`, over ``chunk`` policy steps per call, a progress bar
+between calls). Episodes ``0 .. batch − 1`` start in the slots; each slot holds the number
+of the episode it starts next, and when its episode ends it resets into that one at once. Between calls, slots that have started their next
 episode are given the next number from the queue, until ``n`` episodes have been handed
 out; slots left without one idle until the last episode ends. Every episode runs to its
 own end, so short episodes (fast failures) are not favoured, and results come back in
@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -38,20 +39,11 @@ from tqdm.auto import tqdm
 from mysim_jax.core import batching, parallel
 from mysim_jax.core.machine import machine
 from mysim_jax.config.env import FAILURES, REWARD_TERMS
+from mysim_jax.tasks.runner import episode_key, episode_keys, rollout
 from mysim_jax.tasks.sweep import wilson_interval
 
-
-def episode_key(key, index):
-    """The key that episode ``index`` of an evaluation seeded with ``key`` is drawn from."""
-    return jax.random.fold_in(key, index)
-
-
-def episode_keys(key, index, step):
-    """``(reset_key, policy_key, env_key)`` of step ``step`` of episode ``index``
-    (module docstring)."""
-    k_reset, k_run = jax.random.split(episode_key(key, index))
-    k_act, k_step = jax.random.split(jax.random.fold_in(k_run, step))
-    return k_reset, k_act, k_step
+__all__ = ["episode_key", "episode_keys", "scripted_policy", "random_policy", "EpisodeStats", "Slots", "Evaluator",
+           "run_episodes", "run_two_teams"]
 
 
 def scripted_policy(env):
@@ -108,13 +100,54 @@ class EpisodeStats:
         }
 
 
+class Slots(NamedTuple):
+    """What each environment slot of an :class:`Evaluator` carries besides its observation
+    and state (per slot; a leading batch axis outside)."""
+
+    episode: Any       # () int32, the episode it runs (-1: idle)
+    t: Any             # () int32, the policy steps it has taken in that episode
+    next: Any          # () int32, the episode it starts next (-1: none handed out yet)
+    term_sum: Any      # (len(REWARD_TERMS),) the episode's sum of each weighted term, mean over agents
+
+
+def _terms(info):
+    """``(len(REWARD_TERMS),)`` this step's weighted terms, mean over agents."""
+    return jnp.stack([jnp.mean(info["terms"][k]) for k in REWARD_TERMS])
+
+
+def _outcome_row(step, slot: Slots):
+    """A slot's row of one step: its episode, whether that episode ended here (an idle
+    slot's steps end nothing), and the outcome it would have if so."""
+    info = step.info
+    return (slot.episode, info["done"] & (slot.episode >= 0), info["success"],
+            jnp.stack([info["failures"][f] for f in FAILURES]), info["timeout"], info["episode_length"],
+            jnp.mean(info["episode_return"]), slot.term_sum + _terms(info))
+
+
+def _next_in_slot(step, slot: Slots, fresh):
+    """Where a slot goes on from a step: an ended episode (or an idle slot) starts the
+    slot's next episode from ``fresh`` (its reset ``(obs, state)``) if it has one, else the
+    slot idles on; an unended one goes on."""
+    done = step.info["done"]
+    start = (done | (slot.episode < 0)) & (slot.next >= 0)
+    obs_n, state_n = fresh
+    obs = jnp.where(start, obs_n, step.next_obs)
+    state = jax.tree.map(lambda a, b: jnp.where(start, a, b), state_n, step.next_state)
+    term_sum = slot.term_sum + _terms(step.info)
+    slot = Slots(episode=jnp.where(start, slot.next, jnp.where(done, -1, slot.episode)),
+                 t=jnp.where(start | done, 0, slot.t + 1), next=jnp.where(start, -1, slot.next),
+                 term_sum=jnp.where(start | done, jnp.zeros_like(term_sum), term_sum))
+    return obs, state, slot
+
+
 class Evaluator:
     """Numbered episodes (module docstring) of ``policy`` on ``env``, ``batch`` slots side
     by side: ``evaluator(key, n_episodes, policy_args)`` runs episodes ``0 .. n − 1`` drawn
     from ``key`` and returns their :class:`EpisodeStats`. The batched step is compiled once
     per batch size (``min(batch, n)``); keys, episode counts and ``policy_args`` are
     arguments, so evaluating other episodes or other network parameters compiles nothing.
-    ``policy(key, obs, state, params, args)``."""
+    ``policy(key, obs, state, params, args)``. Each call runs ``chunk`` steps of every slot
+    with :func:`mysim_jax.tasks.runner.rollout`."""
 
     def __init__(self, env, params, policy, batch: int, chunk: int = 8):
         if batch < 1 or chunk < 1:
@@ -123,34 +156,16 @@ class Evaluator:
         self.batch, self.chunk = batch, chunk
         self._n_terms = len(REWARD_TERMS)
 
-        def slot_step(carry, _, args, key, fresh):
-            obs, state, ep, t, nxt, term_sum = carry
-            _, k_act, k_step = episode_keys(key, jnp.maximum(ep, 0), t)
-            actions = policy(k_act, obs, state, params, args)
-            obs2, state2, _, _, _, info = env.step_env(k_step, state, actions, params)
-            done = info["done"]
-            finishing = done & (ep >= 0)
-            terms = jnp.stack([jnp.mean(info["terms"][k]) for k in REWARD_TERMS])
-            term_sum = term_sum + terms
-            row = (ep, finishing, info["success"], jnp.stack([info["failures"][f] for f in FAILURES]),
-                   info["timeout"], info["episode_length"], jnp.mean(info["episode_return"]), term_sum)
-            # an ended episode (or an idle slot) starts the slot's next episode, if it has one
-            start = (done | (ep < 0)) & (nxt >= 0)
-            obs_n, state_n = fresh
-            obs = jnp.where(start, obs_n, obs2)
-            state = jax.tree.map(lambda a, b: jnp.where(start, a, b), state_n, state2)
-            ep = jnp.where(start, nxt, jnp.where(done, -1, ep))
-            nxt = jnp.where(start, -1, nxt)
-            t = jnp.where(start | done, 0, t + 1)
-            term_sum = jnp.where(start | done, jnp.zeros_like(term_sum), term_sum)
-            return (obs, state, ep, t, nxt, term_sum), row
-
         def advance(carry, args, key):
             # a slot starts at most one episode per call (its number is handed out between
             # calls), so that episode's first state is computed once per call, not per step
-            k_reset, _, _ = episode_keys(key, jnp.maximum(carry[4], 0), 0)
+            obs, state, slots = carry
+            k_reset, _, _ = episode_keys(key, jnp.maximum(slots.next, 0), 0)
             fresh = env.reset(k_reset, params)
-            return jax.lax.scan(lambda c, x: slot_step(c, x, args, key, fresh), carry, None, length=chunk)
+            return rollout(env, params, lambda k, o, s, p: policy(k, o, s, p, args), obs, state, length=chunk,
+                           keys=lambda _, slot: episode_keys(key, jnp.maximum(slot.episode, 0), slot.t)[1:],
+                           record=_outcome_row, update=lambda step, slot: _next_in_slot(step, slot, fresh),
+                           aux=slots, auto_reset=False)
 
         # slots begin idle (episode -1) on placeholder zeros: their first step starts their
         # first episode from ``advance``'s reset, so no separate reset program is compiled
@@ -176,8 +191,9 @@ class Evaluator:
         first = np.arange(batch)
         obs, state = jax.tree.map(lambda x: jnp.zeros((batch,) + x.shape, x.dtype), self._blank)
         queue = batch                                   # the next episode number to hand out
-        carry = (obs, state, jnp.full(batch, -1, jnp.int32), jnp.zeros(batch, jnp.int32),
-                 jnp.asarray(first, jnp.int32), jnp.zeros((batch, self._n_terms), jnp.float32))
+        carry = (obs, state, Slots(episode=jnp.full(batch, -1, jnp.int32), t=jnp.zeros(batch, jnp.int32),
+                                   next=jnp.asarray(first, jnp.int32),
+                                   term_sum=jnp.zeros((batch, self._n_terms), jnp.float32)))
         rows = {}
         bar = None
         if progress:
@@ -194,13 +210,13 @@ class Evaluator:
             if bar is not None:
                 bar.update(len(rows) - before)
             # slots that have started their next episode get another number
-            nxt = np.asarray(carry[4])
+            nxt = np.asarray(carry[2].next)
             free = np.flatnonzero(nxt < 0)[:max(0, n - queue)]
             if free.size:
                 nxt = nxt.copy()
                 nxt[free] = np.arange(queue, queue + free.size)
                 queue += free.size
-                carry = carry[:4] + (jnp.asarray(nxt, jnp.int32),) + carry[5:]
+                carry = (carry[0], carry[1], carry[2]._replace(next=jnp.asarray(nxt, jnp.int32)))
         if bar is not None:
             bar.close()
         wall = time.perf_counter() - t0
