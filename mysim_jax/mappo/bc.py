@@ -36,7 +36,6 @@ import numpy as np
 import optax
 from flax import struct
 
-from mysim_jax.core import batching
 from mysim_jax.mappo.losses import RunningStats
 from mysim_jax.mappo.policies import PolicyError, check_trained_on
 from mysim_jax.tasks.runner import rollout
@@ -82,7 +81,7 @@ def collect(trainer, key, arrays=None) -> Demonstrations:
     k_reset, k_run = jax.random.split(key)
     # jitted: run eagerly, a vmapped reset compiles one small program per primitive
     obs, states = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))(jax.random.split(k_reset, bc.num_envs), params)
-    run = jax.jit(batching.vmap(one_env, in_axes=(0, 0, 0, None), chunk=trainer.block))
+    run = jax.jit(trainer.batch(one_env, in_axes=(0, 0, 0, None)))
     obs_rows, teacher, success, done = run(jax.random.split(k_run, bc.num_envs), states, obs, arrays)
     # (envs, steps, ...) -> (steps, envs, ...)
     swap = lambda x: jnp.swapaxes(x, 0, 1)      # noqa: E731

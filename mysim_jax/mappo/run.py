@@ -319,7 +319,7 @@ def _start_selection(s: _Session, state) -> None:
     # model selection on fixed episodes (capture environments; the builtin task has its own evaluation)
     if s.selection is not None:
         s.evaluator = Evaluator(s.env, s.env_params, s.trainer.policy_fn(),
-                                batch=min(s.selection.episodes, c.run.eval_batch))
+                                batch=min(s.selection.episodes, c.run.eval_batch), env_batching=s.trainer.env_batching)
         s.select_key = jax.random.PRNGKey(s.selection.seed)
 
 

@@ -131,7 +131,8 @@ class FinalEvaluation:
             arrays, scripted = args
             return jnp.where(scripted, eval_env.scripted_actions(state, params), net(key, obs, state, params, arrays))
 
-        self.evaluator = Evaluator(eval_env, s.eval_params, either, batch=c.run.eval_batch)
+        self.evaluator = Evaluator(eval_env, s.eval_params, either, batch=c.run.eval_batch,
+                                   env_batching=s.trainer.env_batching)
         self.key = jax.random.PRNGKey(c.run.eval_seed)
         self._scripted = None
 

@@ -147,9 +147,11 @@ class Evaluator:
     per batch size (``min(batch, n)``); keys, episode counts and ``policy_args`` are
     arguments, so evaluating other episodes or other network parameters compiles nothing.
     ``policy(key, obs, state, params, args)``. Each call runs ``chunk`` steps of every slot
-    with :func:`mysim_jax.tasks.runner.rollout`."""
+    with :func:`mysim_jax.tasks.runner.rollout`. ``env_batching`` batches the slots as
+    :func:`mysim_jax.core.batching.batch` says (``"batch_last"``, the CPU's choice, or
+    ``"vmap"``)."""
 
-    def __init__(self, env, params, policy, batch: int, chunk: int = 8):
+    def __init__(self, env, params, policy, batch: int, chunk: int = 8, env_batching: str = "batch_last"):
         if batch < 1 or chunk < 1:
             raise ValueError("Evaluator: batch and chunk must be at least 1")
         self.env, self.params = env, params
@@ -170,7 +172,8 @@ class Evaluator:
         # slots begin idle (episode -1) on placeholder zeros: their first step starts their
         # first episode from ``advance``'s reset, so no separate reset program is compiled
         self._blank = jax.eval_shape(lambda: env.reset(jax.random.PRNGKey(0), params))
-        self._batched = batching.vmap(advance, in_axes=(0, None, None), chunk=batching.chunk_for(self._blank[1]))
+        block = batching.chunk_for(self._blank[1]) if env_batching == "batch_last" else None
+        self._batched = batching.batch(advance, env_batching, in_axes=(0, None, None), chunk=block)
         self._compiled = {}
 
     def _advance(self, batch: int):
