@@ -44,7 +44,8 @@ from mysim_jax.perception.render import Renderer
 from mysim_jax.perception.render_models import auto_target_style
 from mysim_jax.perception.track_cues import _associate_all, _RegionMemory, _team_point
 from mysim_jax.perception.track_detectors import FrameDetector, OracleDetector, RegionDetector, image_detector
-from mysim_jax.sim import rollout, single_env_scene
+from mysim_jax.driver import single_env_scene
+from mysim_jax.sim import rollout
 from mysim_jax.tasks.scripted import team_policy
 
 
