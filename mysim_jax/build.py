@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from mysim_jax.config.scene import FIXED_STEP_INTEGRATORS, ConfigError, SceneConfig, expand_capture
+from mysim_jax.contact.broad_phase import broad_phase_start
 from mysim_jax.contact.build import build_contact, contact_stable_step
 from mysim_jax.contact.config import segment_table
 from mysim_jax.control.build import build_quadrotors, expand_cameras
@@ -352,6 +353,8 @@ def build(config: SceneConfig):
         body_angvel=arr([b.angvel for b in config.bodies], (-1, 3)),
     )
     state = State(phys=phys, time=jnp.zeros((), dtype=scene.dtype), controller=control_state, effects=effect_memory)
+    if scene.contact is not None and scene.contact.broad_phase is not None:
+        state = state.replace(contact=broad_phase_start(scene, params, state))
     for effect, _ in scene_effects(scene):
         state = effect.init(scene, params, state)
     return scene, params, state

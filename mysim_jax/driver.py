@@ -22,7 +22,7 @@ from tqdm.auto import tqdm
 from mysim_jax.core.types import Params, PhysState, Scene, State, Trajectory
 from mysim_jax.dynamics.integrators import FIXED_STEP
 from mysim_jax.dynamics.quaternion import quat_normalize
-from mysim_jax.sim import adaptive_solution, held_accelerations, rollout, step_updates
+from mysim_jax.sim import adaptive_solution, has_step_updates, held_accelerations, rollout, step_updates
 
 
 def output_times(run) -> np.ndarray:
@@ -132,8 +132,9 @@ def simulate(scene: Scene, params: Params, state: State, run, progress: bool = T
     Fixed-step integrators run as jitted ``lax.scan`` chunks of ``chunk`` outputs with a
     progress bar between chunks (a run of fewer outputs runs one chunk of the next power
     of two, so a short run does not pay for a whole chunk); adaptive solvers run as one
-    diffrax solve (with diffrax's progress meter). Scenes with quadrotors always step (their controller acts once per
-    step). Accelerations are evaluated exactly at the saved states, with the actuator
+    diffrax solve (with diffrax's progress meter). Scenes with updates at the start of every
+    step (a controller, effects, a contact broad phase: :func:`~mysim_jax.sim.has_step_updates`)
+    always step. Accelerations are evaluated exactly at the saved states, with the actuator
     inputs the controller holds from there.
 
     The run is watched: after each chunk (or the solve) the saved states, controller
@@ -153,7 +154,7 @@ def simulate(scene: Scene, params: Params, state: State, run, progress: bool = T
     """
     scene = single_env_scene(scene)
     times = output_times(run)
-    if scene.integrator in FIXED_STEP or scene.quadrotor is not None or scene.effects:
+    if scene.integrator in FIXED_STEP or has_step_updates(scene):
         states, failure = _stepped_run(scene, params, state, run, times, progress, chunk, policy)
     else:
         states, failure = _adaptive_run(scene, params, state, times, progress)

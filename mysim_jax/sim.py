@@ -13,9 +13,9 @@ traces no spring code, without joints no constraint solve.
 ``step(scene, params, state, control=None)`` advances one environment by ``scene.dt``
 (``scene.substeps`` sub-steps of a fixed-step integrator, or one adaptive diffrax solve).
 It is pure and written for one environment: batch with ``jax.vmap``, jit once around the
-whole rollout. The updates a step runs once at its start (the control stage, the effects'
-updates) are :func:`step_updates`; what they hold over the step's sub-steps is a
-:class:`Held`. The host-side driver of whole runs (``simulate``, its chunks, progress bar
+whole rollout. The updates a step runs once at its start (the control stage, the contact
+broad phase, the effects' updates) are :func:`step_updates`; what they hold over the
+step's sub-steps is a :class:`Held`. The host-side driver of whole runs (``simulate``, its chunks, progress bar
 and checks for non-finite states) is :mod:`mysim_jax.driver`; it is the only place the
 library calls ``jax.jit`` on its own.
 """
@@ -28,6 +28,7 @@ import diffrax
 import jax
 import jax.numpy as jnp
 
+from mysim_jax.contact.broad_phase import broad_phase_update
 from mysim_jax.contact.forces import contact_forces
 from mysim_jax.control.actuation import actuate
 from mysim_jax.dynamics import constraints as _constraints
@@ -44,26 +45,52 @@ from mysim_jax.core.types import Accelerations, Params, PhysState, Scene, State,
 
 # Trajectory, what the driver (mysim_jax.driver) returns, stays importable from here
 __all__ = ["force_stages", "accelerations", "derivative", "adaptive_solution", "solve_adaptive", "held_inputs",
-           "effect_updates", "Held", "step_updates", "held_accelerations", "step", "rollout", "Trajectory"]
+           "effect_updates", "Held", "has_step_updates", "step_updates", "held_accelerations", "step", "rollout",
+           "Trajectory"]
 
 
-def _spring_stage(scene, params, phys, nodes, inputs) -> Loads:
+class Held(NamedTuple):
+    """What the updates of one step hold over its sub-steps (zero-order hold)."""
+
+    inputs: object = None        # the control stage's ActuatorInputs (quadrotor scenes), else the caller's control
+    effects: dict | None = None  # effect name -> what its update holds
+    contact: object = None       # the contact broad phase's choice of pairs (contact.broad_phase), else None
+
+
+def _spring_stage(scene, params, phys, nodes, held: Held) -> Loads:
     return Loads.of_nodes(spring_forces(scene, params, *nodes), scene.n_bodies)
 
 
-def _load_stage(scene, params, phys, nodes, inputs) -> Loads:
+def _load_stage(scene, params, phys, nodes, held: Held) -> Loads:
     return Loads(node_force=params.load_node_force,
                  body_force=jnp.zeros_like(phys.body_pos), body_torque=params.load_body_torque)
 
 
-def force_stages(scene: Scene) -> tuple[tuple[str, ForceStage], ...]:
-    """The force elements this scene has, in pipeline order, decided from the static Scene.
+def _contact_stage(scene, params, phys, nodes, held: Held) -> Loads:
+    return contact_forces(scene, params, phys, nodes, held.contact)
 
-    Each stage is ``fn(scene, params, phys, nodes, inputs) -> Loads`` with ``nodes`` the
-    ``(node_pos, node_vel)`` table and ``inputs`` the actuator commands held over the step
-    (``None`` when the scene has no actuators). Registered effects (docs/effects.md)
-    add their stages after these, each called with what its own update holds instead of
-    ``inputs``; new effects register there, not here.
+
+def _rotor_stage(scene, params, phys, nodes, held: Held) -> Loads:
+    return rotor_forces(scene, params, phys, nodes, held.inputs)
+
+
+def _aerodynamic_stage(scene, params, phys, nodes, held: Held) -> Loads:
+    return aerodynamic_forces(scene, params, phys, nodes, held.inputs)
+
+
+def _gimbal_stage(scene, params, phys, nodes, held: Held) -> Loads:
+    return gimbal_servo_forces(scene, params, phys, nodes, held.inputs)
+
+
+def force_stages(scene: Scene) -> tuple[tuple[str, ForceStage], ...]:
+    """The built-in force elements this scene has, in pipeline order, decided from the
+    static Scene.
+
+    Each stage is ``fn(scene, params, phys, nodes, held) -> Loads`` with ``nodes`` the
+    ``(node_pos, node_vel)`` table and ``held`` the step's :class:`Held` (the actuator
+    inputs, the contact broad phase's choice). Registered effects (docs/effects.md) add
+    their stages after these, each called with what its own update holds; new effects
+    register there, not here.
     """
     stages: list[tuple[str, ForceStage]] = []
     if scene.n_springs:
@@ -71,28 +98,31 @@ def force_stages(scene: Scene) -> tuple[tuple[str, ForceStage], ...]:
     if scene.has_loads:
         stages.append(("applied_loads", _load_stage))
     if scene.contact is not None:
-        stages.append(("contact_forces", contact_forces))
+        stages.append(("contact_forces", _contact_stage))
     if scene.quadrotor is not None:
-        stages.append(("rotor_forces", rotor_forces))
+        stages.append(("rotor_forces", _rotor_stage))
         if scene.quadrotor.has_drag or scene.quadrotor.has_wind:
-            stages.append(("aerodynamic_forces", aerodynamic_forces))
+            stages.append(("aerodynamic_forces", _aerodynamic_stage))
         if scene.quadrotor.n_gimbals:
-            stages.append(("gimbal_servo", gimbal_servo_forces))
+            stages.append(("gimbal_servo", _gimbal_stage))
     return tuple(stages)
 
 
-def _all_stages(scene: Scene, inputs, held):
+def _all_stages(scene: Scene, held: Held):
     """``[(name, stage, what it holds), ...]``: the built-in stages, then the effects'."""
-    stages = [(name, stage, inputs) for name, stage in force_stages(scene)]
+    stages = [(name, stage, held) for name, stage in force_stages(scene)]
     for effect, static in scene_effects(scene):
-        stages += [(name, stage, (held or {}).get(effect.name)) for name, stage in effect.stages(static)]
+        stages += [(name, stage, (held.effects or {}).get(effect.name)) for name, stage in effect.stages(static)]
     return stages
 
 
-def accelerations(scene: Scene, params: Params, phys: PhysState, inputs=None, held=None) -> Accelerations:
-    """Accelerations of every point and body for one environment. ``held`` maps effect
-    names to what their updates hold over the step (:func:`effect_updates`)."""
-    stages = _all_stages(scene, inputs, held)
+def accelerations(scene: Scene, params: Params, phys: PhysState, inputs=None, held=None,
+                  contact=None) -> Accelerations:
+    """Accelerations of every point and body for one environment, under what the step's
+    updates hold (:func:`step_updates`): ``inputs`` the actuator inputs, ``held`` a dict of
+    what each effect's update holds (by effect name), ``contact`` the contact broad
+    phase's choice of pairs (None: every pair)."""
+    stages = _all_stages(scene, Held(inputs=inputs, effects=held, contact=contact))
     loads = None
     if stages:
         with jax.named_scope("marker_kinematics"):
@@ -132,9 +162,9 @@ def accelerations(scene: Scene, params: Params, phys: PhysState, inputs=None, he
     return Accelerations(point_acc=point_acc, body_acc=body_acc, body_angacc=body_angacc)
 
 
-def derivative(scene: Scene, params: Params, phys: PhysState, inputs=None, held=None) -> PhysState:
+def derivative(scene: Scene, params: Params, phys: PhysState, inputs=None, held=None, contact=None) -> PhysState:
     """``d(phys)/dt`` as a PhysState-shaped pytree (quaternion rate ½ q ⊗ ω)."""
-    return state_derivative(phys, accelerations(scene, params, phys, inputs, held))
+    return state_derivative(phys, accelerations(scene, params, phys, inputs, held, contact))
 
 
 def _adaptive_solver(scene: Scene):
@@ -143,10 +173,10 @@ def _adaptive_solver(scene: Scene):
 
 def _vector_field(scene: Scene):
     def field(t, y, args):
-        params, inputs, held = args
+        params, inputs, held, contact = args
         # quaternions drift off the unit sphere by O(tolerance); forces and the attitude
         # rate use the unit quaternion
-        return derivative(scene, params, y.replace(body_quat=quat_normalize(y.body_quat)), inputs, held)
+        return derivative(scene, params, y.replace(body_quat=quat_normalize(y.body_quat)), inputs, held, contact)
     return field
 
 
@@ -156,7 +186,7 @@ _PROGRESS_REFRESH_STEPS = 2000
 
 
 def adaptive_solution(scene: Scene, params: Params, phys: PhysState, t0, t1, ts=None, progress=False, inputs=None,
-                      held=None):
+                      held=None, contact=None):
     """The diffrax solve behind :func:`solve_adaptive`, returning diffrax's ``Solution``
     (states, ``result``, ``stats``). It never raises: a failed solve (``max_steps``
     reached, a non-finite state) is reported in ``result``, and saved times it did not
@@ -169,7 +199,7 @@ def adaptive_solution(scene: Scene, params: Params, phys: PhysState, t0, t1, ts=
         t1=t1,
         dt0=scene.substep,
         y0=phys,
-        args=(params, inputs, held),
+        args=(params, inputs, held, contact),
         saveat=saveat,
         stepsize_controller=diffrax.PIDController(rtol=scene.rtol, atol=scene.atol),
         max_steps=scene.max_steps,
@@ -180,7 +210,7 @@ def adaptive_solution(scene: Scene, params: Params, phys: PhysState, t0, t1, ts=
 
 
 def solve_adaptive(scene: Scene, params: Params, phys: PhysState, t0, t1, ts=None, progress=False, inputs=None,
-                   held=None, stats: bool = False):
+                   held=None, stats: bool = False, contact=None):
     """Integrate with the scene's diffrax solver from ``t0`` to ``t1``.
 
     Returns the states at ``ts`` (stacked) if given, else the state at ``t1``; with
@@ -191,7 +221,7 @@ def solve_adaptive(scene: Scene, params: Params, phys: PhysState, t0, t1, ts=Non
     (at ``ts``) or NaN (at ``t1``: diffrax would return the state where it stopped,
     which is not the state at ``t1``), so a caller checking for finite states sees it.
     """
-    sol = adaptive_solution(scene, params, phys, t0, t1, ts, progress, inputs, held)
+    sol = adaptive_solution(scene, params, phys, t0, t1, ts, progress, inputs, held, contact)
     ys = sol.ys
     ys = ys.replace(body_quat=quat_normalize(ys.body_quat))
     ok = sol.result == diffrax.RESULTS.successful
@@ -227,27 +257,35 @@ def effect_updates(scene: Scene, params: Params, state: State):
     return held, memory
 
 
-class Held(NamedTuple):
-    """What the updates of one step hold over its sub-steps (zero-order hold)."""
-
-    inputs: object = None        # the control stage's ActuatorInputs (quadrotor scenes), else the caller's control
-    effects: dict | None = None  # effect name -> what its update holds
+def has_step_updates(scene: Scene) -> bool:
+    """Does a step of this scene run updates at its start (:func:`step_updates`: a
+    controller, an effect, a contact broad phase)? Such a scene is stepped one ``dt`` at
+    a time even with an adaptive integrator."""
+    return (scene.quadrotor is not None or bool(scene.effects)
+            or (scene.contact is not None and scene.contact.broad_phase is not None))
 
 
 def step_updates(scene: Scene, params: Params, state: State, control=None) -> tuple[Held, State]:
     """The updates a step runs once, at its start, from ``state``: the control stage
-    (:func:`held_inputs`) and every effect's update (:func:`effect_updates`). Returns what
-    they hold over the step and ``state`` with their new memories (the controller's and
-    the effects'); the physics and the time are not advanced. :func:`step` and the
-    driver's accelerations at saved states share it."""
+    (:func:`held_inputs`), the contact broad phase (``contact.broad_phase``,
+    :func:`~mysim_jax.contact.broad_phase.broad_phase_update`) and every effect's update
+    (:func:`effect_updates`). Returns what they hold over the step and ``state`` with
+    their new memories (the controller's, the contact stage's, the effects'); the physics
+    and the time are not advanced. :func:`step` and the driver's accelerations at saved
+    states share it."""
     inputs, controller = held_inputs(scene, params, state, control)
+    contact, contact_memory = None, state.contact
+    if scene.contact is not None and scene.contact.broad_phase is not None:
+        with jax.named_scope("broad_phase"):
+            contact, contact_memory = broad_phase_update(scene, params, state)
     held, effect_memory = effect_updates(scene, params, state)
-    return Held(inputs=inputs, effects=held), state.replace(controller=controller, effects=effect_memory)
+    return (Held(inputs=inputs, effects=held, contact=contact),
+            state.replace(controller=controller, effects=effect_memory, contact=contact_memory))
 
 
 def held_accelerations(scene: Scene, params: Params, phys: PhysState, held: Held) -> Accelerations:
     """:func:`accelerations` with what a step's updates hold (:func:`step_updates`)."""
-    return accelerations(scene, params, phys, held.inputs, held.effects)
+    return accelerations(scene, params, phys, held.inputs, held.effects, held.contact)
 
 
 def step(scene: Scene, params: Params, state: State, control=None) -> State:
@@ -277,7 +315,7 @@ def step(scene: Scene, params: Params, state: State, control=None) -> State:
             phys = jax.lax.fori_loop(0, scene.substeps, lambda _, p: substep(p), phys)
     else:
         phys = solve_adaptive(scene, params, state.phys, state.time, state.time + scene.dt, inputs=held.inputs,
-                              held=held.effects)
+                              held=held.effects, contact=held.contact)
     return updated.replace(phys=phys, time=state.time + jnp.asarray(scene.dt, dtype=state.time.dtype))
 
 

@@ -34,7 +34,7 @@ from mysim_jax.build import build  # noqa: E402
 from mysim_jax.config.scene import ConfigError, load_config  # noqa: E402
 from mysim_jax.dynamics.integrators import FIXED_STEP  # noqa: E402
 from mysim_jax.driver import output_times, single_env_scene, steps_per_output  # noqa: E402
-from mysim_jax.sim import rollout, solve_adaptive  # noqa: E402
+from mysim_jax.sim import has_step_updates, rollout, solve_adaptive  # noqa: E402
 
 
 _REFERENCE_CACHE: dict[str, tuple] = {}
@@ -109,7 +109,7 @@ def compile_run(scene, params, state, run_settings, policy=None) -> _Run:
     """
     scene = single_env_scene(scene)
     times = output_times(run_settings)
-    if scene.integrator in FIXED_STEP or scene.quadrotor is not None or scene.effects:
+    if scene.integrator in FIXED_STEP or has_step_updates(scene):
         every = steps_per_output(scene, run_settings)
         n_steps = (len(times) - 1) * every
 

@@ -7,8 +7,8 @@
 * :class:`Params` — a pytree of float arrays: masses, inertias, marker offsets, spring
   constants, gravity, Baumgarte constants. Traced, differentiable, vmappable.
 * :class:`State` — a pytree: the multibody state :class:`PhysState`, the time, (with
-  quadrotors) the controller memory and the memory of registered effects
-  (docs/effects.md; the target's PRNG key lives there).
+  quadrotors) the controller memory, the memory of registered effects (docs/effects.md;
+  the target's PRNG key lives there) and (with a contact broad phase) the contact stage's.
 * :class:`Trajectory` — what a whole run returns on the host (:func:`mysim_jax.driver.simulate`):
   the states and accelerations on its output grid, as NumPy arrays.
 
@@ -185,6 +185,7 @@ class State:
     time: jnp.ndarray         # () s
     controller: object | None = None   # mysim_jax.control.pid.ControlState; PID integrators, motor speeds (quadrotor scenes)
     effects: dict = field(default_factory=dict)  # registered effect name -> its memory (e.g. PRNG key)
+    contact: object | None = None      # mysim_jax.contact.broad_phase.BroadPhaseMemory (scenes with contact.broad_phase)
 
 
 @dataclass

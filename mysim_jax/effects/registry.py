@@ -13,13 +13,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from mysim_jax.config.effect_blocks import EFFECT_BLOCKS
-from mysim_jax.contact.broad_phase import BROAD_PHASE
 from mysim_jax.net.drag import LINE_DRAG
 from mysim_jax.effects.entanglement import ENTANGLEMENT
 from mysim_jax.effects.target import TARGET
 
 # name -> effect, in pipeline order
-EFFECTS = {effect.name: effect for effect in (BROAD_PHASE, LINE_DRAG, ENTANGLEMENT, TARGET)}
+EFFECTS = {effect.name: effect for effect in (LINE_DRAG, ENTANGLEMENT, TARGET)}
 
 
 def register(effect) -> None:
