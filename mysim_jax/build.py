@@ -24,7 +24,7 @@ from mysim_jax.control.build import build_quadrotors, expand_cameras
 from mysim_jax.dynamics.joint_check import joint_groups, joint_problems
 from mysim_jax.dynamics.implicit_springs import spring_ends_on_markers
 from mysim_jax.dynamics.stability import NETWORK_STEP_SAFETY, scene_network_stable_step, stable_step
-from mysim_jax.effects.registry import EFFECTS, BuildContext, scene_effects
+from mysim_jax.effects.registry import BuildContext, registered_effects, scene_effects
 from mysim_jax.net.rope import build_rope
 from mysim_jax.core.npgeom import rotate
 from mysim_jax.core.types import JointBucket, Params, PhysState, Scene, State
@@ -279,14 +279,14 @@ def _build_effects(effect_config: SceneConfig, scene: Scene) -> tuple[Scene, dic
                        quadrotor_bodies=() if quad_scene is None else quad_scene.body, dtype=scene.dtype,
                        contact=scene.contact)
     effect_static, effect_params, effect_memory = [], {}, {}
-    for name, effect in EFFECTS.items():
+    for effect in registered_effects():
         try:
             parts = effect.build(effect_config, ctx)
         except ValueError as err:
             raise ConfigError(str(err)) from None
         if parts is not None:
-            effect_static.append((name, parts[0]))
-            effect_params[name], effect_memory[name] = parts[1], parts[2]
+            effect_static.append((effect.name, parts[0]))
+            effect_params[effect.name], effect_memory[effect.name] = parts[1], parts[2]
     return dataclasses.replace(scene, effects=tuple(effect_static)), effect_params, effect_memory
 
 

@@ -23,7 +23,7 @@ MemoryT = TypeVar("MemoryT")
 
 class Effect(ABC, Generic[StaticT, ParamsT, MemoryT]):
     """Base of an effect (docs/effects.md): ``name``, the YAML block's ``schema`` (a pydantic
-    model, or its ``"module:Class"`` path; None: no block), ``build`` to implement (abstract), and
+    model; None: no block), ``build`` to implement (abstract), and
     defaults for the rest of the protocol (no update, no memory change, no start state,
     no force stages). Type it with its static part, params and memory:
     ``class _Target(Effect[TargetScene, TargetParams, TargetMemory])``."""
