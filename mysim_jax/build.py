@@ -306,10 +306,8 @@ def build(config: SceneConfig):
         contact_scene, contact_params = build_contact(
             config.contact, t.point_names, [b.name for b in config.bodies], dtype,
             segments=segment_table(config.ropes, config.springs))
-    # an environment that draws a wind force per episode needs the quadrotors' wind input
-    wind_input = effect_config.env is not None and effect_config.env.randomize.wind_force is not None
     quad_scene, quad_params, control_params, control_state = build_quadrotors(
-        config, [b.name for b in config.bodies], t.marker_names, dtype, wind_input)
+        config, [b.name for b in config.bodies], dtype)
     scene = _scene(t, sp, (load_force, load_torque), contact_scene, quad_scene)
     scene, effect_params, effect_memory = _build_effects(effect_config, scene)
 

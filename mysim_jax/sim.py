@@ -33,11 +33,10 @@ from mysim_jax.contact.forces import contact_forces
 from mysim_jax.control.actuation import actuate
 from mysim_jax.dynamics import constraints as _constraints
 from mysim_jax.dynamics.forces import ForceStage, Loads, spring_forces
-from mysim_jax.dynamics.gimbal import gimbal_servo_forces
 from mysim_jax.dynamics.implicit_springs import ImplicitSpringSolve
 from mysim_jax.dynamics.integrators import FIXED_STEP, state_derivative
 from mysim_jax.dynamics.markers import distribute_node_forces, node_states
-from mysim_jax.dynamics.quadrotor import aerodynamic_forces, rotor_forces
+from mysim_jax.dynamics.quadrotor import rotor_forces
 from mysim_jax.dynamics.quaternion import quat_normalize
 from mysim_jax.dynamics.rigid_body import body_accelerations, inertia_inverse
 from mysim_jax.effects.registry import scene_effects
@@ -74,14 +73,6 @@ def _rotor_stage(scene, params, phys, nodes, held: Held) -> Loads:
     return rotor_forces(scene, params, phys, nodes, held.inputs)
 
 
-def _aerodynamic_stage(scene, params, phys, nodes, held: Held) -> Loads:
-    return aerodynamic_forces(scene, params, phys, nodes, held.inputs)
-
-
-def _gimbal_stage(scene, params, phys, nodes, held: Held) -> Loads:
-    return gimbal_servo_forces(scene, params, phys, nodes, held.inputs)
-
-
 def force_stages(scene: Scene) -> tuple[tuple[str, ForceStage], ...]:
     """The built-in force elements this scene has, in pipeline order, decided from the
     static Scene.
@@ -101,10 +92,6 @@ def force_stages(scene: Scene) -> tuple[tuple[str, ForceStage], ...]:
         stages.append(("contact_forces", _contact_stage))
     if scene.quadrotor is not None:
         stages.append(("rotor_forces", _rotor_stage))
-        if scene.quadrotor.has_drag or scene.quadrotor.has_wind:
-            stages.append(("aerodynamic_forces", _aerodynamic_stage))
-        if scene.quadrotor.n_gimbals:
-            stages.append(("gimbal_servo", _gimbal_stage))
     return tuple(stages)
 
 

@@ -35,8 +35,12 @@ from mysim_jax.core.config_base import StrictModel
 
 # effect name -> the effect, or "module:OBJECT" of a library effect (imported on first use),
 # in pipeline order. The library's effects keep their settings in the blocks they belong
-# to (net.air_density, target, target.entanglement): none has an effects: block.
+# to (quadrotors.*.wind, quadrotors.*.drag, quadrotors.*.cameras, net.air_density, target,
+# target.entanglement): none has an effects: block.
 EFFECTS: dict[str, object] = {
+    "wind": "mysim_jax.effects.wind:WIND",
+    "body_drag": "mysim_jax.effects.body_drag:BODY_DRAG",
+    "gimbal_servo": "mysim_jax.effects.gimbal_servo:GIMBAL_SERVO",
     "line_drag": "mysim_jax.net.drag:LINE_DRAG",
     "entanglement": "mysim_jax.effects.entanglement:ENTANGLEMENT",
     "target": "mysim_jax.effects.target:TARGET",
