@@ -15,9 +15,11 @@ traces no spring code, without joints no constraint solve.
 It is pure and written for one environment: batch with ``jax.vmap``, jit once around the
 whole rollout. The updates a step runs once at its start (the control stage, the contact
 broad phase, the effects' updates) are :func:`step_updates`; what they hold over the
-step's sub-steps is a :class:`Held`. The host-side driver of whole runs (``simulate``, its chunks, progress bar
-and checks for non-finite states) is :mod:`mysim_jax.driver`; it is the only place the
-library calls ``jax.jit`` on its own.
+step's sub-steps is a :class:`Held`.
+
+The host-side driver of whole runs (``simulate``: its chunks, progress bar and checks for
+non-finite states) is :mod:`mysim_jax.driver`, the only place the library calls
+``jax.jit`` on its own.
 """
 
 from __future__ import annotations
@@ -278,8 +280,9 @@ def held_accelerations(scene: Scene, params: Params, phys: PhysState, held: Held
 def step(scene: Scene, params: Params, state: State, control=None) -> State:
     """Advance one environment by ``scene.dt``. Pure; vmap and jit at the call site.
 
-    The control stage and the effects' updates (:func:`step_updates`) run once at the
-    start of the step; what they hold is held over the sub-steps (zero-order hold).
+    The updates (:func:`step_updates`: the control stage, the contact broad phase, the
+    effects') run once at the start of the step; what they hold is held over the
+    sub-steps (zero-order hold).
     """
     held, updated = step_updates(scene, params, state, control)
     if scene.integrator in FIXED_STEP:

@@ -150,8 +150,6 @@ def _quadrotor_scene(quads, body_names) -> QuadrotorScene:
         attitude_gain_units=tuple(q.controller.attitude_gain_units if q.controller else "torque" for q in quads),
         setpoint_mode=quads[0].controller.setpoint_mode if quads[0].controller else "position",
         has_motor_lag=any(q.rotors.time_constant is not None for q in quads),
-        camera_names=tuple(c.name for q in quads for c in q.cameras),
-        camera_quad=tuple(qi for qi, q in enumerate(quads) for _ in q.cameras),
     )
 
 

@@ -57,8 +57,6 @@ class QuadrotorScene:
     attitude_gain_units: tuple[str, ...] = ()  # (n_quads,) "rotor_speed_squared" | "torque"
     setpoint_mode: str = "position"          # "position" | "velocity": what the controller's setpoint fixes
     has_motor_lag: bool = False
-    camera_names: tuple[str, ...] = ()       # every camera body, fixed and gimbal
-    camera_quad: tuple[int, ...] = ()        # (n_cameras,) which quadrotor carries it
 
     @property
     def n_quads(self) -> int:
