@@ -17,13 +17,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from mysim_jax.config.scene import FIXED_STEP_INTEGRATORS, ConfigError, SceneConfig, expand_capture
+from mysim_jax.contact.broad_phase import broad_phase_start
 from mysim_jax.contact.build import build_contact, contact_stable_step
 from mysim_jax.contact.config import segment_table
 from mysim_jax.control.build import build_quadrotors, expand_cameras
 from mysim_jax.dynamics.joint_check import joint_groups, joint_problems
 from mysim_jax.dynamics.implicit_springs import spring_ends_on_markers
 from mysim_jax.dynamics.stability import NETWORK_STEP_SAFETY, scene_network_stable_step, stable_step
-from mysim_jax.effects.registry import EFFECTS, BuildContext, scene_effects
+from mysim_jax.effects.registry import BuildContext, registered_effects, scene_effects
 from mysim_jax.net.rope import build_rope
 from mysim_jax.core.npgeom import rotate
 from mysim_jax.core.types import JointBucket, Params, PhysState, Scene, State
@@ -278,14 +279,14 @@ def _build_effects(effect_config: SceneConfig, scene: Scene) -> tuple[Scene, dic
                        quadrotor_bodies=() if quad_scene is None else quad_scene.body, dtype=scene.dtype,
                        contact=scene.contact)
     effect_static, effect_params, effect_memory = [], {}, {}
-    for name, effect in EFFECTS.items():
+    for effect in registered_effects():
         try:
             parts = effect.build(effect_config, ctx)
         except ValueError as err:
             raise ConfigError(str(err)) from None
         if parts is not None:
-            effect_static.append((name, parts[0]))
-            effect_params[name], effect_memory[name] = parts[1], parts[2]
+            effect_static.append((effect.name, parts[0]))
+            effect_params[effect.name], effect_memory[effect.name] = parts[1], parts[2]
     return dataclasses.replace(scene, effects=tuple(effect_static)), effect_params, effect_memory
 
 
@@ -305,10 +306,8 @@ def build(config: SceneConfig):
         contact_scene, contact_params = build_contact(
             config.contact, t.point_names, [b.name for b in config.bodies], dtype,
             segments=segment_table(config.ropes, config.springs))
-    # an environment that draws a wind force per episode needs the quadrotors' wind input
-    wind_input = effect_config.env is not None and effect_config.env.randomize.wind_force is not None
     quad_scene, quad_params, control_params, control_state = build_quadrotors(
-        config, [b.name for b in config.bodies], t.marker_names, dtype, wind_input)
+        config, [b.name for b in config.bodies], dtype)
     scene = _scene(t, sp, (load_force, load_torque), contact_scene, quad_scene)
     scene, effect_params, effect_memory = _build_effects(effect_config, scene)
 
@@ -352,6 +351,8 @@ def build(config: SceneConfig):
         body_angvel=arr([b.angvel for b in config.bodies], (-1, 3)),
     )
     state = State(phys=phys, time=jnp.zeros((), dtype=scene.dtype), controller=control_state, effects=effect_memory)
+    if scene.contact is not None and scene.contact.broad_phase is not None:
+        state = state.replace(contact=broad_phase_start(scene, params, state))
     for effect, _ in scene_effects(scene):
         state = effect.init(scene, params, state)
     return scene, params, state

@@ -1,4 +1,4 @@
-"""The simulation pipeline: accelerations, one environment step, rollouts, whole runs.
+"""The simulation pipeline: accelerations, one environment step, rollouts.
 
 ``accelerations`` is composed at trace time from the effects the static Scene has, as a
 chain of pure stages named after the physics (each under ``jax.named_scope`` so that a
@@ -13,54 +13,77 @@ traces no spring code, without joints no constraint solve.
 ``step(scene, params, state, control=None)`` advances one environment by ``scene.dt``
 (``scene.substeps`` sub-steps of a fixed-step integrator, or one adaptive diffrax solve).
 It is pure and written for one environment: batch with ``jax.vmap``, jit once around the
-whole rollout. The library never calls ``jax.jit`` on its own except in ``simulate``, the
-host-side driver that writes outputs.
+whole rollout. The updates a step runs once at its start (the control stage, the contact
+broad phase, the effects' updates) are :func:`step_updates`; what they hold over the
+step's sub-steps is a :class:`Held`.
+
+The host-side driver of whole runs (``simulate``: its chunks, progress bar and checks for
+non-finite states) is :mod:`mysim_jax.driver`, the only place the library calls
+``jax.jit`` on its own.
 """
 
 from __future__ import annotations
 
-import dataclasses
-from dataclasses import dataclass
-from functools import partial
+from typing import NamedTuple
 
 import diffrax
 import jax
 import jax.numpy as jnp
-import numpy as np
-from tqdm.auto import tqdm
 
+from mysim_jax.contact.broad_phase import broad_phase_update
 from mysim_jax.contact.forces import contact_forces
 from mysim_jax.control.actuation import actuate
 from mysim_jax.dynamics import constraints as _constraints
 from mysim_jax.dynamics.forces import ForceStage, Loads, spring_forces
-from mysim_jax.dynamics.gimbal import gimbal_servo_forces
 from mysim_jax.dynamics.implicit_springs import ImplicitSpringSolve
 from mysim_jax.dynamics.integrators import FIXED_STEP, state_derivative
 from mysim_jax.dynamics.markers import distribute_node_forces, node_states
-from mysim_jax.dynamics.quadrotor import aerodynamic_forces, rotor_forces
+from mysim_jax.dynamics.quadrotor import rotor_forces
 from mysim_jax.dynamics.quaternion import quat_normalize
 from mysim_jax.dynamics.rigid_body import body_accelerations, inertia_inverse
 from mysim_jax.effects.registry import scene_effects
-from mysim_jax.core.types import Accelerations, Params, PhysState, Scene, State
+from mysim_jax.core.types import Accelerations, Params, PhysState, Scene, State, Trajectory
+
+# Trajectory, what the driver (mysim_jax.driver) returns, stays importable from here
+__all__ = ["force_stages", "accelerations", "derivative", "adaptive_solution", "solve_adaptive", "held_inputs",
+           "effect_updates", "Held", "has_step_updates", "step_updates", "held_accelerations", "step", "rollout",
+           "Trajectory"]
 
 
-def _spring_stage(scene, params, phys, nodes, inputs) -> Loads:
+class Held(NamedTuple):
+    """What the updates of one step hold over its sub-steps (zero-order hold)."""
+
+    inputs: object = None        # the control stage's ActuatorInputs (quadrotor scenes), else the caller's control
+    effects: dict | None = None  # effect name -> what its update holds
+    contact: object = None       # the contact broad phase's choice of pairs (contact.broad_phase), else None
+
+
+def _spring_stage(scene, params, phys, nodes, held: Held) -> Loads:
     return Loads.of_nodes(spring_forces(scene, params, *nodes), scene.n_bodies)
 
 
-def _load_stage(scene, params, phys, nodes, inputs) -> Loads:
+def _load_stage(scene, params, phys, nodes, held: Held) -> Loads:
     return Loads(node_force=params.load_node_force,
                  body_force=jnp.zeros_like(phys.body_pos), body_torque=params.load_body_torque)
 
 
-def force_stages(scene: Scene) -> tuple[tuple[str, ForceStage], ...]:
-    """The force elements this scene has, in pipeline order, decided from the static Scene.
+def _contact_stage(scene, params, phys, nodes, held: Held) -> Loads:
+    return contact_forces(scene, params, phys, nodes, held.contact)
 
-    Each stage is ``fn(scene, params, phys, nodes, inputs) -> Loads`` with ``nodes`` the
-    ``(node_pos, node_vel)`` table and ``inputs`` the actuator commands held over the step
-    (``None`` when the scene has no actuators). Registered effects (docs/effects.md)
-    add their stages after these, each called with what its own update holds instead of
-    ``inputs``; new effects register there, not here.
+
+def _rotor_stage(scene, params, phys, nodes, held: Held) -> Loads:
+    return rotor_forces(scene, params, phys, nodes, held.inputs)
+
+
+def force_stages(scene: Scene) -> tuple[tuple[str, ForceStage], ...]:
+    """The built-in force elements this scene has, in pipeline order, decided from the
+    static Scene.
+
+    Each stage is ``fn(scene, params, phys, nodes, held) -> Loads`` with ``nodes`` the
+    ``(node_pos, node_vel)`` table and ``held`` the step's :class:`Held` (the actuator
+    inputs, the contact broad phase's choice). Registered effects (docs/effects.md) add
+    their stages after these, each called with what its own update holds; new effects
+    register there, not here.
     """
     stages: list[tuple[str, ForceStage]] = []
     if scene.n_springs:
@@ -68,28 +91,27 @@ def force_stages(scene: Scene) -> tuple[tuple[str, ForceStage], ...]:
     if scene.has_loads:
         stages.append(("applied_loads", _load_stage))
     if scene.contact is not None:
-        stages.append(("contact_forces", contact_forces))
+        stages.append(("contact_forces", _contact_stage))
     if scene.quadrotor is not None:
-        stages.append(("rotor_forces", rotor_forces))
-        if scene.quadrotor.has_drag or scene.quadrotor.has_wind:
-            stages.append(("aerodynamic_forces", aerodynamic_forces))
-        if scene.quadrotor.n_gimbals:
-            stages.append(("gimbal_servo", gimbal_servo_forces))
+        stages.append(("rotor_forces", _rotor_stage))
     return tuple(stages)
 
 
-def _all_stages(scene: Scene, inputs, held):
+def _all_stages(scene: Scene, held: Held):
     """``[(name, stage, what it holds), ...]``: the built-in stages, then the effects'."""
-    stages = [(name, stage, inputs) for name, stage in force_stages(scene)]
+    stages = [(name, stage, held) for name, stage in force_stages(scene)]
     for effect, static in scene_effects(scene):
-        stages += [(name, stage, (held or {}).get(effect.name)) for name, stage in effect.stages(static)]
+        stages += [(name, stage, (held.effects or {}).get(effect.name)) for name, stage in effect.stages(static)]
     return stages
 
 
-def accelerations(scene: Scene, params: Params, phys: PhysState, inputs=None, held=None) -> Accelerations:
-    """Accelerations of every point and body for one environment. ``held`` maps effect
-    names to what their updates hold over the step (:func:`effect_updates`)."""
-    stages = _all_stages(scene, inputs, held)
+def accelerations(scene: Scene, params: Params, phys: PhysState, inputs=None, held=None,
+                  contact=None) -> Accelerations:
+    """Accelerations of every point and body for one environment, under what the step's
+    updates hold (:func:`step_updates`): ``inputs`` the actuator inputs, ``held`` a dict of
+    what each effect's update holds (by effect name), ``contact`` the contact broad
+    phase's choice of pairs (None: every pair)."""
+    stages = _all_stages(scene, Held(inputs=inputs, effects=held, contact=contact))
     loads = None
     if stages:
         with jax.named_scope("marker_kinematics"):
@@ -129,9 +151,9 @@ def accelerations(scene: Scene, params: Params, phys: PhysState, inputs=None, he
     return Accelerations(point_acc=point_acc, body_acc=body_acc, body_angacc=body_angacc)
 
 
-def derivative(scene: Scene, params: Params, phys: PhysState, inputs=None, held=None) -> PhysState:
+def derivative(scene: Scene, params: Params, phys: PhysState, inputs=None, held=None, contact=None) -> PhysState:
     """``d(phys)/dt`` as a PhysState-shaped pytree (quaternion rate ½ q ⊗ ω)."""
-    return state_derivative(phys, accelerations(scene, params, phys, inputs, held))
+    return state_derivative(phys, accelerations(scene, params, phys, inputs, held, contact))
 
 
 def _adaptive_solver(scene: Scene):
@@ -140,10 +162,10 @@ def _adaptive_solver(scene: Scene):
 
 def _vector_field(scene: Scene):
     def field(t, y, args):
-        params, inputs, held = args
+        params, inputs, held, contact = args
         # quaternions drift off the unit sphere by O(tolerance); forces and the attitude
         # rate use the unit quaternion
-        return derivative(scene, params, y.replace(body_quat=quat_normalize(y.body_quat)), inputs, held)
+        return derivative(scene, params, y.replace(body_quat=quat_normalize(y.body_quat)), inputs, held, contact)
     return field
 
 
@@ -152,8 +174,8 @@ def _vector_field(scene: Scene):
 _PROGRESS_REFRESH_STEPS = 2000
 
 
-def _diffeqsolve(scene: Scene, params: Params, phys: PhysState, t0, t1, ts=None, progress=False, inputs=None,
-                 held=None):
+def adaptive_solution(scene: Scene, params: Params, phys: PhysState, t0, t1, ts=None, progress=False, inputs=None,
+                      held=None, contact=None):
     """The diffrax solve behind :func:`solve_adaptive`, returning diffrax's ``Solution``
     (states, ``result``, ``stats``). It never raises: a failed solve (``max_steps``
     reached, a non-finite state) is reported in ``result``, and saved times it did not
@@ -166,7 +188,7 @@ def _diffeqsolve(scene: Scene, params: Params, phys: PhysState, t0, t1, ts=None,
         t1=t1,
         dt0=scene.substep,
         y0=phys,
-        args=(params, inputs, held),
+        args=(params, inputs, held, contact),
         saveat=saveat,
         stepsize_controller=diffrax.PIDController(rtol=scene.rtol, atol=scene.atol),
         max_steps=scene.max_steps,
@@ -177,7 +199,7 @@ def _diffeqsolve(scene: Scene, params: Params, phys: PhysState, t0, t1, ts=None,
 
 
 def solve_adaptive(scene: Scene, params: Params, phys: PhysState, t0, t1, ts=None, progress=False, inputs=None,
-                   held=None, stats: bool = False):
+                   held=None, stats: bool = False, contact=None):
     """Integrate with the scene's diffrax solver from ``t0`` to ``t1``.
 
     Returns the states at ``ts`` (stacked) if given, else the state at ``t1``; with
@@ -188,7 +210,7 @@ def solve_adaptive(scene: Scene, params: Params, phys: PhysState, t0, t1, ts=Non
     (at ``ts``) or NaN (at ``t1``: diffrax would return the state where it stopped,
     which is not the state at ``t1``), so a caller checking for finite states sees it.
     """
-    sol = _diffeqsolve(scene, params, phys, t0, t1, ts, progress, inputs, held)
+    sol = adaptive_solution(scene, params, phys, t0, t1, ts, progress, inputs, held, contact)
     ys = sol.ys
     ys = ys.replace(body_quat=quat_normalize(ys.body_quat))
     ok = sol.result == diffrax.RESULTS.successful
@@ -224,21 +246,51 @@ def effect_updates(scene: Scene, params: Params, state: State):
     return held, memory
 
 
+def has_step_updates(scene: Scene) -> bool:
+    """Does a step of this scene run updates at its start (:func:`step_updates`: a
+    controller, an effect, a contact broad phase)? Such a scene is stepped one ``dt`` at
+    a time even with an adaptive integrator."""
+    return (scene.quadrotor is not None or bool(scene.effects)
+            or (scene.contact is not None and scene.contact.broad_phase is not None))
+
+
+def step_updates(scene: Scene, params: Params, state: State, control=None) -> tuple[Held, State]:
+    """The updates a step runs once, at its start, from ``state``: the control stage
+    (:func:`held_inputs`), the contact broad phase (``contact.broad_phase``,
+    :func:`~mysim_jax.contact.broad_phase.broad_phase_update`) and every effect's update
+    (:func:`effect_updates`). Returns what they hold over the step and ``state`` with
+    their new memories (the controller's, the contact stage's, the effects'); the physics
+    and the time are not advanced. :func:`step` and the driver's accelerations at saved
+    states share it."""
+    inputs, controller = held_inputs(scene, params, state, control)
+    contact, contact_memory = None, state.contact
+    if scene.contact is not None and scene.contact.broad_phase is not None:
+        with jax.named_scope("broad_phase"):
+            contact, contact_memory = broad_phase_update(scene, params, state)
+    held, effect_memory = effect_updates(scene, params, state)
+    return (Held(inputs=inputs, effects=held, contact=contact),
+            state.replace(controller=controller, effects=effect_memory, contact=contact_memory))
+
+
+def held_accelerations(scene: Scene, params: Params, phys: PhysState, held: Held) -> Accelerations:
+    """:func:`accelerations` with what a step's updates hold (:func:`step_updates`)."""
+    return accelerations(scene, params, phys, held.inputs, held.effects, held.contact)
+
+
 def step(scene: Scene, params: Params, state: State, control=None) -> State:
     """Advance one environment by ``scene.dt``. Pure; vmap and jit at the call site.
 
-    The control stage (:func:`held_inputs`) and the effects' updates
-    (:func:`effect_updates`) run once at the start of the step; their outputs are held
-    over the sub-steps (zero-order hold).
+    The updates (:func:`step_updates`: the control stage, the contact broad phase, the
+    effects') run once at the start of the step; what they hold is held over the
+    sub-steps (zero-order hold).
     """
-    control, memory = held_inputs(scene, params, state, control)
-    held, effect_memory = effect_updates(scene, params, state)
+    held, updated = step_updates(scene, params, state, control)
     if scene.integrator in FIXED_STEP:
         integrator = FIXED_STEP[scene.integrator]
         h = jnp.asarray(scene.substep, dtype=state.time.dtype)
 
         def accel(phys):
-            return accelerations(scene, params, phys, control, held)
+            return held_accelerations(scene, params, phys, held)
 
         implicit = (ImplicitSpringSolve(scene, params, scene.implicit_iterations)
                     if integrator.takes_implicit_springs else None)
@@ -252,10 +304,9 @@ def step(scene: Scene, params: Params, state: State, control=None) -> State:
         else:
             phys = jax.lax.fori_loop(0, scene.substeps, lambda _, p: substep(p), phys)
     else:
-        phys = solve_adaptive(scene, params, state.phys, state.time, state.time + scene.dt, inputs=control,
-                              held=held)
-    return state.replace(phys=phys, time=state.time + jnp.asarray(scene.dt, dtype=state.time.dtype),
-                         controller=memory, effects=effect_memory)
+        phys = solve_adaptive(scene, params, state.phys, state.time, state.time + scene.dt, inputs=held.inputs,
+                              held=held.effects, contact=held.contact)
+    return updated.replace(phys=phys, time=state.time + jnp.asarray(scene.dt, dtype=state.time.dtype))
 
 
 def rollout(scene: Scene, params: Params, state: State, n_steps: int, every: int = 1, policy=None):
@@ -277,236 +328,3 @@ def rollout(scene: Scene, params: Params, state: State, n_steps: int, every: int
         return s, s
 
     return jax.lax.scan(outer, state, None, length=n_steps // every)
-
-
-@dataclass
-class Trajectory:
-    """Host-side result of :func:`simulate`: states and accelerations on the output grid.
-
-    ``failure`` is None when the run reached ``t_end``. Otherwise it says why the run
-    stopped early (a state or acceleration turned non-finite, or the adaptive solver gave
-    up), when, and in which points or bodies; the arrays then hold the finite part of the
-    run only, up to the last finite saved state.
-    """
-
-    time: np.ndarray          # (n_out,)
-    phys: PhysState           # leaves (n_out, ...) as NumPy arrays
-    acc: Accelerations        # leaves (n_out, ...) as NumPy arrays
-    controller: object = None  # ControlState leaves (n_out, ...) (quadrotor scenes), else None
-    failure: str | None = None
-    effects: dict | None = None  # effect name -> its memory, leaves (n_out, ...) (stepped runs), else None
-
-    @property
-    def ok(self) -> bool:
-        return self.failure is None
-
-
-def output_times(run) -> np.ndarray:
-    """The output grid ``0, output_dt, ..., t_end`` of a :class:`~mysim_jax.config.scene.RunSettings`
-    (whose ``t_end`` lies on it)."""
-    n = int(round(run.t_end / run.output_dt))
-    return np.arange(n + 1) * run.output_dt
-
-
-def steps_per_output(scene: Scene, run) -> int:
-    """Environment steps between saved states; the run's ``output_dt`` must be a whole
-    multiple of the scene's step ``dt`` (a ValueError says so otherwise)."""
-    every = int(round(run.output_dt / scene.dt))
-    if every < 1 or abs(every * scene.dt - run.output_dt) > 1e-9 * run.output_dt:
-        raise ValueError(f"run '{run.name}': output_dt = {run.output_dt:g} s is not a whole multiple of the "
-                         f"scene's step dt = {scene.dt:g} s")
-    return every
-
-
-@partial(jax.jit, static_argnums=(0, 3, 4, 5))
-def _advance(scene: Scene, params: Params, state: State, n_steps: int, every: int, policy=None):
-    return rollout(scene, params, state, n_steps, every, policy)
-
-
-@partial(jax.jit, static_argnums=(0, 4))
-def _solve_on_grid(scene: Scene, params: Params, phys: PhysState, ts, progress: bool):
-    sol = _diffeqsolve(scene, params, phys, ts[0], ts[-1], ts, progress)
-    return sol.ys.replace(body_quat=quat_normalize(sol.ys.body_quat)), sol.result, sol.stats["num_steps"]
-
-
-@partial(jax.jit, static_argnums=(0, 3))
-def _accelerations_on_grid(scene: Scene, params: Params, states: State, policy=None):
-    """Accelerations at stacked states, with the inputs the controller and the effects
-    hold from there."""
-    def at(s):
-        inputs = None
-        if scene.quadrotor is not None:
-            inputs = held_inputs(scene, params, s, None if policy is None else policy(scene, params, s))[0]
-        held = effect_updates(scene, params, s)[0] if scene.effects else None
-        return accelerations(scene, params, s.phys, inputs, held)
-    return jax.vmap(at)(states)
-
-
-def single_env_scene(scene: Scene) -> Scene:
-    """The scene as ``simulate`` runs it: one environment, ``segment_sum`` accumulation.
-
-    Built scenes already use ``segment_sum``; a scene switched to the dense ``matmul``
-    accumulation by hand is switched back, since for a single environment the scatter is
-    faster (BENCHMARKS.md, section b). The physics is the same up to the order of
-    floating-point additions.
-    """
-    return dataclasses.replace(scene, accumulate="segment_sum")
-
-
-def _stepped_run(scene: Scene, params: Params, state: State, run, times, progress, chunk: int, policy):
-    """Fixed steps in jitted chunks of ``chunk`` outputs, checked after each chunk. Returns
-    the saved states (host arrays, the finite rows) and ``(row, reason)`` or None."""
-    every = steps_per_output(scene, run)
-    n_out = len(times) - 1
-    if 0 < n_out < chunk:          # one chunk: the next power of two, not a whole chunk
-        chunk = 1 << (n_out - 1).bit_length()
-    pieces = [jax.tree.map(lambda a: np.asarray(a)[None], state)]
-    failure = _non_finite(scene, pieces[0], times, 0)
-    done = 0
-    bar = _progress(n_out, progress, scene, run.name)
-    while done < n_out and failure is None:
-        state, traj = _advance(scene, params, state, chunk * every, every, policy)
-        take = min(chunk, n_out - done)
-        piece = jax.tree.map(lambda a: np.asarray(a)[:take], traj)
-        failure = _non_finite(scene, piece, times, done + 1)
-        if failure is not None:
-            take = failure[0] - (done + 1)
-        pieces.append(jax.tree.map(lambda a: a[:take], piece))
-        done += take
-        if bar is not None:
-            bar.update(take)
-    if bar is not None:
-        bar.close()
-    return jax.tree.map(lambda *xs: np.concatenate(xs, axis=0), *pieces), failure
-
-
-def _adaptive_run(scene: Scene, params: Params, state: State, times, progress):
-    """One diffrax solve on the output grid. Returns the saved states and ``(row, reason)``
-    or None (also when the solver gives up)."""
-    ts = jnp.asarray(times, dtype=scene.dtype)
-    ys, result, n_steps = _solve_on_grid(scene, params, state.phys, ts, bool(progress))
-    # row 0 is the initial state itself; a solve that gives up on its first output
-    # interval leaves every saved row unfilled (inf), that one included
-    phys = jax.tree.map(lambda y, y0: np.concatenate([np.asarray(y0, np.asarray(y).dtype)[None],
-                                                      np.asarray(y)[1:]]), ys, state.phys)
-    states = State(phys=phys, time=times.astype(phys.point_pos.dtype))
-    failure = _non_finite(scene, states, times, 0)
-    if result != diffrax.RESULTS.successful:
-        row = failure[0] if failure is not None else len(times)
-        failure = (row, (
-            f"the adaptive solver ({scene.integrator}) gave up after t = {times[max(row - 1, 0)]:g} s and "
-            f"{int(n_steps):,} steps: {diffrax.RESULTS[result]} This happens when the state turns non-finite "
-            "(every step is then rejected) or when rtol / atol ask for more steps than sim.max_steps = "
-            f"{scene.max_steps:,}: raise sim.max_steps, loosen sim.rtol / sim.atol, or look for forces "
-            "that blow up. The saved states before that time are kept."))
-    return states, failure
-
-
-def simulate(scene: Scene, params: Params, state: State, run, progress: bool = True, chunk: int = 200,
-             policy=None) -> Trajectory:
-    """Run the scene from ``state`` to ``run.t_end``, saving every ``run.output_dt``
-    (``run``: :class:`~mysim_jax.config.scene.RunSettings`, e.g. ``config.run_settings()``; it is
-    not part of the physics: it sets how many steps run and which are saved).
-
-    Fixed-step integrators run as jitted ``lax.scan`` chunks of ``chunk`` outputs with a
-    progress bar between chunks (a run of fewer outputs runs one chunk of the next power
-    of two, so a short run does not pay for a whole chunk); adaptive solvers run as one
-    diffrax solve (with diffrax's progress meter). Scenes with quadrotors always step (their controller acts once per
-    step). Accelerations are evaluated exactly at the saved states, with the actuator
-    inputs the controller holds from there.
-
-    The run is watched: after each chunk (or the solve) the saved states, controller
-    memory and accelerations are checked for NaN and inf. At the first non-finite row the
-    run stops and the :class:`Trajectory` keeps the rows before it, with ``failure``
-    naming the time interval, the points or bodies concerned and what to try; an
-    adaptive solve that gives up (``max_steps``) is reported the same way.
-
-    ``policy(scene, params, state) -> control`` gives the control of every step (see
-    :func:`rollout`); it is a static argument of the compiled run, so it must be
-    hashable (a frozen dataclass, or a module-level function).
-
-    The compiled functions are cached per Scene (``params`` and ``state`` are arguments,
-    not constants): a second call with new params or a new state does not recompile, nor
-    does another ``t_end`` with as many chunks of the same size.
-    This runs one environment, so the scene is run as :func:`single_env_scene` makes it.
-    """
-    scene = single_env_scene(scene)
-    times = output_times(run)
-    if scene.integrator in FIXED_STEP or scene.quadrotor is not None or scene.effects:
-        states, failure = _stepped_run(scene, params, state, run, times, progress, chunk, policy)
-    else:
-        states, failure = _adaptive_run(scene, params, state, times, progress)
-    n_kept = len(times) if failure is None else failure[0]
-    states = jax.tree.map(lambda a: a[:n_kept], states)
-    acc = jax.tree.map(np.asarray, _accelerations_on_grid(scene, params, jax.tree.map(jnp.asarray, states), policy))
-    bad = _first_non_finite_row(acc)
-    if bad is not None:
-        failure = (bad, f"the acceleration turned non-finite at t = {times[bad]:g} s: "
-                        f"{_describe(scene, acc, bad)}. The rows before are kept. Usual causes: forces so "
-                        "large they overflow (check stiffnesses, gains and loads)")
-        n_kept = bad
-    keep = lambda a: a[:n_kept]   # noqa: E731
-    return Trajectory(time=times[:n_kept], phys=jax.tree.map(keep, states.phys), acc=jax.tree.map(keep, acc),
-                      controller=None if states.controller is None else jax.tree.map(keep, states.controller),
-                      failure=None if failure is None else failure[1],
-                      effects=jax.tree.map(keep, states.effects) if states.effects else None)
-
-
-def _first_non_finite_row(tree) -> int | None:
-    """Index of the first row (leading axis) of any float leaf holding NaN or inf, or None."""
-    first = None
-    for leaf in jax.tree.leaves(tree):
-        leaf = np.asarray(leaf)
-        if not np.issubdtype(leaf.dtype, np.floating) or leaf.size == 0:
-            continue
-        bad = ~np.isfinite(leaf.reshape(leaf.shape[0], -1)).all(axis=1)
-        if bad.any():
-            row = int(np.argmax(bad))
-            first = row if first is None else min(first, row)
-    return first
-
-
-def _describe(scene: Scene, rows, row: int, memory=None, limit: int = 6) -> str:
-    """The points and bodies (and which of their quantities) that are non-finite in ``row``
-    of a stacked PhysState or Accelerations ``rows``; else the controller memory fields."""
-    found: dict[str, list[str]] = {}
-    for field in rows.__dataclass_fields__:
-        kind, quantity = field.split("_", 1)
-        names = scene.point_names if kind == "point" else scene.body_names
-        if not names:
-            continue
-        values = np.asarray(getattr(rows, field))[row].reshape(len(names), -1)
-        for i in np.flatnonzero(~np.isfinite(values).all(axis=1)):
-            found.setdefault(f"{kind} '{names[i]}'", []).append(quantity)
-    parts = [f"{who} ({', '.join(what)})" for who, what in list(found.items())[:limit]]
-    if len(found) > limit:
-        parts.append(f"and {len(found) - limit} more")
-    if not parts and memory is not None:
-        fields = [f for f in memory.__dataclass_fields__
-                  if np.asarray(getattr(memory, f)).dtype.kind == "f"
-                  and not np.isfinite(np.asarray(getattr(memory, f))[row]).all()]
-        parts = [f"the controller memory ({', '.join(fields)})"]
-    return "non-finite values in " + ", ".join(parts)
-
-
-def _non_finite(scene: Scene, states: State, times, first_row: int):
-    """``(output row, message)`` of the first saved state in ``states`` (output rows
-    ``first_row, first_row + 1, ...``) with a NaN or inf anywhere, or None."""
-    row = _first_non_finite_row((states.phys, states.controller))
-    if row is None:
-        return None
-    where = _describe(scene, states.phys, row, states.controller)
-    out = first_row + row
-    when = f"at t = {times[0]:g} s" if out == 0 else f"between t = {times[out - 1]:g} s and {times[out]:g} s"
-    return out, (
-        f"the state turned non-finite {when}: {where}. The rows before are kept. Usual causes: a step "
-        "too large for the motion (try a smaller sim.dt, more sim.substeps, or an adaptive integrator), "
-        "forces so large they overflow (check stiffnesses, gains and loads), or, with an adaptive "
-        "integrator stepping a controlled scene, a step on which the solver gave up (sim.max_steps)")
-
-
-def _progress(total: int, enabled: bool, scene: Scene, name: str):
-    if not enabled:
-        return None
-
-    return tqdm(total=total, desc=f"{name} ({scene.integrator})", unit="out", leave=False)

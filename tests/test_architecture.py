@@ -86,3 +86,21 @@ def test_effect_data_is_reached_through_the_effects_typed_accessors():
     found = [f"{path.relative_to(ROOT)}:{i}" for path in paths
              for i, line in enumerate(path.read_text().splitlines(), 1) if pattern.search(line)]
     assert not found, "effect data indexed by name (use the effect's accessors): " + ", ".join(found)
+
+
+def test_validating_the_scene_files_imports_no_jax():
+    """The config layer is JAX-free: every scene file in configs/ (not the detector and
+    training files, which have loaders of their own) validates, overrides and all, without
+    importing JAX or any effect (the effect registry's library entries are paths, imported
+    only for a file with an ``effects:`` block)."""
+    scenes = sorted(str(p.relative_to(ROOT)) for p in (ROOT / "configs").glob("*.yaml")
+                    if not p.name.startswith(("detector", "train_")))
+    code = ("import sys\n"
+            "from mysim_jax.config.scene import load_config\n"
+            f"for path in {scenes!r}:\n"
+            "    load_config(path)\n"
+            "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('jax', 'flax')"
+            " or m.startswith('mysim_jax.effects') or m == 'mysim_jax.net.drag')\n"
+            "assert not bad, bad\n")
+    res = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True)
+    assert len(scenes) > 10 and res.returncode == 0, res.stderr[-2000:]

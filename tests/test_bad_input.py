@@ -420,7 +420,7 @@ def test_simulate_reports_an_infinite_state_and_keeps_no_non_finite_row():
 
     from mysim_jax.build import build
     from mysim_jax.config.scene import load_config
-    from mysim_jax.sim import simulate
+    from mysim_jax.driver import simulate
 
     config = load_config(ROPE, ["sim.precision=float32", "sim.t_end=0.01"])
     scene, params, state = build(config)

@@ -1,5 +1,5 @@
 """Linear body drag of a tilted quadrotor: ``F = −R D Rᵀ v`` with ``D = diag(drag)`` in
-body axes (``mysim_jax/dynamics/quadrotor.py``).
+body axes (the effect ``mysim_jax/effects/body_drag.py``).
 
 The drag coefficients belong to the body axes (a quadrotor is draggier broadside than
 edge-on), so the world velocity is taken into the body frame, scaled, and the force
@@ -15,7 +15,7 @@ from scipy.spatial.transform import Rotation
 
 from mysim_jax.build import build
 from mysim_jax.config.scene import config_from_dict
-from mysim_jax.dynamics.quadrotor import aerodynamic_forces
+from mysim_jax.effects.body_drag import BODY_DRAG
 
 pytestmark = pytest.mark.float64
 
@@ -34,7 +34,9 @@ def test_drag_acts_in_body_axes_of_a_tilted_body():
         "quadrotors": [{"body": "uav0", "controller": None, "drag": DRAG.tolist()}],
     }
     scene, params, state = build(config_from_dict(raw, "test"))
-    loads = jax.jit(lambda ph: aerodynamic_forces(scene, params, ph, None, None))(state.phys)
+    assert [name for name, _ in scene.effects] == ["body_drag"]
+    (name, stage), = BODY_DRAG.stages(BODY_DRAG.static(scene))
+    loads = jax.jit(lambda ph: stage(scene, params, ph, None, None))(state.phys)
     rot = ROT.as_matrix()
     expected = -rot @ np.diag(DRAG) @ rot.T @ VEL
     # measured max abs error: 1.1e-16 N on a force of ~1.2 N

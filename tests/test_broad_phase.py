@@ -1,4 +1,4 @@
-"""The sphere–capsule broad phase (mysim_jax/contact/broad_phase.py) against all pairs.
+"""The sphere–capsule broad phase of the contact stage (mysim_jax/contact/broad_phase.py) against all pairs.
 
 The reference is the scene's own all-pairs contact stage (the narrow phase the broad
 phase calls); what is checked is that choosing K pairs per step changes no force: on
@@ -16,7 +16,7 @@ import pytest
 
 from mysim_jax.core import batching
 from mysim_jax.config.scene import ConfigError, load_config
-from mysim_jax.contact.broad_phase import BROAD_PHASE, select_pairs
+from mysim_jax.contact.broad_phase import select_pairs
 from mysim_jax.contact.forces import ALL_PAIRS, contact_loads
 from mysim_jax.tasks.capture import make_env
 
@@ -69,7 +69,7 @@ def test_chosen_pairs_give_the_all_pairs_forces(catches):
 
 def test_counters_report_no_missed_contact_and_the_fallbacks(catches):
     env, params, states, overflow, missed = catches
-    memory = BROAD_PHASE.memory(states.sim)
+    memory = states.sim.contact
     assert memory.selected.shape[-1] == 16
     assert int(np.max(memory.missed)) == 0 and int(missed.sum()) == 0
     # the env's info counts fall-backs per team step (none on this level at K = 16: the

@@ -9,7 +9,7 @@ import pytest
 from mysim_jax.build import build
 from mysim_jax.config.scene import load_config
 from mysim_jax.dynamics.constraints import constraint_error
-from mysim_jax.dynamics.gimbal import gimbal_command, gimbal_state
+from mysim_jax.effects.gimbal_servo import GIMBAL_SERVO, gimbal_angles, gimbal_command
 from mysim_jax.dynamics.quaternion import quat_conj, quat_mul, quat_rotate, quat_to_rotvec
 from mysim_jax.sim import rollout
 
@@ -45,14 +45,14 @@ def _diagnostics(scene, params, phys):
             frames[cam] = (ph.body_pos[0] + quat_rotate(ph.body_quat[0], params.marker_pos[m]),
                            quat_mul(ph.body_quat[0], params.marker_quat[m]))
         rel = quat_mul(quat_conj(frames["cam_fixed"][1]), ph.body_quat[1])
-        angles, _ = gimbal_state(scene, params, ph)
+        angles, _ = gimbal_angles(scene, params, ph)
         return {
             "constraint": constraint_error(scene, params, ph),
             "fixed_pos": ph.body_pos[1] - frames["cam_fixed"][0],
             "gimbal_pos": ph.body_pos[2] - frames["cam_gimbal"][0],
             "fixed_angle": jnp.sqrt(jnp.sum(quat_to_rotvec(rel) ** 2)),
             "gimbal_angle": angles[0],
-            "gimbal_command": gimbal_command(params.quadrotor, k * scene.dt)[0],
+            "gimbal_command": gimbal_command(GIMBAL_SERVO.params(params), k * scene.dt)[0],
         }
 
     n = phys.body_pos.shape[0]
@@ -106,10 +106,11 @@ def test_hover_with_cameras_holds_position(flight32):
     for 10 s; with that term removed it does not."""
     scene, params, state, run, _ = flight32
     ref = params.controller.reference
-    hover = params.replace(
+    servo = GIMBAL_SERVO.params(params)
+    hover = GIMBAL_SERVO.with_params(params.replace(
         controller=params.controller.replace(reference=ref.replace(amplitude=jnp.zeros_like(ref.amplitude),
-                                                                   yaw_amplitude=jnp.zeros_like(ref.yaw_amplitude))),
-        quadrotor=params.quadrotor.replace(gimbal_amplitude=jnp.zeros_like(params.quadrotor.gimbal_amplitude)))
+                                                                   yaw_amplitude=jnp.zeros_like(ref.yaw_amplitude)))),
+        servo.replace(amplitude=jnp.zeros_like(servo.amplitude)))
     np.testing.assert_allclose(np.asarray(params.controller.com_offset[0]), [0.02 * 0.03 / 0.32, 0, -0.02 * 0.03 / 0.32
                                                                              - 0.02 * 0.04 / 0.32], rtol=1e-6)
     _, traj = run(hover, state)        # same compiled rollout, new Params

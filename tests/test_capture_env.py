@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from mysim_jax.config.scene import ConfigError, load_config
+from mysim_jax.effects.wind import WIND
 from mysim_jax.tasks.capture import make_env
 from mysim_jax.config.env import FAILURES, REWARD_TERMS, FailureConfig, RewardScales, SuccessConfig
 from mysim_jax.tasks.rewards import Snapshot, checks, cost_terms, inside_polygon, outcome_terms, potential_terms
@@ -409,7 +410,7 @@ def test_randomisation_draws_inside_the_ranges():
         "env.randomize.wind_force={low: [-0.3, -0.2, 0.0], high: [0.3, 0.2, 0.0]}",
         "env.noise.target_position={low: 0.1, high: 0.1}"])
     env, params = make_env(config)
-    assert env.scene.quadrotor.has_wind and env.observation_noise
+    assert WIND.in_scene(env.scene) and env.observation_noise
     keys = jax.random.split(jax.random.PRNGKey(0), 256)
     obs, states = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))(keys, params)
     ep = jax.tree.map(np.asarray, states.episode)
@@ -426,7 +427,7 @@ def test_randomisation_draws_inside_the_ranges():
     # the draws reach the physics of the episode
     sim = env.episode_params(params, jax.tree.map(lambda x: x[0], states.episode))
     assert float(sim.body_mass[env.target_body]) == pytest.approx(float(ep.target_mass[0]))
-    np.testing.assert_allclose(np.asarray(sim.quadrotor.wind_force), np.tile(ep.wind_force[0], (4, 1)), rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(WIND.params(sim).force), np.tile(ep.wind_force[0], (4, 1)), rtol=1e-6)
     np.testing.assert_allclose(np.asarray(sim.body_mass)[list(env.quad_bodies)], 0.28 * ep.uav_mass_scale[0], rtol=1e-6)
     # noisy target measurement: independent per agent, about the drawn sigma
     true_rel = spawn[:, None, :] - np.asarray(states.sim.phys.body_pos)[:, list(env.quad_bodies)]

@@ -16,7 +16,7 @@ import yaml
 
 from mysim_jax.build import build
 from mysim_jax.config.scene import ConfigError, config_from_dict, load_config
-from mysim_jax.sim import simulate
+from mysim_jax.driver import simulate
 from conftest import CONFIGS
 
 FALLING = CONFIGS / "capture_falling.yaml"

@@ -24,7 +24,7 @@ import pytest
 from mysim_jax.build import build
 from mysim_jax.config.scene import load_config
 from mysim_jax.io.trajectory import read_trajectory_csv
-from mysim_jax.sim import simulate
+from mysim_jax.driver import simulate
 
 from conftest import CONFIGS, ROOT
 from contact_reference import CollisionNetReference

@@ -1,85 +1,33 @@
-"""Effects are plugins: a new force with settings of its own is one object (docs/effects.md:
+"""Effects are plugins: a new force with settings of its own is one module (docs/effects.md:
 ``name``, its YAML block's ``schema``, ``build``, ``update``, ``stages``; the base class
-:class:`mysim_jax.core.effect.Effect` gives the rest) registered with one line
-(:func:`mysim_jax.effects.registry.register`); the config layer, the builder, the step and
-the types are not edited. This file adds a toy effect that way: its block validates with
-the scene (a bad value is a one-line error naming the field, before anything is built),
-its settings reach the effect, and the motion it causes matches the closed form."""
+:class:`mysim_jax.core.effect.Effect` gives the rest) and one registry entry: a library
+effect's ``"name": "module:OBJECT"`` line in :data:`mysim_jax.config.effect_blocks.EFFECTS`,
+or :func:`mysim_jax.effects.registry.register` for an effect object. The config layer,
+the builder, the step and the types are not edited. This file adds a toy effect
+(``tests/toy_effect.py``) both ways: its block validates with the scene (a bad value is a
+one-line error naming the field, before anything is built), its settings reach the
+effect, and the motion it causes matches the closed form."""
 
 from __future__ import annotations
 
 import subprocess
 import sys
-from dataclasses import dataclass
 from pathlib import Path
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
-from flax import struct
 
 from mysim_jax.build import build
-from mysim_jax.config.effect_blocks import EFFECT_BLOCKS
 from mysim_jax.config.scene import ConfigError, config_from_dict, dump_config
-from mysim_jax.core.config_base import Name, StrictModel, Vec3
 from mysim_jax.core.effect import Effect
-from mysim_jax.dynamics.forces import Loads
 from mysim_jax.effects import registry
 from mysim_jax.sim import rollout
+from toy_effect import PUSH, Push, PushConfig
 
 pytestmark = pytest.mark.float64
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-# --- the toy effect: a constant push on one body, and a count of the steps it has pushed ---
-
-
-class PushConfig(StrictModel):
-    """``effects.toy_push``: push the body ``body`` with ``force`` (N, world frame)."""
-
-    body: Name
-    force: Vec3 = (0.0, 0.0, 0.0)
-
-
-@dataclass(frozen=True)
-class PushScene:
-    body: int                        # index of the pushed body
-
-
-@struct.dataclass
-class PushParams:
-    force: jnp.ndarray               # (3,) N, world frame
-
-
-class Push(Effect[PushScene, PushParams, jnp.ndarray]):
-    """Pushes the body its block names while the scene has the block and the body."""
-
-    name = "toy_push"
-    schema = PushConfig
-
-    def build(self, config, ctx):
-        block = self.block(config)
-        if block is None or block.body not in ctx.body_names:
-            return None                                   # not in this scene: nothing is traced
-        return (PushScene(body=ctx.body_names.index(block.body)),
-                PushParams(force=jnp.asarray(block.force, ctx.dtype)), jnp.zeros((), jnp.int32))
-
-    def update(self, scene, params, state):
-        # what the stage holds over the step's sub-steps, and the new memory
-        return self.params(params).force, self.memory(state) + 1
-
-    def stages(self, static):
-        def push(scene, params, phys, nodes, held):
-            body_force = jnp.zeros((scene.n_bodies, 3), held.dtype).at[static.body].set(held)
-            zeros = jnp.zeros((scene.n_bodies, 3), held.dtype)
-            return Loads(node_force=jnp.zeros((scene.n_nodes, 3), held.dtype), body_force=body_force,
-                         body_torque=zeros)
-        return (("toy_push", push),)
-
-
-PUSH = Push()
 FORCE = [1.0, 0.0, -0.5]
 
 
@@ -95,18 +43,35 @@ def _raw(block=None, body_name="ball"):
     return raw
 
 
+LINE = {"toy_push": "toy_effect:PUSH"}     # the library's way: one entry, the effect's module:OBJECT path
+
+
 @pytest.fixture
-def push():
-    """The toy effect registered (and the registries as they were afterwards)."""
-    effects, blocks = dict(registry.EFFECTS), dict(EFFECT_BLOCKS)
+def registry_as_it_was():
+    saved = dict(registry.EFFECTS)
+    yield
+    registry.EFFECTS.clear()
+    registry.EFFECTS.update(saved)
+
+
+@pytest.fixture
+def push(registry_as_it_was):
+    """The toy effect registered by one line, as the library registers its effects: an
+    entry of the registry table (the registry as it was afterwards)."""
+    registry.EFFECTS.update(LINE)                                   # the one registry line
+    return PUSH
+
+
+@pytest.fixture
+def push_registered(registry_as_it_was):
+    """The toy effect registered by one line, as a user's plugin is: ``register``."""
     registry.register(PUSH)                                         # the one registry line
-    yield PUSH
-    for table, saved in ((registry.EFFECTS, effects), (EFFECT_BLOCKS, blocks)):
-        table.clear()
-        table.update(saved)
+    return PUSH
 
 
-def test_a_registered_toy_effect_moves_the_body_as_its_block_says(push):
+@pytest.mark.parametrize("way", ["push", "push_registered"])
+def test_a_registered_toy_effect_moves_the_body_as_its_block_says(way, request):
+    push = request.getfixturevalue(way)
     config = config_from_dict(_raw({"body": "ball", "force": FORCE}))
     assert push.block(config) == PushConfig(body="ball", force=tuple(FORCE))
     scene, params, state = build(config)
@@ -157,18 +122,24 @@ def test_the_block_round_trips_and_takes_overrides(push):
     assert push.block(again) == push.block(config)
 
 
-def test_a_schema_given_by_its_path_is_imported_when_a_file_has_the_block():
-    """A block's schema may be listed as ``"module:Class"``: validating a file imports that
-    module, and nothing of JAX when the module has none (as the config layer has none)."""
+def test_one_module_and_one_registry_line_are_all_it_takes():
+    """In a fresh interpreter, the one registry line makes the toy effect's block valid.
+    The entry is lazy: a file without the block validates without importing the effect's
+    module (nor JAX); a file with the block imports the module, whose ``schema``
+    validates it."""
     code = (
         "import sys\n"
-        "from mysim_jax.config.effect_blocks import EFFECT_BLOCKS\n"
+        "sys.path.insert(0, 'tests')\n"
+        "from mysim_jax.config.effect_blocks import EFFECTS\n"
         "from mysim_jax.config.scene import config_from_dict\n"
-        "EFFECT_BLOCKS['gust'] = 'mysim_jax.config.capture:Range'\n"
-        "c = config_from_dict({'name': 'g', 'sim': {'t_end': 1.0, 'dt': 0.01, 'output_dt': 0.1},"
-        " 'effects': {'gust': {'low': 0.5, 'high': 1.0}}})\n"
-        "assert c.effects['gust'].high == 1.0, c.effects\n"
-        "assert 'jax' not in sys.modules, 'jax imported'\n")
+        f"EFFECTS.update({LINE!r})\n"
+        "raw = {'name': 'g', 'sim': {'t_end': 1.0, 'dt': 0.01, 'output_dt': 0.1},"
+        " 'bodies': [{'name': 'ball', 'mass': 1.0, 'inertia': [0.1, 0.1, 0.1]}]}\n"
+        "config_from_dict(raw)\n"
+        "assert 'toy_effect' not in sys.modules and 'jax' not in sys.modules, 'imported without the block'\n"
+        "c = config_from_dict(dict(raw, effects={'toy_push': {'body': 'ball', 'force': [0, 0, 1]}}))\n"
+        "assert 'toy_effect' in sys.modules\n"
+        "assert type(c.effects['toy_push']).__name__ == 'PushConfig' and c.effects['toy_push'].force == (0, 0, 1)\n")
     res = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True)
     assert res.returncode == 0, res.stderr[-2000:]
 
@@ -182,12 +153,11 @@ def test_a_name_is_registered_once(push):
     assert registry.EFFECTS["toy_push"] is PUSH
 
 
-def test_every_effect_with_a_block_has_its_schema_in_the_config_registry():
-    """A library effect with a YAML block lists its schema (or its path) in EFFECT_BLOCKS,
-    so that a file with the block validates without importing the effect."""
-    missing = [name for name, effect in registry.EFFECTS.items()
-               if effect.schema is not None and EFFECT_BLOCKS.get(name) != effect.schema]
-    assert not missing, missing
+def test_every_library_entry_is_an_effect_of_its_name():
+    """Each entry of the registry table imports to an effect named as its key."""
+    for name in list(registry.EFFECTS):
+        effect = registry.registered_effect(name)
+        assert isinstance(effect, Effect) and effect.name == name, (name, effect)
 
 
 def test_an_effect_without_build_cannot_be_made():

@@ -139,7 +139,7 @@ def test_simulate_verdict_needs_the_entanglement_column_to_reach_the_threshold()
     lies still on the flat net's centre for 1 s; it is caught only if its entanglement
     (the trajectory's ``target_entanglement`` column) is 1 over the last 0.5 s."""
     from mysim_jax.io.trajectory import trajectory_columns
-    from mysim_jax.sim import Trajectory
+    from mysim_jax.core.types import Trajectory
     from mysim_jax.effects.entanglement import EntanglementMemory
     from mysim_jax.tasks.outcome import capture_outcome
     from mysim_jax.core.types import Accelerations
@@ -171,7 +171,7 @@ def test_simulate_verdict_needs_the_entanglement_column_to_reach_the_threshold()
 def test_simulate_verdict_takes_the_scenes_success_thresholds():
     """capture_outcome reads env.success (min_entanglement here) when the scene has it."""
     from mysim_jax.io.trajectory import trajectory_columns
-    from mysim_jax.sim import Trajectory
+    from mysim_jax.core.types import Trajectory
     from mysim_jax.effects.entanglement import EntanglementMemory
     from mysim_jax.tasks.outcome import capture_outcome
     from mysim_jax.core.types import Accelerations

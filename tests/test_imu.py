@@ -53,7 +53,7 @@ def flight(tmp_path_factory):
     from mysim_jax.build import build
     from mysim_jax.config.scene import load_config
     from mysim_jax.io.trajectory import read_trajectory_csv, trajectory_columns, write_trajectory_csv
-    from mysim_jax.sim import simulate
+    from mysim_jax.driver import simulate
 
     with jax.enable_x64(True):
         config = load_config(CONFIGS / "uav_track_small.yaml", [

@@ -14,7 +14,8 @@ from mysim_jax.build import build
 from mysim_jax.config.scene import ConfigError, config_from_dict, load_config
 from mysim_jax.control.pid import CONTROLLERS
 from mysim_jax.control.setpoint import reference_setpoint
-from mysim_jax.dynamics.quadrotor import allocation_inverse, allocation_matrix, motor_response, rotor_wrench, wind_force
+from mysim_jax.dynamics.quadrotor import allocation_inverse, allocation_matrix, motor_response, rotor_wrench
+from mysim_jax.effects.wind import WIND, wind_force
 from mysim_jax.sim import rollout
 
 from conftest import CONFIGS
@@ -150,7 +151,7 @@ def test_drag_and_wind_give_the_analytic_terminal_velocity():
     # a 1 − cos gust: zero outside its window, its peak at mid-window
     raw = _uav(controller=False, wind={"gust_force": [0.0, 2.0, 0.0], "gust_start": 1.0, "gust_duration": 0.5})
     _, params, _ = build(config_from_dict(raw, "t"))
-    forces = np.array([np.asarray(wind_force(params.quadrotor, t))[0, 1] for t in (0.9, 1.0, 1.125, 1.25, 1.6)])
+    forces = np.array([np.asarray(wind_force(WIND.params(params), t))[0, 1] for t in (0.9, 1.0, 1.125, 1.25, 1.6)])
     np.testing.assert_allclose(forces, [0.0, 0.0, 1.0, 2.0, 0.0], atol=1e-12)
 
 

@@ -304,7 +304,7 @@ def capture_run(tmp_path_factory):
     written as scripts/simulate.py writes a run folder."""
     from mysim_jax.build import build
     from mysim_jax.io.trajectory import trajectory_columns, write_trajectory_csv
-    from mysim_jax.sim import simulate
+    from mysim_jax.driver import simulate
     from mysim_jax.tasks.scripted import team_policy
 
     raw = _scene_dict()

@@ -298,7 +298,7 @@ def _near(img, hex_color, tol=40):
 def test_replay_of_a_simulated_run_draws_and_animates(browser, tmp_path):
     from mysim_jax.io.replay import ROPE_COLOR
     from mysim_jax.io.trajectory import trajectory_columns
-    from mysim_jax.sim import simulate
+    from mysim_jax.driver import simulate
 
     config = load_config(CONFIGS / "rope_net.yaml", ["sim.t_end=0.3", "sim.output_dt=0.01"])
     scene, params, state = build(config)

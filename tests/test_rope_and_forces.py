@@ -158,21 +158,21 @@ def test_simulate_steps_a_short_run_in_one_chunk_of_the_next_power_of_two(monkey
     """simulate() runs a fixed-step scene in compiled chunks of ``chunk`` outputs; a run of
     fewer outputs steps one chunk of the next power of two (not a whole chunk), a longer
     one whole chunks, and both save the same states on the grid they share."""
-    from mysim_jax import sim
+    from mysim_jax import driver
 
     config = load_config(CONFIGS / "rope_net.yaml", ["sim.precision=float32", "sim.t_end=0.05",
                                                      "sim.output_dt=0.01"])
     scene, params, state = build(config)
-    calls, advance = [], sim._advance
+    calls, advance = [], driver._advance
 
     def counted(scene, params, state, n_steps, every, policy=None):
         calls.append(n_steps // every)
         return advance(scene, params, state, n_steps, every, policy)
 
-    monkeypatch.setattr(sim, "_advance", counted)
-    short = sim.simulate(scene, params, state, config.run_settings(), progress=False)       # 5 outputs
+    monkeypatch.setattr(driver, "_advance", counted)
+    short = driver.simulate(scene, params, state, config.run_settings(), progress=False)       # 5 outputs
     assert calls == [8] and len(short.time) == 6 and short.time[-1] == pytest.approx(0.05)
     calls.clear()
-    long = sim.simulate(scene, params, state, config.run_settings(), progress=False, chunk=2)
+    long = driver.simulate(scene, params, state, config.run_settings(), progress=False, chunk=2)
     assert calls == [2, 2, 2] and len(long.time) == 6
     np.testing.assert_allclose(long.phys.point_pos, short.phys.point_pos, rtol=0, atol=1e-6)

@@ -12,7 +12,7 @@ import pytest
 
 from mysim_jax.build import build
 from mysim_jax.config.scene import load_config
-from mysim_jax.sim import simulate
+from mysim_jax.driver import simulate
 
 from conftest import CONFIGS
 from reference_models import RopeNetReference

@@ -17,7 +17,8 @@ from mysim_jax.control.actuation import actuate
 from mysim_jax.config.quadrotor import check_setpoint
 from mysim_jax.control.pid import control_time
 from mysim_jax.control.setpoint import Setpoint, limit_setpoint, reference_setpoint, setpoint_from_action
-from mysim_jax.sim import simulate, step
+from mysim_jax.driver import simulate
+from mysim_jax.sim import step
 
 from conftest import ROOT
 

@@ -196,7 +196,7 @@ def test_reference_is_converged_across_switches():
 def test_simulator_matches_reference_through_switches(reference):
     from mysim_jax.build import build
     from mysim_jax.config.scene import config_from_dict
-    from mysim_jax.sim import simulate
+    from mysim_jax.driver import simulate
 
     ref, out = reference
     config = config_from_dict(_raw(), "SCENE_YAML")

@@ -35,7 +35,7 @@ from mysim_jax.io.trajectory import trajectory_columns
 from mysim_jax.perception.camera import intrinsics
 from mysim_jax.perception.camera import look_at
 from mysim_jax.perception.render import Renderer
-from mysim_jax.sim import simulate
+from mysim_jax.driver import simulate
 from mysim_jax.tasks.scripted import team_policy
 
 CAPTURE_FALLING = Path(__file__).resolve().parents[2] / "configs" / "capture_falling.yaml"

@@ -20,7 +20,7 @@ import numpy as np
 
 from mysim_jax.contact.config import (GROUND, ContactConfig, capsule_pairs, resolve_members, resolve_segments,
                                       sphere_and_segment_groups)
-from mysim_jax.core.contact_types import ContactParams, ContactScene
+from mysim_jax.core.contact_types import BroadPhaseScene, ContactParams, ContactScene
 from mysim_jax.dynamics.stability import spring_stable_steps
 
 
@@ -139,7 +139,8 @@ def build_contact(contact: ContactConfig, point_names, body_names, dtype, segmen
         capsule_pair_capsule=tuple(p[1] for p in cpairs),
         model=contact.model,
         friction=contact.friction is not None,
-        broad_phase=contact.broad_phase is not None and len(cpairs) > 0,
+        broad_phase=(None if contact.broad_phase is None else
+                     BroadPhaseScene(capsules=contact.broad_phase.capsules, margin=float(contact.broad_phase.margin))),
     )
     return cscene, _contact_params(contact, [radius_of[n] for n in sphere_names],
                                    [capsule_of[n][1] for n in capsule_names], dtype)

@@ -44,6 +44,10 @@ conserves energy (:mod:`mysim_jax.contact.energy` counts it).
 
 Forces land on point masses as node forces and on bodies as force at the centre of mass
 plus body-frame torque (:class:`~mysim_jax.dynamics.forces.Loads`).
+
+With ``contact.broad_phase`` the stage evaluates the sphere–capsule pairs the broad phase
+chose at the start of the step (:mod:`mysim_jax.contact.broad_phase`) instead of all of
+them; the forces are the same as long as the choice foresaw every contact.
 """
 
 from __future__ import annotations
@@ -245,24 +249,35 @@ ALL_PAIRS = "all"
 """``pairs`` value of :func:`contact_loads`: every sphere–capsule pair of the scene."""
 
 
-def contact_forces(scene: Scene, params: Params, phys: PhysState, nodes=None, inputs=None) -> Loads:
-    """Force stage ``fn(scene, params, phys, nodes, inputs) -> Loads`` of all contacts
-    (of all but the sphere–capsule pairs when the scene has a broad phase for them:
-    :mod:`mysim_jax.contact.broad_phase` adds those).
+def contact_forces(scene: Scene, params: Params, phys: PhysState, nodes=None, held=None) -> Loads:
+    """The contact stage ``fn(scene, params, phys, nodes, held) -> Loads``: every contact of
+    the scene.
 
+    ``held`` is what the contact broad phase chose at the start of the step
+    (``contact.broad_phase``, :func:`mysim_jax.contact.broad_phase.broad_phase_update`):
+    ``(selected, overflow)``, the sphere–capsule pairs to evaluate and whether the step
+    evaluates all of them instead. None (no broad phase, or none asked): every pair.
     ``nodes`` is the ``(node_pos, node_vel)`` table (computed here if None); only
     sphere–capsule pairs read it. Sphere forces are summed with one scatter onto the
     sphere table, capsule reactions with one more onto the node table.
     """
-    return contact_loads(scene, params, phys, nodes)
+    if held is None:
+        return contact_loads(scene, params, phys, nodes)
+    selected, overflow = held
+    spheres = contact_loads(scene, params, phys, nodes, pairs=None)
+    with jax.named_scope("capsule_contact"):
+        capsules = jax.lax.cond(overflow,
+                                lambda: contact_loads(scene, params, phys, nodes, pairs=ALL_PAIRS, spheres=False),
+                                lambda: contact_loads(scene, params, phys, nodes, pairs=selected, spheres=False))
+    return spheres + capsules
 
 
-def contact_loads(scene: Scene, params: Params, phys: PhysState, nodes=None, pairs=None,
+def contact_loads(scene: Scene, params: Params, phys: PhysState, nodes=None, pairs=ALL_PAIRS,
                   spheres: bool = True) -> Loads:
     """Contact loads: sphere pairs and ground (``spheres``) and the sphere–capsule pairs
-    ``pairs``: None for all of them unless the scene has a broad phase (then none),
-    :data:`ALL_PAIRS` for all, or a traced ``(k,)`` array of indices into the scene's
-    sphere–capsule pair table (a pair listed twice counts twice)."""
+    ``pairs``: :data:`ALL_PAIRS` for all of them (static indices), None for none, or a
+    traced ``(k,)`` array of indices into the scene's sphere–capsule pair table (a pair
+    listed twice counts twice)."""
     cs = scene.contact
     cp = params.contact
     pos, vel, omega = sphere_kinematics(scene, phys)
@@ -280,7 +295,7 @@ def contact_loads(scene: Scene, params: Params, phys: PhysState, nodes=None, pai
         force, torque = _ground_forces(scene, cp, pos, vel, omega)
         rows.append(jnp.concatenate([force, torque], -1) if with_torque else force)
         index.append(cs.ground_sphere)
-    capsules = cs.n_capsule_pairs and (pairs is not None or not cs.broad_phase)
+    capsules = cs.n_capsule_pairs and pairs is not None
     if capsules:
         node_pos, node_vel = node_states(scene, params, phys) if nodes is None else nodes
         sph, _, end_a, end_b = capsule_pair_indices(scene, None if pairs is ALL_PAIRS else pairs)

@@ -11,21 +11,19 @@ when the step is traced (:mod:`mysim_jax.control.setpoint`):
   (:func:`~mysim_jax.control.pid.control_time`), limited the same way;
 * anything else — the caller's commanded motor speeds ``(n_quads, 4)`` rad/s.
 
-The motor model turns the command into the step mean of ``ω²``; wind and gimbal
-commands are sampled at the step's start (on the controller's clock). All of it is held
-over the step's sub-steps (zero-order hold).
+The motor model turns the command into the step mean of ``ω²``, held over the step's
+sub-steps (zero-order hold). Wind and the gimbals' commands are effects with updates of
+their own (:mod:`mysim_jax.effects.wind`, :mod:`mysim_jax.effects.gimbal_servo`).
 """
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
 from mysim_jax.control.pid import CONTROLLERS, control_time
 from mysim_jax.control.setpoint import Setpoint, as_setpoint, limit_setpoint, reference_setpoint
-from mysim_jax.dynamics.gimbal import gimbal_command
-from mysim_jax.dynamics.quadrotor import ActuatorInputs, motor_response, wind_force
+from mysim_jax.dynamics.quadrotor import ActuatorInputs, motor_response
 
 
 def _setpoint(scene, params, state, control):
@@ -63,15 +61,6 @@ def actuate(scene, params, state, control=None):
         omega_cmd = jnp.asarray(control, dtype=state.phys.body_pos.dtype)
     dt = jnp.asarray(scene.dt, dtype=state.phys.body_pos.dtype)
     omega_end, speed_sq = motor_response(omega_cmd, memory.motor_speed, qp, dt, qs.has_motor_lag)
-    t = control_time(scene, state.controller)
     memory = memory.replace(motor_speed=omega_end, steps=memory.steps + 1,
                             motor_command=jnp.clip(omega_cmd, qp.omega_min[:, None], qp.omega_max[:, None]))
-    n_q = qs.n_quads
-    dtype = speed_sq.dtype
-    if qs.has_wind:
-        with jax.named_scope("wind"):
-            wind = wind_force(qp, t)
-    else:
-        wind = jnp.zeros((n_q, 3), dtype=dtype)
-    gimbal = gimbal_command(qp, t) if qs.n_gimbals else jnp.zeros((0, 2), dtype=dtype)
-    return ActuatorInputs(rotor_speed_sq=speed_sq, wind_force=wind, gimbal_command=gimbal), memory
+    return ActuatorInputs(rotor_speed_sq=speed_sq), memory

@@ -141,7 +141,7 @@ def _arrays(dtype):
     return arr
 
 
-def _quadrotor_scene(quads, body_names, marker_names, gimbals, wind_input: bool) -> QuadrotorScene:
+def _quadrotor_scene(quads, body_names) -> QuadrotorScene:
     body_index = {n: i for i, n in enumerate(body_names)}
     return QuadrotorScene(
         body=tuple(body_index[q.body] for q in quads),
@@ -150,17 +150,10 @@ def _quadrotor_scene(quads, body_names, marker_names, gimbals, wind_input: bool)
         attitude_gain_units=tuple(q.controller.attitude_gain_units if q.controller else "torque" for q in quads),
         setpoint_mode=quads[0].controller.setpoint_mode if quads[0].controller else "position",
         has_motor_lag=any(q.rotors.time_constant is not None for q in quads),
-        has_drag=any(q.drag is not None for q in quads),
-        has_wind=wind_input or any(q.wind is not None for q in quads),
-        gimbal_marker_i=tuple(marker_names.index(f"{quads[qi].body}.{c.name}_mount") for qi, c in gimbals),
-        gimbal_marker_j=tuple(marker_names.index(f"{c.name}.mount") for _, c in gimbals),
-        camera_names=tuple(c.name for q in quads for c in q.cameras),
-        camera_quad=tuple(qi for qi, q in enumerate(quads) for _ in q.cameras),
     )
 
 
-def _quadrotor_params(quads, gimbals, arr) -> QuadrotorParams:
-    winds = [q.wind for q in quads]
+def _quadrotor_params(quads, arr) -> QuadrotorParams:
     return QuadrotorParams(
         rotor_pos=arr([rotor_positions_np(q.rotors.arm_length, q.rotors.angle) for q in quads], (-1, 4, 3)),
         lift_coefficient=arr([q.rotors.lift_coefficient for q in quads], (-1, 4)),
@@ -169,16 +162,6 @@ def _quadrotor_params(quads, gimbals, arr) -> QuadrotorParams:
         omega_min=arr([q.rotors.omega_min for q in quads], (-1,)),
         omega_max=arr([q.rotors.omega_max for q in quads], (-1,)),
         motor_time_constant=arr([q.rotors.time_constant or NO_LAG_TIME_CONSTANT for q in quads], (-1,)),
-        drag=arr([q.drag or (0.0, 0.0, 0.0) for q in quads], (-1, 3)),
-        wind_force=arr([w.force if w else (0.0, 0.0, 0.0) for w in winds], (-1, 3)),
-        gust_force=arr([w.gust_force if w else (0.0, 0.0, 0.0) for w in winds], (-1, 3)),
-        gust_start=arr([w.gust_start if w else 0.0 for w in winds], (-1,)),
-        gust_duration=arr([w.gust_duration if w else 1.0 for w in winds], (-1,)),
-        gimbal_kp=arr([c.servo.kp for _, c in gimbals], (-1, 2)),
-        gimbal_kd=arr([c.servo.kd for _, c in gimbals], (-1, 2)),
-        gimbal_angle=arr([c.command.angle for _, c in gimbals], (-1, 2)),
-        gimbal_amplitude=arr([c.command.amplitude for _, c in gimbals], (-1, 2)),
-        gimbal_period=arr([c.command.period for _, c in gimbals], (-1, 2)),
     )
 
 
@@ -247,12 +230,12 @@ def _control_params(quads, masses, com, inertias, arr) -> ControlParams:
     )
 
 
-def build_quadrotors(config: SceneConfig, body_names, marker_names, dtype, wind_input: bool = False):
+def build_quadrotors(config: SceneConfig, body_names, dtype):
     """``(QuadrotorScene, QuadrotorParams, ControlParams | None, ControlState)`` or all None.
 
-    ``config`` must already be expanded (:func:`expand_cameras`). ``wind_input``: the scene
-    takes a wind force on every quadrotor even where none has ``wind:`` (an environment
-    that draws one per episode adds it to ``QuadrotorParams.wind_force``).
+    ``config`` must already be expanded (:func:`expand_cameras`). Wind, body drag and the
+    gimbals' servos are effects that build themselves (:mod:`mysim_jax.effects.wind`,
+    :mod:`mysim_jax.effects.body_drag`, :mod:`mysim_jax.effects.gimbal_servo`).
     """
     quads = config.quadrotors
     if not quads:
@@ -260,9 +243,8 @@ def build_quadrotors(config: SceneConfig, body_names, marker_names, dtype, wind_
     bodies = {b.name: b for b in config.bodies}
     _check_servo_stability(config, bodies)
     arr = _arrays(dtype)
-    gimbals = [(qi, c) for qi, q in enumerate(quads) for c in q.cameras if c.mount == "gimbal"]
-    qs = _quadrotor_scene(quads, body_names, marker_names, gimbals, wind_input)
-    qp = _quadrotor_params(quads, gimbals, arr)
+    qs = _quadrotor_scene(quads, body_names)
+    qp = _quadrotor_params(quads, arr)
     masses, com, inertias = _vehicles(quads, bodies)
     speeds = _hover_speeds(quads, masses, com, float(np.linalg.norm(config.gravity)))
     n_q = len(quads)

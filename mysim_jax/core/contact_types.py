@@ -11,6 +11,11 @@ order of the scene's springs; ``capsule_names`` are the springs' names in
 ``Scene.spring_names``, whose node tables give the capsules' end nodes. Sphere–capsule
 pairs are index tuples into the two tables. A scene without capsules has empty capsule
 tuples and ``ContactParams.capsule_radius = None``.
+
+With ``contact.broad_phase`` the contact stage evaluates, in each step's sub-steps, only
+the sphere–capsule pairs the broad phase chose at the step's start
+(:mod:`mysim_jax.contact.broad_phase`); its settings are :class:`BroadPhaseScene`, its
+memory ``State.contact``.
 """
 
 from __future__ import annotations
@@ -19,6 +24,14 @@ from dataclasses import dataclass
 
 import jax.numpy as jnp
 from flax import struct
+
+
+@dataclass(frozen=True)
+class BroadPhaseScene:
+    """The contact broad phase's settings (``contact.broad_phase``). Hashable."""
+
+    capsules: int        # K, sphere–capsule pairs kept per sphere
+    margin: float        # m, surface gap below which a pair must be kept
 
 
 @dataclass(frozen=True)
@@ -39,7 +52,7 @@ class ContactScene:
     capsule_pair_capsule: tuple[int, ...] = ()   # (n_capsule_pairs,) capsule index
     model: str = "sharp"                   # "sharp" | "smooth"
     friction: bool = False
-    broad_phase: bool = False              # capsule pairs evaluated by mysim_jax.contact.broad_phase
+    broad_phase: BroadPhaseScene | None = None   # None: every sphere–capsule pair in every sub-step
 
     @property
     def n_spheres(self) -> int:
@@ -63,6 +76,11 @@ class ContactScene:
     @property
     def n_capsule_pairs(self) -> int:
         return len(self.capsule_pair_sphere)
+
+    @property
+    def culls_capsules(self) -> bool:
+        """Does the broad phase choose the sphere–capsule pairs (it has some to choose from)?"""
+        return self.broad_phase is not None and self.n_capsule_pairs > 0
 
     def capsule_pair_names(self) -> list[str]:
         return [f"{self.sphere_names[a]}|{self.capsule_names[c]}"

@@ -4,7 +4,7 @@ effect's parts, so that no code outside the effect spells its name.
 An effect's parts sit under its ``name`` in ``Scene.effects`` (static), ``Params.effects``
 (traced constants), ``State.effects`` (memory) and, if it has a YAML block, in
 ``SceneConfig.effects`` (its validated settings). :class:`Effect` reads and replaces them:
-``TARGET.params(params)``, ``ENTANGLEMENT.memory(state)``, ``BROAD_PHASE.in_scene(scene)``.
+``TARGET.params(params)``, ``ENTANGLEMENT.memory(state)``, ``LINE_DRAG.in_scene(scene)``.
 The protocol itself (what ``build``, ``update``, ``init`` and ``stages`` do) is written
 out once, in ``docs/effects.md``.
 
@@ -23,7 +23,7 @@ MemoryT = TypeVar("MemoryT")
 
 class Effect(ABC, Generic[StaticT, ParamsT, MemoryT]):
     """Base of an effect (docs/effects.md): ``name``, the YAML block's ``schema`` (a pydantic
-    model, or its ``"module:Class"`` path; None: no block), ``build`` to implement (abstract), and
+    model; None: no block), ``build`` to implement (abstract), and
     defaults for the rest of the protocol (no update, no memory change, no start state,
     no force stages). Type it with its static part, params and memory:
     ``class _Target(Effect[TargetScene, TargetParams, TargetMemory])``."""

@@ -7,8 +7,10 @@
 * :class:`Params` — a pytree of float arrays: masses, inertias, marker offsets, spring
   constants, gravity, Baumgarte constants. Traced, differentiable, vmappable.
 * :class:`State` — a pytree: the multibody state :class:`PhysState`, the time, (with
-  quadrotors) the controller memory and the memory of registered effects
-  (docs/effects.md; the target's PRNG key lives there).
+  quadrotors) the controller memory, the memory of registered effects (docs/effects.md;
+  the target's PRNG key lives there) and (with a contact broad phase) the contact stage's.
+* :class:`Trajectory` — what a whole run returns on the host (:func:`mysim_jax.driver.simulate`):
+  the states and accelerations on its output grid, as NumPy arrays.
 
 Attachment points ("nodes") are numbered in one table so that springs and rope segments
 can join anything with plain index arrays::
@@ -23,6 +25,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 from mysim_jax.core.contact_types import ContactParams, ContactScene
@@ -182,3 +185,27 @@ class State:
     time: jnp.ndarray         # () s
     controller: object | None = None   # mysim_jax.control.pid.ControlState; PID integrators, motor speeds (quadrotor scenes)
     effects: dict = field(default_factory=dict)  # registered effect name -> its memory (e.g. PRNG key)
+    contact: object | None = None      # mysim_jax.contact.broad_phase.BroadPhaseMemory (scenes with contact.broad_phase)
+
+
+@dataclass
+class Trajectory:
+    """Host-side result of :func:`mysim_jax.driver.simulate`: states and accelerations on
+    the output grid.
+
+    ``failure`` is None when the run reached ``t_end``. Otherwise it says why the run
+    stopped early (a state or acceleration turned non-finite, or the adaptive solver gave
+    up), when, and in which points or bodies; the arrays then hold the finite part of the
+    run only, up to the last finite saved state.
+    """
+
+    time: np.ndarray          # (n_out,)
+    phys: PhysState           # leaves (n_out, ...) as NumPy arrays
+    acc: Accelerations        # leaves (n_out, ...) as NumPy arrays
+    controller: object = None  # ControlState leaves (n_out, ...) (quadrotor scenes), else None
+    failure: str | None = None
+    effects: dict | None = None  # effect name -> its memory, leaves (n_out, ...) (stepped runs), else None
+
+    @property
+    def ok(self) -> bool:
+        return self.failure is None

@@ -12,13 +12,12 @@ so ``z_J`` seen from ``I`` is ``(cos a₁, sin a₁, 0)`` and ``z_I`` seen from 
 with ``R = R_Iᵀ R_J``. Their rates are the relative angular velocity along the two axes,
 ``ȧ₁ = (ω_J − ω_I)·z_I`` and ``ȧ₂ = (ω_J − ω_I)·z_J`` (exact while ``z_I ⊥ z_J``).
 
-Servo (a force element, not a driven constraint): motor torques
-``τ_k = kp_k wrap(a_k,cmd − a_k) − kd_k ȧ_k`` act on the camera as ``τ₁ z_I + τ₂ z_J`` and
-on the UAV as the opposite; the joint's constraint forces do the rest. A force element
-keeps the joint a plain universal joint (four constraint rows, the same Baumgarte
-stabilisation as any other joint) and gives a physical servo with finite bandwidth.
-Commands are ``angle + amplitude sin(2π t / period)`` per axis, held over each
-environment step.
+Servo (a force element, not a driven constraint; the effect
+:mod:`mysim_jax.effects.gimbal_servo`): motor torques ``τ_k = kp_k wrap(a_k,cmd − a_k) −
+kd_k ȧ_k`` act on the camera as ``τ₁ z_I + τ₂ z_J`` and on the UAV as the opposite; the
+joint's constraint forces do the rest. A force element keeps the joint a plain universal
+joint (four constraint rows, the same Baumgarte stabilisation as any other joint) and
+gives a physical servo with finite bandwidth. This module is the geometry both need.
 """
 
 from __future__ import annotations
@@ -27,19 +26,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from mysim_jax.core import vecmath
-from mysim_jax.dynamics.forces import Loads
-from mysim_jax.dynamics.quaternion import quat_mul, quat_rotate, quat_rotate_inv, quat_to_matrix
+from mysim_jax.dynamics.quaternion import quat_mul, quat_rotate, quat_to_matrix
 
 
-def gimbal_command(qp, t):
-    """Commanded angles ``(n_gimbals, 2)`` at time ``t``."""
-    return qp.gimbal_angle + qp.gimbal_amplitude * jnp.sin(2.0 * jnp.pi * t / qp.gimbal_period)
-
-
-def _sides(scene, params, phys):
-    qs = scene.quadrotor
-    mi = np.asarray(qs.gimbal_marker_i, dtype=np.int32)
-    mj = np.asarray(qs.gimbal_marker_j, dtype=np.int32)
+def gimbal_frames(scene, params, phys, marker_i, marker_j):
+    """``(body I, body J, R_I, R_J)`` of the gimbals joining markers ``marker_i`` (on the
+    UAV) and ``marker_j`` (on the camera), each ``(n_gimbals,)``: the bodies' indices and
+    the markers' world frames ``(n_gimbals, 3, 3)``."""
+    mi = np.asarray(marker_i, dtype=np.int32)
+    mj = np.asarray(marker_j, dtype=np.int32)
     bi = np.asarray(scene.marker_body, dtype=np.int32)[mi]
     bj = np.asarray(scene.marker_body, dtype=np.int32)[mj]
     rot_i = quat_to_matrix(quat_mul(phys.body_quat[bi], params.marker_quat[mi]))
@@ -55,28 +50,12 @@ def angles_from_frames(rot_i, rot_j):
     return jnp.stack([a1, a2], axis=-1)
 
 
-def gimbal_state(scene, params, phys):
-    """Angles ``(n_gimbals, 2)`` and angle rates ``(n_gimbals, 2)`` of every gimbal."""
-    bi, bj, rot_i, rot_j = _sides(scene, params, phys)
+def gimbal_state(scene, params, phys, marker_i, marker_j):
+    """Angles ``(n_gimbals, 2)`` and angle rates ``(n_gimbals, 2)`` of the gimbals joining
+    markers ``marker_i`` and ``marker_j``."""
+    bi, bj, rot_i, rot_j = gimbal_frames(scene, params, phys, marker_i, marker_j)
     w_i = quat_rotate(phys.body_quat[bi], phys.body_angvel[bi])
     w_j = quat_rotate(phys.body_quat[bj], phys.body_angvel[bj])
     rel = w_j - w_i
     rates = jnp.stack([vecmath.dot(rel, rot_i[..., 2]), vecmath.dot(rel, rot_j[..., 2])], axis=-1)
     return angles_from_frames(rot_i, rot_j), rates
-
-
-def gimbal_servo_forces(scene, params, phys, nodes, inputs) -> Loads:
-    """Force stage: the PD servo torques of all gimbals (body frames)."""
-    qp = params.quadrotor
-    bi, bj, rot_i, rot_j = _sides(scene, params, phys)
-    angles, rates = gimbal_state(scene, params, phys)
-    err = inputs.gimbal_command - angles
-    err = jnp.arctan2(jnp.sin(err), jnp.cos(err))          # shortest way round
-    tau = qp.gimbal_kp * err - qp.gimbal_kd * rates         # (n_gimbals, 2)
-    tau_world = tau[:, :1] * rot_i[..., 2] + tau[:, 1:] * rot_j[..., 2]
-    on_camera = quat_rotate_inv(phys.body_quat[bj], tau_world)
-    on_uav = -quat_rotate_inv(phys.body_quat[bi], tau_world)
-    torque = jnp.zeros((scene.n_bodies, 3), dtype=tau.dtype)
-    torque = torque.at[bj].add(on_camera).at[bi].add(on_uav)
-    return Loads(node_force=jnp.zeros((scene.n_nodes, 3), dtype=tau.dtype),
-                 body_force=jnp.zeros((scene.n_bodies, 3), dtype=tau.dtype), body_torque=torque)

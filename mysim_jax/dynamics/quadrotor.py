@@ -1,4 +1,4 @@
-"""Quadrotor rotor forces, control allocation, motors and aerodynamics (paper Sec. 2.2).
+"""Quadrotor rotor forces, control allocation and motors (paper Sec. 2.2).
 
 Geometry. Rotor ``i`` sits at ``d_i = l_i [sin θ_i, cos θ_i, 0]`` in the body frame
 (from the centre of mass); the paper's angles ``π/4 + k π/2`` give an X layout with
@@ -27,9 +27,9 @@ and the rotors apply the exact step mean of ``ω(t)²`` (thrust and reaction tor
 linear in ``ω²``, so the impulse over the step is exact). Without lag they apply the
 clipped command.
 
-Aerodynamics (only when a scene asks). Linear body drag ``F = −R D Rᵀ v`` with
-``D = diag(drag)`` (N s/m); wind as a world-frame force: a constant part plus a
-``1 − cos`` gust (held over each environment step, like the motor commands).
+Aerodynamics (only when a scene asks) are effects of their own (docs/effects.md): linear
+body drag (:mod:`mysim_jax.effects.body_drag`) and wind (:mod:`mysim_jax.effects.wind`);
+so is the gimbal cameras' servo (:mod:`mysim_jax.effects.gimbal_servo`).
 
 Rotor gyroscopic torques and blade flapping are neglected, as in the paper.
 """
@@ -44,7 +44,7 @@ import numpy as np
 from flax import struct
 
 from mysim_jax.dynamics.forces import Loads
-from mysim_jax.dynamics.quaternion import quat_rotate, quat_rotate_inv
+from mysim_jax.dynamics.quaternion import quat_rotate
 
 
 @dataclass(frozen=True)
@@ -57,25 +57,15 @@ class QuadrotorScene:
     attitude_gain_units: tuple[str, ...] = ()  # (n_quads,) "rotor_speed_squared" | "torque"
     setpoint_mode: str = "position"          # "position" | "velocity": what the controller's setpoint fixes
     has_motor_lag: bool = False
-    has_drag: bool = False
-    has_wind: bool = False
-    gimbal_marker_i: tuple[int, ...] = ()    # (n_gimbals,) UAV-side marker (z axis = outer axis)
-    gimbal_marker_j: tuple[int, ...] = ()    # (n_gimbals,) camera-side marker (z axis = inner axis)
-    camera_names: tuple[str, ...] = ()       # every camera body, fixed and gimbal
-    camera_quad: tuple[int, ...] = ()        # (n_cameras,) which quadrotor carries it
 
     @property
     def n_quads(self) -> int:
         return len(self.body)
 
-    @property
-    def n_gimbals(self) -> int:
-        return len(self.gimbal_marker_i)
-
 
 @struct.dataclass
 class QuadrotorParams:
-    """Traced physical parameters of the quadrotors (and their gimbal servos)."""
+    """Traced physical parameters of the quadrotors' rotors and motors."""
 
     rotor_pos: jnp.ndarray            # (n_quads, 4, 3) m, body frame, from the CoM
     lift_coefficient: jnp.ndarray     # (n_quads, 4) N s^2/rad^2
@@ -84,25 +74,13 @@ class QuadrotorParams:
     omega_min: jnp.ndarray            # (n_quads,) rad/s
     omega_max: jnp.ndarray            # (n_quads,) rad/s
     motor_time_constant: jnp.ndarray  # (n_quads,) s (1e-9 for motors without lag)
-    drag: jnp.ndarray                 # (n_quads, 3) N s/m, body axes
-    wind_force: jnp.ndarray           # (n_quads, 3) N, world
-    gust_force: jnp.ndarray           # (n_quads, 3) N, world, peak of the 1 - cos gust
-    gust_start: jnp.ndarray           # (n_quads,) s
-    gust_duration: jnp.ndarray        # (n_quads,) s
-    gimbal_kp: jnp.ndarray            # (n_gimbals, 2) N m/rad
-    gimbal_kd: jnp.ndarray            # (n_gimbals, 2) N m s/rad
-    gimbal_angle: jnp.ndarray         # (n_gimbals, 2) rad, commanded mean angle
-    gimbal_amplitude: jnp.ndarray     # (n_gimbals, 2) rad
-    gimbal_period: jnp.ndarray        # (n_gimbals, 2) s
 
 
 @struct.dataclass
 class ActuatorInputs:
-    """What the actuators apply over one environment step (held constant over it)."""
+    """What the rotors apply over one environment step (held constant over it)."""
 
     rotor_speed_sq: jnp.ndarray   # (n_quads, 4) rad^2/s^2, step mean of ω_i²
-    wind_force: jnp.ndarray       # (n_quads, 3) N, world
-    gimbal_command: jnp.ndarray   # (n_gimbals, 2) rad
 
 
 # --- geometry and allocation -----------------------------------------------------------
@@ -149,14 +127,6 @@ def motor_response(omega_cmd, omega_prev, qp: QuadrotorParams, dt, has_lag: bool
     return omega_end, mean_sq
 
 
-def wind_force(qp: QuadrotorParams, t):
-    """World-frame wind force ``(n_quads, 3)`` at time ``t``: constant + 1 − cos gust."""
-    phase = (t - qp.gust_start) / qp.gust_duration
-    inside = (phase >= 0.0) & (phase <= 1.0)
-    shape = jnp.where(inside, 0.5 * (1.0 - jnp.cos(2.0 * jnp.pi * jnp.clip(phase, 0.0, 1.0))), 0.0)
-    return qp.wind_force + shape[:, None] * qp.gust_force
-
-
 # --- force stages -----------------------------------------------------------------------------
 
 
@@ -175,22 +145,3 @@ def rotor_forces(scene, params, phys, nodes, inputs: ActuatorInputs) -> Loads:
     dtype = force.dtype
     return Loads(node_force=jnp.zeros((scene.n_nodes, 3), dtype=dtype),
                  body_force=_on_bodies(scene, force, body), body_torque=_on_bodies(scene, torque, body))
-
-
-def aerodynamic_forces(scene, params, phys, nodes, inputs: ActuatorInputs) -> Loads:
-    """Force stage: linear body drag and wind on the quadrotor bodies (world, at the CoM)."""
-    qs = scene.quadrotor
-    body = np.asarray(qs.body, dtype=np.int32)
-    force = jnp.zeros_like(phys.body_pos[body])
-    if qs.has_wind:
-        with jax.named_scope("wind"):
-            force = force + inputs.wind_force
-    if qs.has_drag:
-        with jax.named_scope("body_drag"):
-            q = phys.body_quat[body]
-            v_body = quat_rotate_inv(q, phys.body_vel[body])
-            force = force + quat_rotate(q, -params.quadrotor.drag * v_body)
-    dtype = force.dtype
-    return Loads(node_force=jnp.zeros((scene.n_nodes, 3), dtype=dtype),
-                 body_force=_on_bodies(scene, force, body),
-                 body_torque=jnp.zeros((scene.n_bodies, 3), dtype=dtype))

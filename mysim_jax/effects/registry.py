@@ -1,6 +1,8 @@
-"""Registered effects: physics (and memory) a scene can have, each one module, listed in one
-place (:data:`EFFECTS`, in pipeline order). What an effect implements, its data and its
-YAML block are written out in ``docs/effects.md``; the base class with the protocol's
+"""Registered effects at run time: physics (and memory) a scene can have, each one module
+and one entry of the registry (:data:`EFFECTS`, in pipeline order; the table itself is
+:data:`mysim_jax.config.effect_blocks.EFFECTS`, which the config layer reads to validate
+the effects' YAML blocks without importing them). What an effect implements, its data and
+its YAML block are written out in ``docs/effects.md``; the base class with the protocol's
 defaults and the typed accessors is :class:`mysim_jax.core.effect.Effect`.
 
 :func:`mysim_jax.build.build` asks every registered effect to build itself,
@@ -12,26 +14,23 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from mysim_jax.config.effect_blocks import EFFECT_BLOCKS
-from mysim_jax.contact.broad_phase import BROAD_PHASE
-from mysim_jax.net.drag import LINE_DRAG
-from mysim_jax.effects.entanglement import ENTANGLEMENT
-from mysim_jax.effects.target import TARGET
+from mysim_jax.config.effect_blocks import EFFECTS, registered_effect
 
-# name -> effect, in pipeline order
-EFFECTS = {effect.name: effect for effect in (BROAD_PHASE, LINE_DRAG, ENTANGLEMENT, TARGET)}
+__all__ = ["EFFECTS", "BuildContext", "register", "registered_effect", "registered_effects", "scene_effects"]
 
 
 def register(effect) -> None:
-    """Register ``effect`` (after those registered before it): in :data:`EFFECTS` and, if it
-    has a YAML block (``effect.schema``), its schema in
-    :data:`~mysim_jax.config.effect_blocks.EFFECT_BLOCKS`. One line adds an effect; a second
-    effect under a name already taken is a ValueError."""
-    if EFFECTS.get(effect.name, effect) is not effect:
+    """Register ``effect`` (after those registered before it) in :data:`EFFECTS`: the one
+    line that adds an effect outside the library, its YAML block (``effect.schema``)
+    included. A second effect under a name already taken is a ValueError."""
+    if effect.name in EFFECTS and registered_effect(effect.name) is not effect:
         raise ValueError(f"an effect named {effect.name!r} is registered already ({EFFECTS[effect.name]!r})")
     EFFECTS[effect.name] = effect
-    if getattr(effect, "schema", None) is not None:
-        EFFECT_BLOCKS[effect.name] = effect.schema
+
+
+def registered_effects() -> list:
+    """Every registered effect, in pipeline order (the library's imported on first use)."""
+    return [registered_effect(name) for name in list(EFFECTS)]
 
 
 @dataclass(frozen=True)
@@ -48,4 +47,4 @@ class BuildContext:
 
 def scene_effects(scene):
     """``[(effect, static), ...]`` of the effects this scene has, in pipeline order."""
-    return [(EFFECTS[name], static) for name, static in scene.effects]
+    return [(registered_effect(name), static) for name, static in scene.effects]

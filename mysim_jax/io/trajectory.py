@@ -25,7 +25,7 @@ import numpy as np
 from mysim_jax.core.types import Scene
 from mysim_jax.effects.entanglement import ENTANGLEMENT
 from mysim_jax.effects.target import TARGET
-from mysim_jax.sim import Trajectory
+from mysim_jax.core.types import Trajectory
 
 _XYZ = ("x", "y", "z")
 

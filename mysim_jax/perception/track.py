@@ -1,7 +1,7 @@
 """Gimbal target tracking (paper Alg. target_tracking_process), closed loop in the simulator.
 
 Every UAV carries a gimbal camera (:mod:`mysim_jax.dynamics.gimbal`: a universal joint with
-PD servos towards commanded angles). Each camera frame, for every gimbal camera:
+PD servos towards commanded angles, :mod:`mysim_jax.effects.gimbal_servo`). Each camera frame, for every gimbal camera:
 
 1. render the camera's image at the current state (:mod:`mysim_jax.perception.render`);
 2. detect the target (any callable ``Frame -> list[Detection]``, best first: the learned
@@ -9,7 +9,7 @@ PD servos towards commanded angles). Each camera frame, for every gimbal camera:
    from the renderer's ground-truth box);
 3. turn the pixel error of the box centre from the image centre into gimbal commands
    (:class:`GimbalTracker`), with recovery when the target is lost;
-4. set the commanded angles (``params.quadrotor.gimbal_angle``, a traced parameter) and
+4. set the commanded angles (``angle`` of the servo's params, ``GIMBAL_SERVO.params``, traced) and
    advance the simulation by one frame period.
 
 So the camera's motion comes from the gimbal's own joint dynamics (servo bandwidth, the
@@ -36,6 +36,7 @@ from tqdm.auto import tqdm
 
 from mysim_jax.build import build
 from mysim_jax.core.npgeom import quat_to_matrix
+from mysim_jax.effects.gimbal_servo import GIMBAL_SERVO
 from mysim_jax.perception.camera import Intrinsics, PerceptionError, intrinsics as make_intrinsics
 from mysim_jax.perception.detect.model import load_detector
 from mysim_jax.perception.gimbal_tracker import GimbalGeometry, GimbalTracker, GimbalTrackerConfig
@@ -44,7 +45,8 @@ from mysim_jax.perception.render import Renderer
 from mysim_jax.perception.render_models import auto_target_style
 from mysim_jax.perception.track_cues import _associate_all, _RegionMemory, _team_point
 from mysim_jax.perception.track_detectors import FrameDetector, OracleDetector, RegionDetector, image_detector
-from mysim_jax.sim import rollout, single_env_scene
+from mysim_jax.driver import single_env_scene
+from mysim_jax.sim import rollout
 from mysim_jax.tasks.scripted import team_policy
 
 
@@ -258,8 +260,8 @@ def _tracking_scene(config, initial_cue: bool, frame_rate: float):
         config = _point_at_start(config, scene, state)
         scene, params, state = build(config)
     scene = single_env_scene(scene)
-    qp = params.quadrotor
-    params = params.replace(quadrotor=qp.replace(gimbal_amplitude=0.0 * qp.gimbal_amplitude))
+    servo = GIMBAL_SERVO.params(params)
+    params = GIMBAL_SERVO.with_params(params, servo.replace(amplitude=0.0 * servo.amplitude))
     return config, scene, params, state, _steps_per_frame(scene, frame_rate)
 
 
@@ -345,8 +347,8 @@ def run_tracking(config, detector: FrameDetector | None = None, intr: Intrinsics
         bar.update(1)
         if k == n_frames - 1:
             break
-        qp = params.quadrotor
-        params = params.replace(quadrotor=qp.replace(gimbal_angle=jax.numpy.asarray(commands, qp.gimbal_angle.dtype)))
+        servo = GIMBAL_SERVO.params(params)
+        params = GIMBAL_SERVO.with_params(params, servo.replace(angle=jax.numpy.asarray(commands, servo.angle.dtype)))
         state, _ = advance(scene, params, state, steps, steps, policy)
     bar.close()
     return TrackingRecord(cameras=names, uavs=uavs, intr=intr, target_radius=float(config.target.radius),

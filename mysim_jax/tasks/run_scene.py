@@ -23,7 +23,7 @@ from mysim_jax.io.output import staged_output
 from mysim_jax.io.plots import plot_kinematics, plot_path
 from mysim_jax.io.replay import write_replay_html
 from mysim_jax.io.trajectory import trajectory_columns, write_trajectory_csv
-from mysim_jax.sim import simulate
+from mysim_jax.driver import simulate
 from mysim_jax.tasks.capture_plots import capture_report
 from mysim_jax.tasks.scripted import team_policy
 from mysim_jax.tuning.tracking import motor_columns, reference_columns, tracking_metrics

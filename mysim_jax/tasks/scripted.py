@@ -20,7 +20,7 @@ and the team aims ahead of the target by that much of its horizontal motion. The
 knows nothing about the target's behaviour beyond its current position and velocity.
 
 ``ScriptedTeam`` is a frozen (hashable) dataclass, so it can be the ``policy`` of
-:func:`mysim_jax.sim.simulate` / :func:`mysim_jax.sim.rollout` (a static argument).
+:func:`mysim_jax.driver.simulate` / :func:`mysim_jax.sim.rollout` (a static argument).
 ``HoldTeam`` holds the start formation.
 
 **Velocity setpoints** (``controller.setpoint_mode: velocity``, e.g. the training

@@ -21,7 +21,8 @@ import numpy as np
 from mysim_jax.core import batching, parallel
 from mysim_jax.build import build
 from mysim_jax.io.trajectory import trajectory_columns
-from mysim_jax.sim import rollout, steps_per_output
+from mysim_jax.driver import steps_per_output
+from mysim_jax.sim import rollout
 from mysim_jax.tasks.outcome import CaptureOutcome, capture_outcome
 from mysim_jax.tasks.scripted import team_policy
 from mysim_jax.effects.target import spawn_target

@@ -13,7 +13,8 @@ import numpy as np
 
 from mysim_jax.control.pid import control_time
 from mysim_jax.control.reference import reference
-from mysim_jax.sim import output_times, rollout, steps_per_output
+from mysim_jax.driver import output_times, steps_per_output
+from mysim_jax.sim import rollout
 
 
 def reference_along(params, times):

@@ -13,7 +13,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from mysim_jax.contact.broad_phase import BROAD_PHASE
 from mysim_jax.control.setpoint import setpoint_from_action
 from mysim_jax.effects.target import spawn_target
 from mysim_jax.sim import step as sim_step
@@ -136,10 +135,10 @@ class CaptureEnv(VerdictMixin, ObservationsMixin, PerceptionErrorsMixin, Randomi
             "episode_length": steps,
             "done": done,
         }
-        if BROAD_PHASE.in_scene(self.scene):
+        if sim.contact is not None:
             # control periods of this team step that fell back to all sphere-capsule pairs,
             # and that began with a contact the broad phase had not chosen (must stay 0)
-            before, now = BROAD_PHASE.memory(state.sim), BROAD_PHASE.memory(sim)
+            before, now = state.sim.contact, sim.contact
             info["broad_phase_overflow"] = now.overflow - before.overflow
             info["broad_phase_missed"] = now.missed - before.missed
         errors = (self._step_errors(jax.random.fold_in(key, 2), state.perception, params, dtype, state.sim, sim)

@@ -13,6 +13,7 @@ import numpy as np
 from mysim_jax.core import rng
 from mysim_jax.core.types import Params
 from mysim_jax.effects.target import TARGET
+from mysim_jax.effects.wind import WIND
 from mysim_jax.tasks.capture.types import CONFIG_NAMES, Episode, EnvParams, ObservationNoise, Ranges
 
 
@@ -46,8 +47,8 @@ class RandomisationMixin:
                                         jink_acceleration=ep.jink_acceleration, max_speed=ep.max_speed)
         sim = TARGET.with_params(sim.replace(body_mass=body_mass, body_inertia=inertia), tp)
         if self.randomized_wind:
-            qp = sim.quadrotor
-            sim = sim.replace(quadrotor=qp.replace(wind_force=qp.wind_force + ep.wind_force[None, :]))
+            wind = WIND.params(sim)
+            sim = WIND.with_params(sim, wind.replace(force=wind.force + ep.wind_force[None, :]))
         return sim
 
     def faulted(self, sim_params: Params, ep: Episode, steps) -> Params:
