@@ -259,7 +259,7 @@ def _scene(t: _Tables, sp: _Springs, loads, contact_scene, quad_scene) -> Scene:
         precision=config.sim.precision,
         rtol=config.sim.rtol,
         atol=config.sim.atol,
-        max_steps=config.sim.max_steps,
+        solver_max_steps=config.sim.max_steps,
         implicit_iterations=config.sim.cg_iterations,
         # node forces are scattered (segment_sum): with the batch axis last
         # (mysim_jax.core.batching) a scatter adds contiguous batch rows, where the dense

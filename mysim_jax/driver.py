@@ -118,7 +118,7 @@ def _adaptive_run(scene: Scene, params: Params, state: State, times, progress):
             f"the adaptive solver ({scene.integrator}) gave up after t = {times[max(row - 1, 0)]:g} s and "
             f"{int(n_steps):,} steps: {diffrax.RESULTS[result]} This happens when the state turns non-finite "
             "(every step is then rejected) or when rtol / atol ask for more steps than sim.max_steps = "
-            f"{scene.max_steps:,}: raise sim.max_steps, loosen sim.rtol / sim.atol, or look for forces "
+            f"{scene.solver_max_steps:,}: raise sim.max_steps, loosen sim.rtol / sim.atol, or look for forces "
             "that blow up. The saved states before that time are kept."))
     return states, failure
 

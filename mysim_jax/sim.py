@@ -191,7 +191,7 @@ def adaptive_solution(scene: Scene, params: Params, phys: PhysState, t0, t1, ts=
         args=(params, inputs, held, contact),
         saveat=saveat,
         stepsize_controller=diffrax.PIDController(rtol=scene.rtol, atol=scene.atol),
-        max_steps=scene.max_steps,
+        max_steps=scene.solver_max_steps,
         throw=False,
         progress_meter=(diffrax.TqdmProgressMeter(refresh_steps=_PROGRESS_REFRESH_STEPS) if progress
                         else diffrax.NoProgressMeter()),

@@ -502,4 +502,4 @@ def test_success_agrees_with_the_capture_verdict_of_the_recorded_episode():
     # the episode ends on the first step at which the held steps span hold_time: the
     # last n steps held (n - 1 periods >= hold_time), the one before them not
     n = math.ceil(env.success.hold_time / env.policy_dt - 1e-6) + 1
-    assert record.held[-n:].all() and not record.held[-n - 1]
+    assert record.target_held[-n:].all() and not record.target_held[-n - 1]

@@ -82,7 +82,7 @@ class Scene:
     precision: str = "float32"
     rtol: float = 1e-8
     atol: float = 1e-10
-    max_steps: int = 10_000_000
+    solver_max_steps: int = 10_000_000      # the adaptive solver's step limit (sim.max_steps)
     implicit_iterations: int = 0            # CG iterations per step of implicit_euler (0 otherwise)
     # how node forces are summed: "segment_sum" (a scatter-add; what build() chooses) or
     # "matmul" (a dense one-hot incidence product); bench.py measures both

@@ -141,7 +141,7 @@ def plot_episode_rewards(steps, path, title: str = "") -> Path:
     steps after which the target was held shaded; ``steps`` from :func:`~mysim_jax.tasks.episode.step_columns`."""
     time = np.concatenate([[0.0], np.asarray(steps["time"], float)])
     fig, ax = plt.subplots(figsize=(7.5, 4.2))
-    held = np.asarray(steps["held"], bool)
+    held = np.asarray(steps["target_held"], bool)
     for t0, t1 in zip(time[:-1][held], time[1:][held]):
         ax.axvspan(t0, t1, color="gold", alpha=0.25, lw=0)
     total = np.zeros(len(time))

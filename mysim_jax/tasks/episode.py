@@ -24,7 +24,7 @@ of different batch sizes can).
 **Rows.** The trajectory has ``length + 1`` rows: the reset state at ``t = 0`` and the
 state after every policy step, the last one at ``t = length · policy_dt``.
 Accelerations are evaluated at the saved states with the actuator inputs the
-controller holds from there (as :func:`~mysim_jax.sim.simulate` does): at a state
+controller holds from there (as :func:`~mysim_jax.driver.simulate` does): at a state
 inside the episode, under the setpoint of the action taken from it; at the last state,
 under the last action's setpoint (it is held there when the episode ends).
 """
@@ -40,7 +40,8 @@ import numpy as np
 from mysim_jax.config.env import FAILURES, REWARD_TERMS
 from mysim_jax.control.setpoint import setpoint_from_action
 from mysim_jax.io.trajectory import trajectory_columns
-from mysim_jax.sim import Trajectory, accelerations, effect_updates, held_inputs
+from mysim_jax import sim as sim_pipeline
+from mysim_jax.sim import Trajectory
 from mysim_jax.tasks.runner import episode_keys, numbered_keys, rollout
 from mysim_jax.tuning.tracking import motor_columns, reference_columns
 
@@ -50,9 +51,8 @@ def held_accelerations(env, sim_params, sim, actions):
     there under the setpoint of ``actions`` (one state; vmap over rows)."""
     scene = env.scene
     setpoint = setpoint_from_action(scene, sim_params, env.clean_actions(actions, sim.phys.body_pos.dtype))
-    inputs = held_inputs(scene, sim_params, sim, setpoint)[0]
-    held = effect_updates(scene, sim_params, sim)[0] if scene.effects else None
-    return accelerations(scene, sim_params, sim.phys, inputs, held)
+    held = sim_pipeline.step_updates(scene, sim_params, sim, setpoint)[0]
+    return sim_pipeline.held_accelerations(scene, sim_params, sim.phys, held)
 
 
 def _step_row(step, aux=None) -> dict:
@@ -60,7 +60,7 @@ def _step_row(step, aux=None) -> dict:
     info = step.info
     return {"sim": step.next_state.sim, "actions": step.actions, "reward": step.reward, "terms": info["terms"],
             "success": info["success"], "failures": jnp.stack([info["failures"][f] for f in FAILURES]),
-            "timeout": info["timeout"], "held": info["held"], "touching": info["touching"], "done": info["done"],
+            "timeout": info["timeout"], "target_held": info["target_held"], "touching": info["touching"], "done": info["done"],
             "returns": info["episode_return"]}
 
 
@@ -72,7 +72,7 @@ def episode_rollout(env, params, policy, key, index=0):
     physics parameters, and per-step stacked ``rows`` (leading axis ``max_steps``):
     ``sim`` (the state after the step, before any reset), ``actions`` (as the policy
     gave them), ``reward``, ``terms`` (weighted, per agent),
-    ``success``, ``failures``, ``timeout``, ``held``, ``touching``, ``done``, ``returns``
+    ``success``, ``failures``, ``timeout``, ``target_held``, ``touching``, ``done``, ``returns``
     (the episode's return so far, per agent). The environment does not reset
     (``step_env``): rows after the first ``done`` step on from the ended episode's
     state, and :func:`record_episode` drops them.
@@ -94,7 +94,7 @@ class EpisodeRecord:
     actions: np.ndarray             # (length, n_agents, 3) as the policy gave them
     rewards: np.ndarray             # (length, n_agents)
     terms: dict[str, np.ndarray]    # term -> (length, n_agents), weighted
-    held: np.ndarray                # (length,) bool, the target held after the step
+    target_held: np.ndarray         # (length,) bool, the target held after the step
     touching: np.ndarray            # (length,) bool
     success: bool
     failures: dict[str, bool]       # name -> flagged on the last step
@@ -137,7 +137,7 @@ def record_episode(env, params, policy, key, index: int = 0) -> EpisodeRecord:
         trajectory=Trajectory(time=states.time, phys=states.phys, acc=acc, controller=states.controller,
                               effects=states.effects or None),
         sim_params=sim_params, actions=cut(rows["actions"]), rewards=cut(rows["reward"]),
-        terms={t: cut(rows["terms"][t]) for t in REWARD_TERMS}, held=cut(rows["held"]),
+        terms={t: cut(rows["terms"][t]) for t in REWARD_TERMS}, target_held=cut(rows["target_held"]),
         touching=cut(rows["touching"]), success=bool(rows["success"][n - 1]),
         failures={f: bool(failures[i]) for i, f in enumerate(FAILURES)}, timeout=bool(rows["timeout"][n - 1]),
         returns=rows["returns"][n - 1])
@@ -155,12 +155,12 @@ def record_columns(env, record: EpisodeRecord) -> dict[str, np.ndarray]:
 
 def step_columns(env, record: EpisodeRecord) -> dict[str, np.ndarray]:
     """Per policy step of a recorded episode: ``time`` (at the end of the step), every
-    agent's reward, every weighted term (mean over agents), ``held`` and ``touching``."""
+    agent's reward, every weighted term (mean over agents), ``target_held`` and ``touching``."""
     columns = {"time": np.asarray(record.trajectory.time[1:])}
     for i, agent in enumerate(env.agents):
         columns[f"reward_{agent}"] = record.rewards[:, i]
     for t in REWARD_TERMS:
         columns[f"term_{t}"] = record.terms[t].mean(axis=1)
-    columns["held"] = record.held.astype(int)
+    columns["target_held"] = record.target_held.astype(int)
     columns["touching"] = record.touching.astype(int)
     return columns

@@ -30,7 +30,7 @@ next episode).
 
 **Infos** per agent at each step: ``terms`` (the agent's weighted reward terms, floats,
 summing to its reward), ``success``, ``failed``, ``failures`` (name -> bool, the checks of
-:data:`~mysim_jax.config.env.FAILURES`), ``timeout``, ``held``, ``touching`` and the
+:data:`~mysim_jax.config.env.FAILURES`), ``timeout``, ``target_held``, ``touching`` and the
 episode's running ``episode_return`` (the agent's) and ``episode_length`` (steps). The
 infos of ``reset`` are empty dicts.
 
@@ -214,7 +214,7 @@ class CaptureParallelEnv(ParallelEnv):
     def _infos(self, info, terminated: bool) -> dict:
         success = bool(info["success"])
         common = {"success": success, "failed": terminated and not success, "timeout": bool(info["timeout"]),
-                  "held": bool(info["held"]), "touching": bool(info["touching"]),
+                  "target_held": bool(info["target_held"]), "touching": bool(info["touching"]),
                   "episode_length": int(info["episode_length"])}
         return {a: {"terms": {k: float(v[i]) for k, v in info["terms"].items()},
                     "failures": {k: bool(v) for k, v in info["failures"].items()},

@@ -128,7 +128,7 @@ class CaptureEnv(VerdictMixin, ObservationsMixin, PerceptionErrorsMixin, Randomi
             "missed": missed,
             "failures": failures,
             "timeout": timeout,
-            "held": flags.held,
+            "target_held": flags.held,
             "touching": flags.touching,
             "action_nan": jnp.any(nan),
             "episode_return": returns,
@@ -143,7 +143,7 @@ class CaptureEnv(VerdictMixin, ObservationsMixin, PerceptionErrorsMixin, Randomi
             info["broad_phase_missed"] = now.missed - before.missed
         errors = (self._step_errors(jax.random.fold_in(key, 2), state.perception, params, dtype, state.sim, sim)
                   if self.perception else state.perception)
-        after = EnvState(sim=sim, episode=state.episode, steps=steps, held=flags.held, held_time=held_time,
+        after = EnvState(sim=sim, episode=state.episode, steps=steps, target_held=flags.held, held_time=held_time,
                          touched=touched, returns=returns, potential=potential, perception=errors)
         # the key's second half draws the observation's noise (step resets from its first)
         _, key_obs = jax.random.split(key)
@@ -180,7 +180,7 @@ class CaptureEnv(VerdictMixin, ObservationsMixin, PerceptionErrorsMixin, Randomi
         snap = self.snapshot(sim, sim_params)
         flags = self.flags(snap)
         potential = self.potential(snap, flags, flags.touching, sim_params, params)
-        return EnvState(sim=sim, episode=episode, steps=jnp.zeros((), jnp.int32), held=jnp.zeros((), bool),
+        return EnvState(sim=sim, episode=episode, steps=jnp.zeros((), jnp.int32), target_held=jnp.zeros((), bool),
                         held_time=jnp.zeros((), dtype), touched=flags.touching,
                         returns=jnp.zeros((self.n_agents,), dtype), potential=potential, perception=errors)
 

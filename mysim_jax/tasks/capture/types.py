@@ -126,7 +126,7 @@ class EnvState:
     sim: State
     episode: Episode
     steps: jnp.ndarray            # () int32, policy steps taken this episode
-    held: jnp.ndarray             # () bool, the target was held after the last step
+    target_held: jnp.ndarray      # () bool, the target was held after the last step
     held_time: jnp.ndarray        # () s from the first held step of the current hold to the last
     touched: jnp.ndarray          # () bool, the target has touched the net this episode
     returns: jnp.ndarray          # (n_agents,) sum of rewards this episode

@@ -46,7 +46,7 @@ class VerdictMixin:
         flags = self.flags(snap)
         # measured as capture_outcome measures it: from the first held sample, so a
         # hold of k consecutive held steps lasts (k - 1) policy periods
-        held_time = jnp.where(flags.held & state.held, state.held_time + self.policy_dt, 0.0).astype(dtype)
+        held_time = jnp.where(flags.held & state.target_held, state.held_time + self.policy_dt, 0.0).astype(dtype)
         succeeded = flags.held & hold_reached(held_time, self.success.hold_time)
         # a step that succeeds is not a failure (the flags are exclusive in info)
         failures = {k: v & ~succeeded for k, v in flags.failures.items()}
