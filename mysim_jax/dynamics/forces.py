@@ -38,6 +38,15 @@ class Loads:
         zeros = jnp.zeros((n_bodies, 3), dtype=node_force.dtype)
         return cls(node_force=node_force, body_force=zeros, body_torque=zeros)
 
+    @classmethod
+    def on_bodies(cls, force, bodies, n_nodes: int, n_bodies: int) -> "Loads":
+        """Forces ``(len(bodies), 3)`` (world frame, at the centres of mass) added to the
+        bodies ``bodies``; no node forces, no torques."""
+        dtype = force.dtype
+        return cls(node_force=jnp.zeros((n_nodes, 3), dtype=dtype),
+                   body_force=jnp.zeros((n_bodies, 3), dtype=dtype).at[bodies].add(force),
+                   body_torque=jnp.zeros((n_bodies, 3), dtype=dtype))
+
     def __add__(self, other: "Loads") -> "Loads":
         return Loads(self.node_force + other.node_force, self.body_force + other.body_force,
                      self.body_torque + other.body_torque)

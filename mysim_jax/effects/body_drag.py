@@ -36,10 +36,7 @@ def _stage(scene, params, phys, nodes, held) -> Loads:
     q = phys.body_quat[bodies]
     v_body = quat_rotate_inv(q, phys.body_vel[bodies])
     force = quat_rotate(q, -BODY_DRAG.params(params).drag * v_body)
-    dtype = force.dtype
-    return Loads(node_force=jnp.zeros((scene.n_nodes, 3), dtype=dtype),
-                 body_force=jnp.zeros((scene.n_bodies, 3), dtype=dtype).at[bodies].add(force),
-                 body_torque=jnp.zeros((scene.n_bodies, 3), dtype=dtype))
+    return Loads.on_bodies(force, bodies, scene.n_nodes, scene.n_bodies)
 
 
 class _BodyDrag(Effect[BodyDragScene, BodyDragParams, None]):

@@ -51,10 +51,7 @@ def wind_force(wp: WindParams, t):
 
 def _stage(scene, params, phys, nodes, held) -> Loads:
     bodies = np.asarray(WIND.static(scene).bodies, dtype=np.int32)
-    dtype = held.dtype
-    return Loads(node_force=jnp.zeros((scene.n_nodes, 3), dtype=dtype),
-                 body_force=jnp.zeros((scene.n_bodies, 3), dtype=dtype).at[bodies].add(held),
-                 body_torque=jnp.zeros((scene.n_bodies, 3), dtype=dtype))
+    return Loads.on_bodies(held, bodies, scene.n_nodes, scene.n_bodies)
 
 
 class _Wind(Effect[WindScene, WindParams, None]):
