@@ -261,10 +261,8 @@ def _scene(t: _Tables, sp: _Springs, loads, contact_scene, quad_scene) -> Scene:
         atol=config.sim.atol,
         solver_max_steps=config.sim.max_steps,
         implicit_iterations=config.sim.cg_iterations,
-        # node forces are scattered (segment_sum): with the batch axis last
-        # (mysim_jax.core.batching) a scatter adds contiguous batch rows, where the dense
-        # incidence matmul does n_nodes times the work (BENCHMARKS.md, sections a and b)
-        accumulate="segment_sum",
+        accumulate=config.sim.accumulate,
+        gather=config.sim.gather,
         contact=contact_scene,
         quadrotor=quad_scene,
     )

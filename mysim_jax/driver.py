@@ -10,7 +10,6 @@ place the library calls ``jax.jit`` itself.
 
 from __future__ import annotations
 
-import dataclasses
 from functools import partial
 
 import diffrax
@@ -61,17 +60,6 @@ def _accelerations_on_grid(scene: Scene, params: Params, states: State, policy=N
         held, _ = step_updates(scene, params, s, None if policy is None else policy(scene, params, s))
         return held_accelerations(scene, params, s.phys, held)
     return jax.vmap(at)(states)
-
-
-def single_env_scene(scene: Scene) -> Scene:
-    """The scene as ``simulate`` runs it: one environment, ``segment_sum`` accumulation.
-
-    Built scenes already use ``segment_sum``; a scene switched to the dense ``matmul``
-    accumulation by hand is switched back, since for a single environment the scatter is
-    faster (BENCHMARKS.md, section b). The physics is the same up to the order of
-    floating-point additions.
-    """
-    return dataclasses.replace(scene, accumulate="segment_sum")
 
 
 def _stepped_run(scene: Scene, params: Params, state: State, run, times, progress, chunk: int, policy):
@@ -150,9 +138,7 @@ def simulate(scene: Scene, params: Params, state: State, run, progress: bool = T
     The compiled functions are cached per Scene (``params`` and ``state`` are arguments,
     not constants): a second call with new params or a new state does not recompile, nor
     does another ``t_end`` with as many chunks of the same size.
-    This runs one environment, so the scene is run as :func:`single_env_scene` makes it.
     """
-    scene = single_env_scene(scene)
     times = output_times(run)
     if scene.integrator in FIXED_STEP or has_step_updates(scene):
         states, failure = _stepped_run(scene, params, state, run, times, progress, chunk, policy)

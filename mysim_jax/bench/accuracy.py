@@ -33,7 +33,7 @@ from mysim_jax.bench.timing import CPU, QUIET_SHARE, contention_shares, median, 
 from mysim_jax.build import build  # noqa: E402
 from mysim_jax.config.scene import ConfigError, load_config  # noqa: E402
 from mysim_jax.dynamics.integrators import FIXED_STEP  # noqa: E402
-from mysim_jax.driver import output_times, single_env_scene, steps_per_output  # noqa: E402
+from mysim_jax.driver import output_times, steps_per_output  # noqa: E402
 from mysim_jax.sim import has_step_updates, rollout, solve_adaptive  # noqa: E402
 
 
@@ -104,10 +104,9 @@ def compile_run(scene, params, state, run_settings, policy=None) -> _Run:
     every ``output_dt``, asking ``policy`` (if given) for the control of every step; an
     adaptive integrator then solves each env step with diffrax. Otherwise adaptive: the
     library's ``solve_adaptive`` over the whole run, saving at the grid. These are the
-    computations ``mysim_jax.driver.simulate`` does (with its ``single_env_scene``), minus its
+    computations ``mysim_jax.driver.simulate`` does, minus its
     host-side chunking and the acceleration pass.
     """
-    scene = single_env_scene(scene)
     times = output_times(run_settings)
     if scene.integrator in FIXED_STEP or has_step_updates(scene):
         every = steps_per_output(scene, run_settings)

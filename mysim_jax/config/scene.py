@@ -145,6 +145,10 @@ class SimConfig(StrictModel):
     max_steps: Annotated[int, Field(ge=1, le=2**31 - 1)] = 10_000_000
     # conjugate-gradient iterations per step of implicit_euler (None: IMPLICIT_ITERATIONS)
     implicit_iterations: Optional[Annotated[int, Field(ge=1, le=MAX_IMPLICIT_ITERATIONS)]] = None
+    # how the force pipeline sums node forces and gathers spring ends: the same physics to
+    # float round-off, at different speeds per backend (BENCHMARKS.md, sections b and j)
+    accumulate: Literal["segment_sum", "matmul"] = "segment_sum"
+    gather: Literal["slices", "index"] = "slices"
 
     @property
     def cg_iterations(self) -> int:

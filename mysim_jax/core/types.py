@@ -84,11 +84,11 @@ class Scene:
     atol: float = 1e-10
     solver_max_steps: int = 10_000_000      # the adaptive solver's step limit (sim.max_steps)
     implicit_iterations: int = 0            # CG iterations per step of implicit_euler (0 otherwise)
-    # how node forces are summed: "segment_sum" (a scatter-add; what build() chooses) or
-    # "matmul" (a dense one-hot incidence product); bench.py measures both
+    # how node forces are summed (sim.accumulate): "segment_sum" (a scatter-add, the
+    # default) or "matmul" (a dense one-hot incidence product)
     accumulate: str = "segment_sum"
-    # how spring ends are gathered: "slices" (static contiguous slices where the index has
-    # few runs, markers.take_rows; what build() chooses) or "index" (x[index_array])
+    # how spring ends are gathered (sim.gather): "slices" (static contiguous slices where
+    # the index has few runs, markers.take_rows; the default) or "index" (x[index_array])
     gather: str = "slices"
     # --- contact (mysim_jax/contact): None when the scene has no contact ---------------
     contact: ContactScene | None = None

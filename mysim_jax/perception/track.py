@@ -45,7 +45,6 @@ from mysim_jax.perception.render import Renderer
 from mysim_jax.perception.render_models import auto_target_style
 from mysim_jax.perception.track_cues import _associate_all, _RegionMemory, _team_point
 from mysim_jax.perception.track_detectors import FrameDetector, OracleDetector, RegionDetector, image_detector
-from mysim_jax.driver import single_env_scene
 from mysim_jax.sim import rollout
 from mysim_jax.tasks.scripted import team_policy
 
@@ -259,7 +258,6 @@ def _tracking_scene(config, initial_cue: bool, frame_rate: float):
     if initial_cue:
         config = _point_at_start(config, scene, state)
         scene, params, state = build(config)
-    scene = single_env_scene(scene)
     servo = GIMBAL_SERVO.params(params)
     params = GIMBAL_SERVO.with_params(params, servo.replace(amplitude=0.0 * servo.amplitude))
     return config, scene, params, state, _steps_per_frame(scene, frame_rate)
