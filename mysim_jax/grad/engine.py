@@ -4,8 +4,8 @@ rollouts (nominal and perturbed), and the reverse-mode gradient of ``J`` at a ho
 
 Every pass is :mod:`.rollout`'s per-environment function batched over episodes with the
 library's :func:`mysim_jax.core.batching.vmap` (reverse-mode steps with ``jax.vmap``) and
-jitted once per shape: the forward passes once per rollout length and batch size, the
-backward step once for every horizon.
+jitted once per shape: the rollouts (closed and open loop alike) once per length and
+batch size, the backward step once for every horizon and both kinds.
 """
 
 from __future__ import annotations
@@ -56,53 +56,62 @@ class GradientEngine:
         def one(key):
             k_reset, k_run = jax.random.split(key)
             _, s0 = pb.env.reset(k_reset, pb.params)
-            u = jnp.zeros(pb.team.size, s0.sim.phys.body_pos.dtype)
-            rows, _, states = forward(pb, s0, k_run, n, u=u, keep_states=True)
+            dtype = s0.sim.phys.body_pos.dtype
+            u, actions = jnp.zeros(pb.team.size, dtype), jnp.zeros((n, *pb.env.action_shape), dtype)
+            rows, _, states = forward(pb, s0, k_run, n, True, u, actions, keep_states=True)
             return rows, s0, states
 
         run = self._compiled(("episodes", n), lambda: batching.vmap(one))
         rows, s0, states = run(keys)
         return rows, stack_start(s0, states)
 
-    def closed(self, states, keys, u, n: int, keep_states: bool = False):
-        """Closed-loop rollouts of ``n`` steps from ``states`` ``(batch, ...)`` with team
-        parameters ``u`` ``(batch, n_params)``: :func:`~mysim_jax.grad.rollout.forward`'s
-        ``(rows, actions, states)`` with a leading batch axis."""
+    def rollouts(self, states, keys, closed, u, actions, n: int, keep_states: bool = False):
+        """Rollouts of ``n`` steps from ``states`` ``(batch, ...)``, each closed loop with
+        the team's parameters ``u`` ``(batch, n_params)`` where ``closed`` ``(batch,)``, else
+        open loop with ``actions`` ``(batch, n, n_agents, 3)``:
+        :func:`~mysim_jax.grad.rollout.forward`'s ``(rows, actions, states)`` with a
+        leading batch axis."""
         pb = self.problem
-        run = self._compiled(("closed", n, keep_states),
-                             lambda: batching.vmap(lambda s, k, x: forward(pb, s, k, n, u=x, keep_states=keep_states)))
-        return run(states, keys, u)
+        run = self._compiled(("rollouts", n, keep_states), lambda: batching.vmap(
+            lambda s, k, c, x, a: forward(pb, s, k, n, c, x, a, keep_states=keep_states)))
+        return run(states, keys, jnp.asarray(closed), u, actions)
 
-    def open(self, states, keys, actions, n: int):
-        """Open-loop rollouts with ``actions`` ``(batch, n, n_agents, 3)``: their rows."""
-        pb = self.problem
-        run = self._compiled(("open", n), lambda: batching.vmap(lambda s, k, a: forward(pb, s, k, n, actions=a)[0]))
-        return run(states, keys, actions)
-
-    def gradient(self, window, keys, xs, n: int, closed_loop: bool, truncate: int | None = None):
+    def gradient(self, window, keys, u, actions, n: int, closed_loop: bool, truncate: int | None = None,
+                 norms: list | None = None):
         """The gradient of ``J`` at the horizon of ``n`` steps for every episode of a
-        window, by the backward pass of :mod:`.rollout`: with respect to ``u`` (closed
-        loop; ``xs`` ``(batch, n_params)``, the same at every step) or to every step's
-        actions (open loop; ``xs`` ``(batch, >= n, n_agents, 3)``). ``window``: ``s_0 ..
-        s_n`` ``(>= n + 1, batch, ...)``; ``keys`` the windows' keys ``(batch,)``.
-        Returns ``(batch, n_params)`` or ``(batch, n, n_agents, 3)``."""
+        window, by the backward pass of :mod:`.rollout`: with respect to the team's
+        parameters ``u`` ``(batch, n_params)`` (closed loop), or to every step's
+        ``actions`` ``(batch, >= n, n_agents, 3)`` (open loop; the actions the window was
+        flown with). ``window``: ``s_0 .. s_n`` ``(>= n + 1, batch, ...)``; ``keys`` the
+        windows' keys ``(batch,)``. Returns ``(batch, n_params)`` or ``(batch, n,
+        n_agents, 3)``. ``norms``: a list that receives the norm ``(batch,)`` of the
+        state's cotangent ``lam_k`` at every step, from ``lam_n`` back to ``lam_0`` (how
+        fast the backward pass grows)."""
         pb = self.problem
         seed = self._compiled(("seed",), lambda: jax.vmap(lambda s, w: seed_cotangent(pb, s, w),
                                                           in_axes=(0, None)))
-        back = self._compiled(("back", closed_loop), lambda: jax.vmap(
-            lambda s, x, k, lam, w, c: backward_step(pb, s, x, k, lam, w, c, closed_loop),
-            in_axes=(0, 0, 0, 0, None, None)))
+        back = self._compiled(("back",), lambda: jax.vmap(
+            lambda s, c, x, a, k, lam, w, m: backward_step(pb, s, c, x, a, k, lam, w, m),
+            in_axes=(0, None, 0, 0, 0, 0, None, None)))
         lam = seed(take(window, n), 1.0 / n)
-        grads = []
+        g_u, g_actions = None, []
+        if norms is not None:
+            norms.append(_norm(lam))
         for k in range(n - 1, -1, -1):
             step_keys = jax.vmap(lambda key: jax.random.fold_in(key, k))(keys)
-            x = xs if closed_loop else xs[:, k]
             carry = 0.0 if (truncate and k > 0 and (n - k) % truncate == 0) else 1.0
-            lam, g = back(take(window, k), x, step_keys, lam, 1.0 / n if k > 0 else 0.0, carry)
-            grads.append(g)
-        if closed_loop:
-            return sum(grads[1:], grads[0])
-        return jnp.stack(grads[::-1], axis=1)
+            lam, gu, ga = back(take(window, k), closed_loop, u, actions[:, k], step_keys, lam,
+                               1.0 / n if k > 0 else 0.0, carry)
+            g_u = gu if g_u is None else g_u + gu
+            g_actions.append(ga)
+            if norms is not None:
+                norms.append(_norm(lam))
+        return g_u if closed_loop else jnp.stack(g_actions[::-1], axis=1)
+
+
+def _norm(leaves):
+    """Per episode, the norm of a list of batched arrays (leading batch axis)."""
+    return np.sqrt(sum(np.sum(np.asarray(a, np.float64).reshape(a.shape[0], -1) ** 2, axis=1) for a in leaves))
 
 
 def window_keys(keys, starts):

@@ -15,7 +15,12 @@ Per (level, segment, horizon, kind) the statistics (:func:`gradient_stats`):
   its smoothing estimate; ``cosine_linear``: the cosine the same smoothing samples give
   for an exactly linear objective with the autodiff gradient (the ceiling ``cosine``
   can reach with that many samples in that many dimensions);
-* ``nonfinite``: episodes whose gradient has a NaN or an infinity (left out of the rest).
+* ``nonfinite``: episodes whose gradient has a NaN or an infinity (left out of the rest),
+  ``nan`` of them with a NaN;
+* ``growth_per_s``: on rows without a fix, how fast the backward pass grows: the slope
+  of ``ln |lam_k|`` (the state's cotangent, :mod:`.rollout`) against the time back from
+  the horizon's end, fitted over the steps where it is finite and nonzero, median over
+  episodes [1/s] (``|lam|`` grows ``e`` times per ``1 / growth_per_s`` seconds).
 
 Rows with ``fix`` ``truncate<m>`` repeat the autodiff gradient with the backward pass
 truncated to ``m`` policy steps (:mod:`.rollout`), against the same smoothing estimate.
@@ -41,8 +46,8 @@ KINDS = ("team", "actions")
 class MapSettings:
     """What the map measures on one level (times in s)."""
 
-    horizons: tuple[float, ...] = (0.1, 0.3, 1.0, 2.0, 6.0)
-    episodes: int = 8
+    horizons: tuple[float, ...] = (0.1, 0.2, 0.5, 1.0, 2.0, 6.0)
+    episodes: int = 6
     pairs: int = 8                  # antithetic pairs of the smoothing estimate
     sigma_team: float = 0.05        # smoothing scale on u (5 % of each team field)
     sigma_actions: float = 0.05     # smoothing scale on normalised actions (0.25 m/s at 5 m/s)
@@ -91,7 +96,8 @@ def gradient_stats(ad, zo, eps) -> dict:
     flat = ad.reshape(ad.shape[0], -1)
     zflat = zo.reshape(zo.shape[0], -1)
     finite = np.isfinite(flat).all(axis=1)
-    out = {"episodes": int(finite.sum()), "nonfinite": int((~finite).sum())}
+    out = {"episodes": int(finite.sum()), "nonfinite": int((~finite).sum()),
+           "nan": int(np.isnan(flat).any(axis=1).sum())}
     if not finite.any():
         return out
     flat, zflat, eps = flat[finite], zflat[finite], eps[finite]
@@ -110,6 +116,19 @@ def gradient_stats(ad, zo, eps) -> dict:
     return out
 
 
+def growth_rate(norms, dt: float):
+    """The median over episodes of the slope of ``ln norms`` ``(batch, n + 1)`` (from the
+    horizon's end back) per second of ``dt`` per entry; None with fewer than two usable
+    entries in every episode."""
+    slopes = []
+    for row in np.asarray(norms, np.float64):
+        ok = np.isfinite(row) & (row > 0)
+        if ok.sum() >= 2:
+            t = np.arange(row.size)[ok] * dt
+            slopes.append(np.polyfit(t, np.log(row[ok]), 1)[0])
+    return float(np.median(slopes)) if slopes else None
+
+
 def _cosines(a, b):
     den = np.maximum(np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1), 1e-30)
     return np.sum(a * b, axis=1) / den
@@ -125,27 +144,27 @@ def smoothing_values(engine: GradientEngine, s0, keys, key, steps, settings: Map
     """The smoothing estimates at every horizon of ``steps`` for every window: ``{kind:
     (estimates, eps)}`` with ``estimates[h]`` ``(batch, *shape)`` and ``eps`` ``(batch,
     n_pairs, *shape)`` (shape ``(n_params,)`` for ``team``, ``(n, n_agents, 3)`` for
-    ``actions``, ``n`` the longest horizon)."""
+    ``actions``, ``n`` the longest horizon). The perturbed runs of both kinds are one
+    batch: ``2 * n_pairs`` per window and kind."""
     s, n_max = settings, max(steps)
-    batch, pairs = keys.shape[0], s.pairs
+    batch, pairs, n_params = keys.shape[0], s.pairs, engine.problem.team.size
+    dtype = nominal_actions.dtype
     k_team, k_act = jax.random.split(key)
+    eps_team = jax.vmap(lambda k: directions(k, pairs, (n_params,), dtype))(jax.random.split(k_team, batch))
+    eps_act = jax.vmap(lambda k: directions(k, pairs, nominal_actions.shape[1:], dtype))(
+        jax.random.split(k_act, batch))
     rep = np.repeat(np.arange(batch), 2 * pairs)                   # episode of each run
     sign = np.tile(np.repeat([1.0, -1.0], pairs), batch)           # + first, then -
     pair = np.tile(np.tile(np.arange(pairs), 2), batch)
-    states, run_keys = take(s0, rep), keys[rep]
-    dtype = nominal_actions.dtype
-    out = {}
-    eps_team = jax.vmap(lambda k: directions(k, pairs, (engine.problem.team.size,), dtype))(
-        jax.random.split(k_team, batch))
-    u = s.sigma_team * sign[:, None] * eps_team[rep, pair]
-    rows = engine.closed(states, run_keys, u.astype(dtype), n_max)[0]
-    out["team"] = (_estimates(rows, steps, batch, pairs, eps_team, s.sigma_team, False), eps_team)
-    eps_act = jax.vmap(lambda k: directions(k, pairs, nominal_actions.shape[1:], dtype))(
-        jax.random.split(k_act, batch))
-    actions = nominal_actions[rep] + s.sigma_actions * sign[:, None, None, None] * eps_act[rep, pair]
-    rows = engine.open(states, run_keys, actions.astype(dtype), n_max)
-    out["actions"] = (_estimates(rows, steps, batch, pairs, eps_act, s.sigma_actions, True), eps_act)
-    return out
+    u = jnp.concatenate([s.sigma_team * sign[:, None] * eps_team[rep, pair], jnp.zeros((rep.size, n_params))])
+    actions = jnp.concatenate([nominal_actions[rep], nominal_actions[rep] + s.sigma_actions
+                               * sign[:, None, None, None] * eps_act[rep, pair]])
+    closed = np.repeat([True, False], rep.size)
+    both = np.concatenate([rep, rep])
+    rows = engine.rollouts(take(s0, both), keys[both], closed, u.astype(dtype), actions.astype(dtype), n_max)[0]
+    team_rows, act_rows = take(rows, np.arange(rep.size)), take(rows, np.arange(rep.size, 2 * rep.size))
+    return {"team": (_estimates(team_rows, steps, batch, pairs, eps_team, s.sigma_team, False), eps_team),
+            "actions": (_estimates(act_rows, steps, batch, pairs, eps_act, s.sigma_actions, True), eps_act)}
 
 
 def _estimates(rows, steps, batch, pairs, eps, sigma, per_step: bool):
@@ -166,7 +185,8 @@ def measure_window(engine: GradientEngine, s0, keys, key, steps, settings: MapSe
     n_max, batch = max(steps), keys.shape[0]
     dtype = s0.sim.phys.body_pos.dtype
     u0 = jnp.zeros((batch, engine.problem.team.size), dtype)
-    nominal, actions, states = engine.closed(s0, keys, u0, n_max, keep_states=True)
+    a0 = jnp.zeros((batch, n_max, *engine.env.action_shape), dtype)
+    nominal, actions, states = engine.rollouts(s0, keys, np.ones(batch, bool), u0, a0, n_max, keep_states=True)
     window = jax.tree.map(lambda a, b: jnp.concatenate([a[None], jnp.swapaxes(b, 0, 1)]), s0, states)
     objective = np.asarray(jax.vmap(lambda r: horizon_values(r, steps))(nominal))
     smoothed = smoothing_values(engine, s0, keys, key, steps, settings, actions)
@@ -175,11 +195,15 @@ def measure_window(engine: GradientEngine, s0, keys, key, steps, settings: MapSe
         fixes = [(None, "none")] + [(m, f"truncate{m}") for m in settings.truncate if m < n]
         for kind in KINDS:
             zo, eps = smoothed[kind]
-            xs, eps_n = (u0, eps) if kind == "team" else (actions, eps[:, :, :n])
+            eps_n = eps if kind == "team" else eps[:, :, :n]
             for m, fix in fixes:
-                ad = engine.gradient(window, keys, xs, n, closed_loop=kind == "team", truncate=m)
+                norms = [] if m is None else None
+                ad = engine.gradient(window, keys, u0, actions, n, closed_loop=kind == "team", truncate=m,
+                                     norms=norms)
                 row = {"steps": n, "kind": kind, "fix": fix, "objective_mean": float(objective[:, i].mean())}
                 row.update(gradient_stats(to_numpy(ad), to_numpy(zo[n]), to_numpy(eps_n)))
+                if norms is not None:
+                    row["growth_per_s"] = growth_rate(np.stack(norms, axis=1), engine.env.policy_dt)
                 out.append(row)
         if progress is not None:
             progress(1)

@@ -14,7 +14,7 @@ one compiled step for every horizon. The cotangent of step ``k``'s state is
 
 with ``e`` the end terms and ``r`` the running terms of :mod:`.objective`; the parameter
 gradient is the sum of each step's ``vjp`` with respect to ``u`` (closed loop) or that
-step's action (open loop). With ``truncate`` ``m``, the cotangent coming from later steps
+step's action (open loop); one compiled step serves both (:func:`policy_step`). With ``truncate`` ``m``, the cotangent coming from later steps
 is dropped at every ``m``-th state counted back from the horizon's end (a
 ``stop_gradient`` on the state there, as truncated backpropagation through time does):
 gradients then cross at most ``m`` policy steps.
@@ -79,15 +79,14 @@ def state_floats(state):
     return floats, lambda new: rebuild(new).replace(episode=episode)
 
 
-def closed_loop_step(pb: Problem, u, state, key):
-    """``(next_state, actions)``: one policy step of the scripted team with parameters ``u``."""
-    actions = team_actions(pb.env, pb.team.team(pb.env.scripted, u), state, pb.params)
+def policy_step(pb: Problem, closed, u, action, state, key):
+    """``(next_state, actions)``: one policy step with the scripted team's actions at its
+    parameters ``u`` where ``closed`` (closed loop), else with ``action`` ``(n_agents, 3)``
+    (open loop). ``closed`` is a traced bool: one compiled program serves both (the team's
+    actions are computed either way; the unused input gets a zero gradient)."""
+    team = team_actions(pb.env, pb.team.team(pb.env.scripted, u), state, pb.params)
+    actions = jnp.where(closed, team, action)
     return pb.env.step_env(key, state, actions, pb.params)[1], actions
-
-
-def open_loop_step(pb: Problem, actions, state, key):
-    """The next state after one policy step with the given ``actions`` ``(n_agents, 3)``."""
-    return pb.env.step_env(key, state, actions, pb.params)[1]
 
 
 def record(pb: Problem, state) -> Row:
@@ -100,19 +99,16 @@ def record(pb: Problem, state) -> Row:
                touching=touching, taut=strain > 0.0)
 
 
-def forward(pb: Problem, state, key, n: int, u=None, actions=None, keep_states: bool = False):
-    """``n`` policy steps of one environment from ``state``: closed loop with the team's
-    parameters ``u`` (``actions`` None) or open loop with ``actions`` ``(n, n_agents, 3)``.
+def forward(pb: Problem, state, key, n: int, closed, u, actions, keep_states: bool = False):
+    """``n`` policy steps of one environment from ``state`` (:func:`policy_step`): closed
+    loop with the team's parameters ``u`` ``(n_params,)`` where ``closed``, else open loop
+    with ``actions`` ``(n, n_agents, 3)``.
 
     Returns ``(rows, actions, states)``: the :class:`Row` of ``s_1 .. s_n`` (leading axis
     ``n``), the actions flown ``(n, n_agents, 3)``, and with ``keep_states`` the states
     ``s_1 .. s_n`` (leading axis ``n``; else None), which the backward pass walks."""
     def body(s, k):
-        if actions is None:
-            nxt, a = closed_loop_step(pb, u, s, jax.random.fold_in(key, k))
-        else:
-            a = actions[k]
-            nxt = open_loop_step(pb, a, s, jax.random.fold_in(key, k))
+        nxt, a = policy_step(pb, closed, u, actions[k], s, jax.random.fold_in(key, k))
         return nxt, (record(pb, nxt), a, nxt if keep_states else None)
 
     _, (rows, flown, states) = jax.lax.scan(body, state, jnp.arange(n))
@@ -126,31 +122,30 @@ def horizon_values(rows: Row, steps):
     return jnp.stack([rows.end[h - 1] + cumulative[h - 1] / h for h in steps])
 
 
-def seed_cotangent(pb: Problem, state, n: int):
-    """``lam_n``: the gradient of ``e(s_n) + r(s_n) / n`` with respect to the floating
-    leaves of the horizon's last state."""
+def seed_cotangent(pb: Problem, state, weight):
+    """``lam_n``: the gradient of ``e(s_n) + weight * r(s_n)`` (``weight`` = ``1 / n``) with
+    respect to the floating leaves of the horizon's last state."""
     floats, rebuild = state_floats(state)
 
     def value(fl):
         s = rebuild(fl)
-        return end_value(pb.env, pb.weights, s, pb.params) + running_value(pb.env, pb.weights, s, pb.params,
-                                                                          pb.springs) / n
+        return end_value(pb.env, pb.weights, s, pb.params) + weight * running_value(pb.env, pb.weights, s, pb.params,
+                                                                                   pb.springs)
     return jax.grad(value)(floats)
 
 
-def backward_step(pb: Problem, state, x, key, lam_next, weight, carry, closed_loop: bool):
-    """``(lam_k, g_k)`` of step ``k`` from ``s_k`` (module docstring): the cotangent of
-    ``s_k``'s floating leaves, ``carry * vjp_k(lam_next) + weight * grad r(s_k)`` (``carry``
-    1, or 0 where a truncation drops what comes from later steps), and the gradient with
-    respect to the step's input ``x`` (``u`` closed loop, the step's actions open loop)."""
+def backward_step(pb: Problem, state, closed, u, action, key, lam_next, weight, carry):
+    """``(lam_k, g_u, g_action)`` of step ``k`` from ``s_k`` (module docstring): the
+    cotangent of ``s_k``'s floating leaves, ``carry * vjp_k(lam_next) + weight * grad
+    r(s_k)`` (``carry`` 1, or 0 where a truncation drops what comes from later steps), and
+    the gradients with respect to the team's parameters ``u`` (nonzero in closed loop) and
+    to the step's ``action`` (nonzero in open loop)."""
     floats, rebuild = state_floats(state)
 
-    def step(fl, x):
-        s = rebuild(fl)
-        nxt = closed_loop_step(pb, x, s, key)[0] if closed_loop else open_loop_step(pb, x, s, key)
-        return state_floats(nxt)[0]
+    def step(fl, u, action):
+        return state_floats(policy_step(pb, closed, u, action, rebuild(fl), key)[0])[0]
 
-    _, vjp = jax.vjp(step, floats, x)
-    lam, g = vjp(lam_next)
+    _, vjp = jax.vjp(step, floats, u, action)
+    lam, g_u, g_action = vjp(lam_next)
     local = jax.grad(lambda fl: running_value(pb.env, pb.weights, rebuild(fl), pb.params, pb.springs))(floats)
-    return [carry * a + weight * b for a, b in zip(lam, local)], g
+    return [carry * a + weight * b for a, b in zip(lam, local)], g_u, g_action
