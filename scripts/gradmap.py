@@ -103,6 +103,11 @@ def main(argv=None) -> int:
         print(f"error: {err}", file=sys.stderr)
         return 2
 
+    if any(c.sim.precision == "float64" for c in configs.values()):
+        import jax
+
+        jax.config.update("jax_enable_x64", True)
+
     from mysim_jax.grad.gradmap_run import run_gradmap
 
     run_gradmap(configs, settings, out, args.config, caps=caps, progress=not args.no_progress)
