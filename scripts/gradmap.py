@@ -85,7 +85,7 @@ def _scene_configs(path: str, levels, overrides) -> dict:
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     from mysim_jax.config.scene import ConfigError
-    from mysim_jax.grad.gradmap import MapSettings, check_settings
+    from mysim_jax.grad.gradmap import MapSettings, check_settings, level_settings
     from mysim_jax.io.output import OutputError, check_output_dir
 
     try:
@@ -97,7 +97,7 @@ def main(argv=None) -> int:
             raise ValueError(f"--levels {' '.join(args.levels)}: a level is listed twice")
         configs = _scene_configs(args.config, args.levels, args.overrides)
         for level, config in configs.items():
-            check_settings(settings, 1.0 / config.env.policy_rate, config.sim.t_end)
+            check_settings(level_settings(settings, caps.get(level)), 1.0 / config.env.policy_rate, config.sim.t_end)
         out = check_output_dir(args.out)
     except (ValueError, ConfigError, OutputError) as err:
         print(f"error: {err}", file=sys.stderr)

@@ -97,6 +97,7 @@ def test_bad_settings_are_refused_with_the_setting_named():
     (["--horizons", "-1"], "horizon -1"),
     (["--horizons", "60"], "longer than the episode"),
     (["--cap", "full"], "--cap"),
+    (["--cap", "train=0.05"], "horizon cap 0.05 s"),
 ])
 def test_the_script_refuses_bad_input_before_compiling(tmp_path, capsys, args, message):
     out = tmp_path / "map"

@@ -28,7 +28,8 @@ truncated to ``m`` policy steps (:mod:`.rollout`), against the same smoothing es
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import dataclasses
+from dataclasses import dataclass
 
 import jax
 import jax.numpy as jnp
@@ -54,7 +55,6 @@ class MapSettings:
     truncate: tuple[int, ...] = ()  # policy steps of the truncated backward passes measured
     segments: tuple[str, ...] = SEGMENTS
     seed: int = 0
-    extra: dict = field(default_factory=dict, compare=False)
 
 
 def check_settings(settings: MapSettings, policy_dt: float | None = None, t_end: float | None = None) -> None:
@@ -81,6 +81,17 @@ def check_settings(settings: MapSettings, policy_dt: float | None = None, t_end:
     unknown = [g for g in s.segments if g not in SEGMENTS]
     if unknown or not s.segments:
         raise ValueError(f"segments: {unknown or 'none'}; the segments are {', '.join(SEGMENTS)}")
+
+
+def level_settings(settings: MapSettings, cap: float | None) -> MapSettings:
+    """``settings`` without the horizons above ``cap`` [s] (None: all of them); ValueError
+    when that leaves none."""
+    if cap is None:
+        return settings
+    kept = tuple(h for h in settings.horizons if h <= cap + 1e-9)
+    if not kept:
+        raise ValueError(f"horizon cap {cap:g} s: below every horizon ({', '.join(f'{h:g}' for h in settings.horizons)})")
+    return dataclasses.replace(settings, horizons=kept)
 
 
 def horizon_steps(horizons, policy_dt: float) -> list[int]:

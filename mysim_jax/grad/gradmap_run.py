@@ -30,7 +30,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 from tqdm.auto import tqdm  # noqa: E402
 
 from mysim_jax.grad.engine import GradientEngine  # noqa: E402
-from mysim_jax.grad.gradmap import KINDS, MapSettings, horizon_steps, measure_level  # noqa: E402
+from mysim_jax.grad.gradmap import KINDS, MapSettings, horizon_steps, level_settings, measure_level  # noqa: E402
 from mysim_jax.grad.objective import ObjectiveWeights  # noqa: E402
 from mysim_jax.io.output import staged_output  # noqa: E402
 from mysim_jax.tasks.capture import make_env  # noqa: E402
@@ -38,16 +38,6 @@ from mysim_jax.tasks.capture import make_env  # noqa: E402
 COLUMNS = ("level", "segment", "horizon_s", "steps", "kind", "fix", "windows", "episodes", "nonfinite", "nan",
            "start_mean_s", "after_contact", "objective_mean", "norm_mean", "norm_median", "norm_max", "cv",
            "norm_cv", "zo_norm_mean", "cosine_mean", "cosine_median", "cosine_linear", "growth_per_s")
-
-
-def level_settings(settings: MapSettings, cap: float | None) -> MapSettings:
-    """``settings`` without the horizons above ``cap`` [s] (None: all of them)."""
-    if cap is None:
-        return settings
-    kept = tuple(h for h in settings.horizons if h <= cap + 1e-9)
-    if not kept:
-        raise ValueError(f"horizon cap {cap:g} s: below every horizon ({', '.join(f'{h:g}' for h in settings.horizons)})")
-    return dataclasses.replace(settings, horizons=kept)
 
 
 def run_gradmap(configs: dict, settings: MapSettings, out_dir: Path, source: str, caps: dict | None = None,
@@ -84,9 +74,7 @@ def run_gradmap(configs: dict, settings: MapSettings, out_dir: Path, source: str
 
 
 def _jsonable(settings: MapSettings) -> dict:
-    d = dataclasses.asdict(settings)
-    d.pop("extra", None)
-    return d
+    return dataclasses.asdict(settings)
 
 
 def machine() -> dict:
