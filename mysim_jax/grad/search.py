@@ -26,7 +26,10 @@ import time
 from dataclasses import dataclass, field
 from typing import Callable
 
+import jax.numpy as jnp
 import numpy as np
+import optax
+from cmaes import CMA
 
 METHODS = ("grad", "cmaes", "random")
 
@@ -112,8 +115,6 @@ def cma_es(evaluate: Callable, x0, sigma0: float, lower, upper, budget_steps: in
     """CMA-ES (``cmaes.CMA``: ask a generation, evaluate it in one call, tell) from mean
     ``x0`` with step size ``sigma0``, its samples kept in the box, until the budget cannot
     pay for another whole generation."""
-    from cmaes import CMA
-
     lower, upper = check_box(lower, upper)
     if not sigma0 > 0.0:
         raise ValueError(f"cma_es: sigma0 {sigma0!r}, expected > 0")
@@ -146,9 +147,6 @@ def gradient_descent(value_and_grad: Callable, x0, lower, upper, budget_steps: i
     """Projected first-order descent with an optax ``optimizer`` (default Adam at
     ``learning_rate``, the gradient clipped to ``clip_norm`` in norm first): one step per
     ``steps_per_evaluation`` of budget; the best iterate seen is the result."""
-    import jax.numpy as jnp
-    import optax
-
     lower, upper = check_box(lower, upper)
     n_total = evaluations_in(budget_steps, steps_per_evaluation)
     if optimizer is None:
