@@ -78,6 +78,7 @@ LONGEST_FIRST = (
     "test_mappo.py",
     "test_implicit_springs.py",
     "test_detector.py",
+    "test_gradmap.py",
     "test_broad_phase.py",
     "test_stability.py",
     "test_tuning.py",
