@@ -63,7 +63,14 @@ def _frame_information(p, b, x0, cams, n_cams: int, angle_sigma: float):
     Nxx_inv = np.linalg.inv(N[:3, :3])
     J = N[3:, 3:] - N[:3, 3:].T @ Nxx_inv @ N[:3, 3:]
     h = v[3:] - N[:3, 3:].T @ Nxx_inv @ v[:3]
-    return J, h
+    # the scale mode (every origin moved away from the cameras' centroid, the target with them)
+    # leaves the bearings as they are; least squares would shrink it to shrink the detector's misses
+    u = np.zeros(6 * n_cams)
+    for pi, i in zip(p, cams):
+        u[6 * i:6 * i + 3] = pi - p.mean(0)
+    u /= np.linalg.norm(u)
+    Q = np.eye(6 * n_cams) - np.outer(u, u)
+    return Q @ J @ Q, Q @ h
 
 
 def _inliers(pc, bc, x0, cams, S, angle_sigma: float, gate: float) -> np.ndarray:
@@ -122,10 +129,11 @@ def self_calibrated_points(t, has, origins, bearings, ranges, pose_sigma, correl
 
 def localize_self_calibrated(record, pose_noise: PoseNoise | None = None, pose_sigma=None,
                              correlation_time: float | None = None, angle_sigma: float = 2e-3,
-                             range_sigma: float = 0.05, method: str = "triples_weighted") -> Localisation:
+                             range_sigma: float = 0.05, method: str = "triples_weighted", **options) -> Localisation:
     """:func:`~mysim_jax.perception.localize.localize_record` with the cameras' pose biases
     self-calibrated (:func:`self_calibrated_points`; estimates under ``"self_calibrated"``).
-    ``pose_sigma`` and ``correlation_time`` default to ``pose_noise``'s."""
+    ``pose_sigma`` and ``correlation_time`` default to ``pose_noise``'s; ``options``:
+    ``frames_per_independent``, ``gate``."""
     if pose_sigma is None or correlation_time is None:
         if pose_noise is None:
             raise PerceptionError("self-calibration needs pose_sigma and correlation_time, or pose_noise")
@@ -133,6 +141,6 @@ def localize_self_calibrated(record, pose_noise: PoseNoise | None = None, pose_s
         correlation_time = pose_noise.correlation_time if correlation_time is None else correlation_time
     has, p, b, r = record_rays(record, pose_noise)
     points, _ = self_calibrated_points(record.t, has, p, b, r, pose_sigma, correlation_time,
-                                       angle_sigma=angle_sigma, range_sigma=range_sigma, method=method)
+                                       angle_sigma=angle_sigma, range_sigma=range_sigma, method=method, **options)
     return Localisation(t=np.asarray(record.t), truth=np.asarray(record.target_pos),
                         estimates={"self_calibrated": points}, n_detecting=has.sum(1))
