@@ -97,11 +97,12 @@ def self_calibrated_points(t, has, origins, bearings, ranges, pose_sigma, correl
     has = np.asarray(has, bool)
     F, G = has.shape
     sp, st = (float(v) for v in pose_sigma)
-    if not (sp > 0 and st >= 0 and correlation_time >= 0 and frames_per_independent >= 1 and gate > 0):
-        raise PerceptionError(f"self-calibration needs pose_sigma (> 0 m, >= 0 rad), correlation_time >= 0, "
+    if not (sp >= 0 and st >= 0 and correlation_time >= 0 and frames_per_independent >= 1 and gate > 0):
+        raise PerceptionError(f"self-calibration needs pose_sigma (>= 0 m, >= 0 rad), correlation_time >= 0, "
                               f"frames_per_independent >= 1 and gate > 0; got {pose_sigma}, {correlation_time}, "
                               f"{frames_per_independent}, {gate}")
-    S0 = np.diag(np.tile(np.r_[np.full(3, sp * sp), np.full(3, max(st * st / 3.0, 1e-12))], G))
+    calibrate = sp > 0 or st > 0
+    S0 = np.diag(np.tile(np.r_[np.full(3, max(sp * sp, 1e-12)), np.full(3, max(st * st / 3.0, 1e-12))], G))
     S, th = S0.copy(), np.zeros(6 * G)
     points, biases = np.full((F, 3), np.nan), np.zeros((F, G, 6))
     sig = dict(angle_sigma=angle_sigma, range_sigma=range_sigma)
@@ -112,8 +113,8 @@ def self_calibrated_points(t, has, origins, bearings, ranges, pose_sigma, correl
         cams = np.flatnonzero(has[k])
         if cams.size:
             p, b, r = origins[k, cams], bearings[k, cams], ranges[k, cams]
-            x0 = fuse(method, *_corrected(p, b, th, cams), r, **sig)
-            if x0 is not None and cams.size >= 3:
+            x0 = fuse(method, *(_corrected(p, b, th, cams) if calibrate else (p, b)), r, **sig)
+            if x0 is not None and cams.size >= 3 and calibrate:
                 keep = _inliers(*_corrected(p, b, th, cams), x0, cams, S, angle_sigma, gate * np.sqrt(2.0))
                 if keep.sum() >= 3:
                     J, h = _frame_information(p[keep], b[keep], x0, cams[keep], G, angle_sigma)
