@@ -19,11 +19,16 @@ across-ray rows of the equation above in ``(x, θ)`` weighted by ``1 / (σ_a r)�
 eliminate ``x`` (Schur complement) and add the rest to ``θ``'s information. The target is
 then the fusion of the rays corrected by the updated ``θ``.
 
-Two choices keep the filter from explaining the detector's own errors as pose errors:
-the box-size ranges are not used for ``θ`` (a drone's box-size range is biased by its
-attitude for many frames on end, which ``dp`` along the ray would absorb), and a frame's
-information is divided by ``frames_per_independent`` (the detector's box errors follow
-the target's attitude and are correlated over several frames, not independent).
+Three choices keep the filter from explaining the detector's own errors as pose errors.
+The formation's scale mode (every origin moved away from the cameras' centroid by ``s``
+times its offset, the target with them) leaves every bearing as it is, yet least squares
+would shrink it to shrink the detector's misses (they scale with it), a drift frame after
+frame; it is projected out of each frame's information. The box-size ranges are not used
+for ``θ`` (a drone's box-size range is biased by its attitude for many frames on end,
+which ``dp`` along the ray would absorb). A frame's information is divided by
+``frames_per_independent`` (the detector's box errors follow the target's attitude and are
+correlated over several frames, not independent). With ``pose_sigma`` zero nothing is
+calibrated and the points are ``fuse(method)`` of the rays as given.
 """
 
 from __future__ import annotations
