@@ -220,3 +220,53 @@ def test_pose_noise_with_a_correlation_time_is_gauss_markov_over_frames():
         assert np.sqrt(np.mean(angle ** 2)) == pytest.approx(0.004, rel=0.1)
     with pytest.raises(PerceptionError, match="frame interval"):
         PoseNoise(position_m=0.03, correlation_time=1.0).apply(R, p)
+
+
+def _biased_formation(seed, bias: bool, frames=80):
+    """Four cameras on a 2.2 m square 1.5 m above a target that circles below them, then flies
+    6 m away; each camera's believed pose off by a constant position (36 mm per axis) and
+    rotation (4 mrad) bias (or none); bearings with 2 mrad noise, ranges with 30 %."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(frames) * 0.05
+    away = np.clip(2 * t / t[-1] - 1, 0, 1)
+    target = np.stack([1.1 + 0.8 * np.sin(2 * t), 1.1 + 0.8 * np.cos(1.3 * t) - 6.0 * away, 0.2 * np.cos(2 * t)], -1)
+    cams = np.array([[0.0, 0.0, 1.5], [2.2, 0.0, 1.5], [2.2, 2.2, 1.5], [0.0, 2.2, 1.5]])
+    d = target[:, None] - cams
+    ranges = np.linalg.norm(d, axis=-1)
+    b = d / ranges[..., None] + rng.normal(0, 2e-3, d.shape)
+    dp, w = rng.normal(0, 0.036, (4, 3)) * bias, rng.normal(0, 0.004 / np.sqrt(3), (4, 3)) * bias
+    b = b + np.cross(w, b)                                  # the believed bearings: rotated by w
+    b /= np.linalg.norm(b, axis=-1, keepdims=True)
+    origins = np.broadcast_to(cams + dp, d.shape).copy()
+    return t, target, origins, b, ranges * (1 + rng.normal(0, 0.3, ranges.shape))
+
+
+def test_self_calibrated_pose_biases_lower_the_error():
+    """The cameras' relative pose biases show in their rays' disagreement: calibrating them
+    lowers the fused error over draws of the biases (measured 39.5 -> 31.5 mm mean) and leaves
+    it as it was without biases (measured 10.3 -> 10.6 mm); with no pose errors assumed it is
+    the plain fusion."""
+    from mysim_jax.perception.pose_bias import self_calibrated_points
+
+    def mean_errors(bias):
+        plain, calibrated = [], []
+        for seed in range(4):
+            t, target, origins, b, r = _biased_formation(seed, bias, frames=60)
+            plain += [np.linalg.norm(fuse("triples_weighted", origins[k], b[k], r[k], range_sigma=0.3) - target[k])
+                      for k in range(len(t))]
+            pts, biases = self_calibrated_points(t, np.ones(r.shape, bool), origins, b, r, (0.036, 0.004), 16.5,
+                                                 range_sigma=0.3)
+            assert biases.shape == (len(t), 4, 6) and np.all(np.isfinite(pts))
+            calibrated += list(np.linalg.norm(pts - target, axis=1))
+        return np.mean(plain), np.mean(calibrated)
+
+    plain, calibrated = mean_errors(bias=True)
+    assert calibrated < plain - 0.004, (plain, calibrated)
+    plain, calibrated = mean_errors(bias=False)
+    assert abs(calibrated - plain) < 0.1 * plain, (plain, calibrated)
+    t, _, origins, b, r = _biased_formation(0, True, frames=5)
+    pts, biases = self_calibrated_points(t, np.ones(r.shape, bool), origins, b, r, (0.0, 0.0), 16.5, range_sigma=0.3)
+    assert np.array_equal(pts, [fuse("triples_weighted", origins[k], b[k], r[k], range_sigma=0.3) for k in range(5)])
+    assert not biases.any()
+    with pytest.raises(PerceptionError, match="pose_sigma"):
+        self_calibrated_points(t, np.ones(r.shape, bool), origins, b, r, (-0.01, 0.004), 16.5)

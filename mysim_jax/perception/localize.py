@@ -292,10 +292,11 @@ class Localisation:
         return out
 
 
-def localize_record(record, pose_noise: PoseNoise | None = None, methods=METHODS, angle_sigma: float = 2e-3,
-                    range_sigma: float = 0.05, progress: bool = False) -> Localisation:
-    """Estimate the target in every frame of a :class:`~mysim_jax.perception.track.TrackingRecord`
-    from its detections, with the true camera poses or ``pose_noise``-perturbed ones."""
+def record_rays(record, pose_noise: PoseNoise | None = None):
+    """The rays of a :class:`~mysim_jax.perception.track.TrackingRecord`'s detections: ``has``
+    (F, G) bool, origins (F, G, 3) m, unit bearings (F, G, 3) and box-size ranges (F, G) m
+    (NaN: no detection, or a box cut by the border), with the true camera poses or
+    ``pose_noise``-perturbed ones."""
     intr = record.intr
     R, p = record.camera_R, record.camera_p
     if pose_noise is not None:
@@ -308,6 +309,14 @@ def localize_record(record, pose_noise: PoseNoise | None = None, methods=METHODS
     bearings = pixel_bearings(intr, R, centres)
     ranges = sphere_range(box_size_px(intr, safe), record.target_radius, intr.fx)
     ranges = np.where(has & ~box_touches_border(intr, safe) & (box_size_px(intr, safe) > 0), ranges, np.nan)
+    return has, p, bearings, ranges
+
+
+def localize_record(record, pose_noise: PoseNoise | None = None, methods=METHODS, angle_sigma: float = 2e-3,
+                    range_sigma: float = 0.05, progress: bool = False) -> Localisation:
+    """Estimate the target in every frame of a :class:`~mysim_jax.perception.track.TrackingRecord`
+    from its detections, with the true camera poses or ``pose_noise``-perturbed ones."""
+    has, p, bearings, ranges = record_rays(record, pose_noise)
     F = len(record.t)
     est = {m: np.full((F, 3), np.nan) for m in methods}
     for k in tqdm(range(F), desc="localise", unit="frame", disable=not progress):

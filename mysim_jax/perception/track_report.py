@@ -19,6 +19,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 from mysim_jax.perception.localize import (METHODS, PoseNoise, box_size_px, box_touches_border, localize_record,
                                            size_range_fits, sphere_range)
 from mysim_jax.perception.metrics import gauss_markov_fit
+from mysim_jax.perception.pose_bias import localize_self_calibrated
 from mysim_jax.perception.target_filter import target_filter
 from mysim_jax.perception.track import TrackingRecord, target_moving, tracking_metrics
 
@@ -152,30 +153,50 @@ def target_error_model(record: TrackingRecord, loc, poses: str = "true", method:
             "velocity_m_s": gauss_markov_fit(t, v[first:] - record.target_vel[first:])}
 
 
+def _error_stats(loc, method: str) -> tuple[float, float]:
+    """Mean and p95 (m) of ``method``'s error over the frames it has an estimate in."""
+    e = np.linalg.norm(loc.estimates[method] - loc.truth, axis=1)
+    e = e[np.isfinite(e)]
+    return float(e.mean()), float(np.percentile(e, 95))
+
+
+def _draw_summary(stats: list) -> dict:
+    means, p95s = [m for m, _ in stats], [p for _, p in stats]
+    return {"error_mean_m": float(np.mean(means)), "error_p95_m": float(np.mean(p95s)),
+            "draw_mean_range_m": [min(means), max(means)]}
+
+
 def pose_noise_seeds(record: TrackingRecord, pose_noise: PoseNoise, seeds: int, range_sigma: float,
                      method: str = TEAM_METHOD) -> dict:
     """The fused target error (``method``) with ``seeds`` draws of ``pose_noise`` (seeds 0,
     1, ...), from the run's detections and, in the same frames, from the renderer's true
     boxes: what the camera-pose errors alone cost, whatever the detector. Per kind of box:
     the error mean and p95 (m) averaged over the draws, and the smallest and largest
-    draw's mean; ``error_model``: the team track's error model pooled over the draws
+    draw's mean; ``self_calibrated``: the same with the cameras' pose biases calibrated
+    from the target's rays (:mod:`mysim_jax.perception.pose_bias`, assuming ``pose_noise``'s
+    spreads; ``true_poses``: with the true poses, the cost of calibrating what is not
+    there); ``error_model``: the team track's error model pooled over the draws
     (:func:`pooled_error_model`)."""
     truth = dataclasses.replace(record, det_box=np.where(np.isfinite(record.det_box), record.true_box, np.nan))
     out = {"seeds": seeds, "method": method}
+    calibrated = {}
     models = []
     for name, rec in (("detections", record), ("true_boxes", truth)):
-        means, p95s = [], []
+        plain, cal = [], []
         for seed in range(seeds):
-            loc = localize_record(rec, pose_noise=dataclasses.replace(pose_noise, seed=seed), methods=(method,),
-                                  range_sigma=range_sigma)
-            e = np.linalg.norm(loc.estimates[method] - loc.truth, axis=1)
-            e = e[np.isfinite(e)]
-            means.append(float(e.mean()))
-            p95s.append(float(np.percentile(e, 95)))
+            noise = dataclasses.replace(pose_noise, seed=seed)
+            loc = localize_record(rec, pose_noise=noise, methods=(method,), range_sigma=range_sigma)
+            plain.append(_error_stats(loc, method))
+            cal.append(_error_stats(localize_self_calibrated(rec, noise, range_sigma=range_sigma, method=method),
+                                    "self_calibrated"))
             if name == "detections":
                 models.append(target_error_model(record, loc, poses="perturbed", method=method))
-        out[name] = {"error_mean_m": float(np.mean(means)), "error_p95_m": float(np.mean(p95s)),
-                     "draw_mean_range_m": [min(means), max(means)]}
+        out[name] = _draw_summary(plain)
+        calibrated[name] = _draw_summary(cal)
+    loc = localize_self_calibrated(record, pose_sigma=(pose_noise.position_m, pose_noise.rotation_rad),
+                                   correlation_time=pose_noise.correlation_time, range_sigma=range_sigma, method=method)
+    mean, p95 = _error_stats(loc, "self_calibrated")
+    out["self_calibrated"] = {**calibrated, "true_poses": {"error_mean_m": mean, "error_p95_m": p95}}
     out["error_model"] = pooled_error_model(models)
     return out
 
@@ -294,6 +315,14 @@ def tracking_summary_lines(scene: str, record, metrics: dict, frame_rate: float,
                      f"(draws {d['draw_mean_range_m'][0]:.4f}-{d['draw_mean_range_m'][1]:.4f}), p95 "
                      f"{d['error_p95_m']:.4f} m; from the true boxes in the same frames: mean {tb['error_mean_m']:.4f} m, "
                      f"p95 {tb['error_p95_m']:.4f} m")
+        sc = draws.get("self_calibrated")
+        if sc is not None:
+            d, tb, tp = sc["detections"], sc["true_boxes"], sc["true_poses"]
+            lines.append(f"  the same with the cameras' pose biases self-calibrated: error mean {d['error_mean_m']:.4f} m "
+                         f"(draws {d['draw_mean_range_m'][0]:.4f}-{d['draw_mean_range_m'][1]:.4f}), p95 "
+                         f"{d['error_p95_m']:.4f} m; true boxes: mean {tb['error_mean_m']:.4f} m, p95 "
+                         f"{tb['error_p95_m']:.4f} m; true poses: mean {tp['error_mean_m']:.4f} m, p95 "
+                         f"{tp['error_p95_m']:.4f} m")
     for key in ("error_model", "error_model_draws"):
         if "position_m" in metrics.get(key, {}):
             lines.append(_team_track_line(metrics[key]))
