@@ -39,9 +39,10 @@ def test_a_tiny_random_search_spends_its_budget_and_is_no_worse_than_the_configu
     spent = []
     result = tune(problem, "random", budget, batch=2, seed=3, progress=spent.append)
     assert result.team_steps == sum(spent) == 4 * problem.steps_per_evaluation <= budget
-    nominal = problem.evaluate(np.zeros((2, problem.size)))         # the shape the search compiled
-    assert nominal[0] == nominal[1]                                 # the same fixed episodes
-    assert result.best_value <= nominal[0]
+    nominal = problem.evaluate(np.zeros((1, problem.size)))[0]     # padded to the search's 2 candidates
+    mixed = problem.evaluate(np.stack([np.zeros(problem.size), result.best_u]))
+    assert mixed[0] == nominal and mixed[1] == result.best_value    # the same fixed episodes for each
+    assert result.best_value <= nominal
     assert np.all(result.best_u >= problem.lower) and np.all(result.best_u <= problem.upper)
     if np.any(result.best_u != 0.0):                                # another candidate won: it differs
         assert not np.allclose(list(tuned_fields(problem, result.best_u).values()), problem.nominal)

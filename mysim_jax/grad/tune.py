@@ -97,7 +97,7 @@ def config_box(team_params, names, lower: float, upper: float, margin: float = 0
         mid = 0.5 * (nom[a] + nom[b])
         hi[ja] = min(hi[ja], (mid - nom[a]) / scale[a] - margin)
         lo[jb] = max(lo[jb], (mid - nom[b]) / scale[b] + margin)
-    return check_box(lo, hi)
+    return check_box(np.minimum(lo, 0.0), np.maximum(hi, 0.0))     # the configured team stays inside
 
 
 class TuningProblem:
@@ -128,6 +128,7 @@ class TuningProblem:
         self.run_keys = split[:, 1]
         self.starts = jax.jit(jax.vmap(lambda k: env.reset(k, params)[1]))(split[:, 0])
         self.dtype = self.starts.sim.phys.body_pos.dtype
+        self._sizes = set()           # the candidate counts evaluate has compiled for
 
     @property
     def env(self):
@@ -171,8 +172,15 @@ class TuningProblem:
         return states, jnp.tile(self.run_keys, (P, 1))
 
     def evaluate(self, V) -> np.ndarray:
-        """Mean ``J`` [m] over the episodes of every candidate ``V`` ``(P, d)`` -> ``(P,)``."""
+        """Mean ``J`` [m] over the episodes of every candidate ``V`` ``(P, d)`` -> ``(P,)``.
+        Fewer candidates than an earlier call are padded to that call's number (one
+        compiled program serves both: a search's last, smaller batch compiles nothing)."""
         V = self._check(V, 2)
+        larger = [p for p in self._sizes if p > V.shape[0]]
+        if larger:
+            pad = np.zeros((min(larger) - V.shape[0], self.size))
+            return self.evaluate(np.concatenate([V, pad]))[:V.shape[0]]
+        self._sizes.add(V.shape[0])
         P, B, n = V.shape[0], self.episodes, self.horizon
         states, keys = self._tiled(P)
         u = jnp.repeat(self.full_u(V), B, axis=0)

@@ -54,7 +54,9 @@ def run_tune(config, settings: dict, out_dir: Path, judge_config=None, weights: 
               disable=not progress) as bar:
         result = tune(problem, settings["method"], settings["budget"], batch=settings["batch"],
                       seed=settings["seed"], progress=bar.update)
-    nominal = float(problem.evaluate(np.zeros((1, problem.size)))[0])
+    # the configured team's value on the same episodes (gradient descent starts there)
+    nominal = (result.history[0]["value"] if settings["method"] == "grad"
+               else float(problem.evaluate(np.zeros((1, problem.size)))[0]))
     policy = config.team.policy if config.team is not None else "scripted"
     out = {"config": settings.get("config"), "settings": settings, "weights": dataclasses.asdict(weights),
            "machine": {"cpu": cpu_model(), "cores": usable_cores()}, "team": type(env.scripted).__name__,
