@@ -79,6 +79,7 @@ LONGEST_FIRST = (
     "test_implicit_springs.py",
     "test_detector.py",
     "test_gradmap.py",
+    "test_tune.py",
     "test_broad_phase.py",
     "test_stability.py",
     "test_tuning.py",
