@@ -63,29 +63,11 @@ def _caps(items) -> dict:
     return caps
 
 
-def _scene_configs(path: str, levels, overrides) -> dict:
-    """``{level: SceneConfig}``; raises ConfigError naming the problem."""
-    from mysim_jax.config.overrides import override_list
-    from mysim_jax.config.scene import ConfigError, load_config
-    from mysim_jax.core.config_base import read_yaml_file
-    from mysim_jax.mappo.config import load_train_config, scene_path
-
-    raw = read_yaml_file(path, "config file")
-    sets, scene = list(overrides), path
-    if isinstance(raw, dict) and isinstance(raw.get("env"), dict) and "scene" in raw["env"]:
-        train = load_train_config(path)
-        scene, sets = scene_path(train, path), [*train.env.set, *overrides]
-    configs = {level: load_config(scene, override_list(sets, level=level)) for level in levels}
-    for level, config in configs.items():
-        if config.env is None or config.net is None or config.target is None:
-            raise ConfigError(f"{path}: level {level}: not a capture environment (needs env:, net: and target:)")
-    return configs
-
-
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     from mysim_jax.config.scene import ConfigError
     from mysim_jax.grad.gradmap import MapSettings, check_settings, level_settings
+    from mysim_jax.mappo.config import capture_scenes
     from mysim_jax.io.output import OutputError, check_output_dir
 
     try:
@@ -95,7 +77,7 @@ def main(argv=None) -> int:
         check_settings(settings)
         if len(set(args.levels)) != len(args.levels):
             raise ValueError(f"--levels {' '.join(args.levels)}: a level is listed twice")
-        configs = _scene_configs(args.config, args.levels, args.overrides)
+        configs = capture_scenes(args.config, args.levels, args.overrides)
         for level, config in configs.items():
             check_settings(level_settings(settings, caps.get(level)), 1.0 / config.env.policy_rate, config.sim.t_end)
         out = check_output_dir(args.out)

@@ -62,20 +62,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _scene_configs(path: str, levels, overrides) -> dict:
     """``{level: SceneConfig}`` of a capture scene with a scripted team; ConfigError else."""
-    from mysim_jax.config.overrides import override_list
-    from mysim_jax.config.scene import ConfigError, load_config
-    from mysim_jax.core.config_base import read_yaml_file
-    from mysim_jax.mappo.config import load_train_config, scene_path
+    from mysim_jax.config.scene import ConfigError
+    from mysim_jax.mappo.config import capture_scenes
 
-    raw = read_yaml_file(path, "config file")
-    sets, scene = list(overrides), path
-    if isinstance(raw, dict) and isinstance(raw.get("env"), dict) and "scene" in raw["env"]:
-        train = load_train_config(path)
-        scene, sets = scene_path(train, path), [*train.env.set, *overrides]
-    configs = {level: load_config(scene, override_list(sets, level=level)) for level in dict.fromkeys(levels)}
-    for level, config in configs.items():
-        if config.env is None or config.net is None or config.target is None:
-            raise ConfigError(f"{path}: level {level}: not a capture environment (needs env:, net: and target:)")
+    configs = capture_scenes(path, levels, overrides)
+    for config in configs.values():
         if config.team is not None and config.team.policy == "hold":
             raise ConfigError(f"{path}: team.policy: hold has nothing to tune")
     return configs

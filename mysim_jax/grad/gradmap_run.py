@@ -19,7 +19,6 @@ import csv
 import dataclasses
 import io
 import json
-import platform
 import time
 from pathlib import Path
 
@@ -29,6 +28,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 from tqdm.auto import tqdm  # noqa: E402
 
+from mysim_jax.core.machine import cpu_model, usable_cores  # noqa: E402
 from mysim_jax.grad.engine import GradientEngine  # noqa: E402
 from mysim_jax.grad.gradmap import KINDS, MapSettings, horizon_steps, level_settings, measure_level  # noqa: E402
 from mysim_jax.grad.objective import ObjectiveWeights  # noqa: E402
@@ -60,7 +60,8 @@ def run_gradmap(configs: dict, settings: MapSettings, out_dir: Path, source: str
             rows += measure_level(engine, plans[level], level, progress=bar.update)
     result = {"config": source, "levels": list(configs), "settings": _jsonable(settings), "caps_s": caps,
               "weights": dataclasses.asdict(weights), "team_parameters": list(team.names),
-              "team_nominal": list(team.nominal), "machine": machine(), "wall_time_s": time.perf_counter() - t0,
+              "team_nominal": list(team.nominal), "machine": {"cpu": cpu_model(), "cores": usable_cores()},
+              "wall_time_s": time.perf_counter() - t0,
               "rows": rows}
     with staged_output(out_dir) as out:
         (out / "gradmap.json").write_text(json.dumps(result, indent=2))
@@ -77,23 +78,11 @@ def _jsonable(settings: MapSettings) -> dict:
     return dataclasses.asdict(settings)
 
 
-def machine() -> dict:
-    """The CPU (``/proc/cpuinfo``'s model name and family where readable) and the platform."""
-    info = {"platform": platform.platform(), "processor": platform.processor()}
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            key = line.split(":")[0].strip()
-            if key in ("model name", "cpu family") and key not in info:
-                info[key] = line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return info
-
-
-def csv_text(rows) -> str:
-    """The rows as CSV (:data:`COLUMNS`; a missing value is empty)."""
+def csv_text(rows, columns=COLUMNS) -> str:
+    """The rows (dicts) as CSV with ``columns`` (:data:`COLUMNS` by default; a missing
+    value is empty, a float written with 6 significant digits)."""
     buf = io.StringIO()
-    writer = csv.DictWriter(buf, fieldnames=COLUMNS, extrasaction="ignore")
+    writer = csv.DictWriter(buf, fieldnames=columns, extrasaction="ignore")
     writer.writeheader()
     for r in rows:
         writer.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()})

@@ -15,9 +15,7 @@ Into a folder:
 
 from __future__ import annotations
 
-import csv
 import dataclasses
-import io
 import json
 import time
 from pathlib import Path
@@ -30,6 +28,7 @@ import numpy as np  # noqa: E402
 from tqdm.auto import tqdm  # noqa: E402
 
 from mysim_jax.core.machine import cpu_model, usable_cores  # noqa: E402
+from mysim_jax.grad.gradmap_run import csv_text  # noqa: E402
 from mysim_jax.grad.objective import ObjectiveWeights  # noqa: E402
 from mysim_jax.grad.tune import TuningProblem, judge, team_block, tune, tuned_fields  # noqa: E402
 from mysim_jax.io.output import staged_output  # noqa: E402
@@ -85,12 +84,7 @@ def run_tune(config, settings: dict, out_dir: Path, judge_config=None, weights: 
 
 def history_csv(history) -> str:
     """The history as CSV (:data:`HISTORY_COLUMNS`)."""
-    buf = io.StringIO()
-    writer = csv.DictWriter(buf, fieldnames=HISTORY_COLUMNS, extrasaction="ignore")
-    writer.writeheader()
-    for row in history:
-        writer.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items()})
-    return buf.getvalue()
+    return csv_text(history, HISTORY_COLUMNS)
 
 
 def plot_best(history, nominal: float, path: Path, title: str) -> None:

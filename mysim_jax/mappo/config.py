@@ -407,6 +407,23 @@ def load_train_config(path: str | Path, overrides=(), profile: str | None = None
     return config
 
 
+def capture_scenes(path: str | Path, levels, overrides=()) -> dict:
+    """``{level: SceneConfig}`` of a capture scene file, or of a training file's scene (its
+    ``env.set`` first), with ``overrides`` and ``level=LEVEL`` applied, for each level of
+    ``levels`` (repeats once). Raises ConfigError naming the problem, e.g. a scene that is
+    not a capture environment (no ``env:``, ``net:`` or ``target:``)."""
+    raw = read_yaml_file(path, "config file")
+    sets, scene = list(overrides), path
+    if isinstance(raw, dict) and isinstance(raw.get("env"), dict) and "scene" in raw["env"]:
+        train = load_train_config(path)
+        scene, sets = scene_path(train, path), [*train.env.set, *overrides]
+    configs = {level: load_config(scene, override_list(sets, level=level)) for level in dict.fromkeys(levels)}
+    for level, config in configs.items():
+        if config.env is None or config.net is None or config.target is None:
+            raise ConfigError(f"{path}: level {level}: not a capture environment (needs env:, net: and target:)")
+    return configs
+
+
 def scene_path(config: TrainConfig, train_path: str | Path) -> Path | None:
     """The scene file, resolved relative to the training file's folder."""
     if config.env.scene is None:
