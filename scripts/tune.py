@@ -3,7 +3,7 @@
 
     python scripts/tune.py configs/capture_env_maneuvering.yaml --method cmaes --budget 20000 --out out/tune
     python scripts/tune.py CONFIG --method grad|cmaes|random --budget TEAM_STEPS [--episodes 4] [--horizon-s H]
-        [--level train] [--truncate M] [--batch 8] [--box -0.5 0.5] [--seed 0]
+        [--level train] [--truncate M] [--batch 8] [--box -0.5 0.5] [--vertical-weight 0] [--ground-weight 0] [--seed 0]
         [--judge-episodes 1000] [--judge-level full] [--judge-seed 12345] [--set KEY=VALUE ...] --out DIR
 
 CONFIG is a capture scene with an ``env:`` block and a scripted ``team:`` or a training
@@ -49,6 +49,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--batch", type=int, default=8, help="random: candidates per batch (default 8)")
     parser.add_argument("--box", nargs=2, type=float, default=[-0.5, 0.5], metavar=("LOWER", "UPPER"),
                         help="relative bounds of every field (default -0.5 0.5: +-50 %%)")
+    parser.add_argument("--vertical-weight", type=float, default=0.0, metavar="W",
+                        help="weight [m/m] of the target's height off the net's centre at the horizon's end in the "
+                             "objective (default 0: no such term)")
+    parser.add_argument("--ground-weight", type=float, default=0.0, metavar="W",
+                        help="weight [m/m] of the target's centre under 0.5 m above the ground at the horizon's end "
+                             "(default 0: no such term)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the training episodes and the search (default 0)")
     parser.add_argument("--judge-episodes", type=int, default=1000,
                         help="fresh episodes judging tuned vs configured team (default 1000; 0: no judging)")
@@ -81,6 +87,9 @@ def _checked(args) -> tuple[dict, dict]:
                              ("--seed", args.seed, 0), ("--judge-seed", args.judge_seed, 0)):
         if value < low:
             raise ValueError(f"{flag} {value}: must be at least {low}")
+    for flag, value in (("--vertical-weight", args.vertical_weight), ("--ground-weight", args.ground_weight)):
+        if not value >= 0.0:
+            raise ValueError(f"{flag} {value:g}: must be >= 0")
     if args.truncate is not None and args.truncate < 1:
         raise ValueError(f"--truncate {args.truncate}: must be at least 1")
     if not args.box[0] < 0.0 < args.box[1]:
@@ -104,7 +113,8 @@ def _checked(args) -> tuple[dict, dict]:
                 "horizon": horizon, "horizon_s": args.horizon_s, "level": args.level, "truncate": args.truncate,
                 "batch": args.batch, "box": tuple(args.box), "seed": args.seed, "overrides": list(args.overrides),
                 "judge_episodes": args.judge_episodes, "judge_level": args.judge_level, "judge_seed": args.judge_seed,
-                "judge_batch": args.judge_batch}
+                "judge_batch": args.judge_batch, "vertical_weight": args.vertical_weight,
+                "ground_weight": args.ground_weight}
     return configs, settings
 
 
@@ -125,10 +135,12 @@ def main(argv=None) -> int:
 
         jax.config.update("jax_enable_x64", True)
 
+    from mysim_jax.grad.objective import ObjectiveWeights
     from mysim_jax.grad.tune_run import run_tune
 
     judge_config = configs.get(args.judge_level) if args.judge_episodes > 0 else None
-    run_tune(configs[args.level], settings, out, judge_config=judge_config, progress=not args.no_progress)
+    run_tune(configs[args.level], settings, out, judge_config=judge_config,
+             weights=ObjectiveWeights(vertical=args.vertical_weight, ground=args.ground_weight), progress=not args.no_progress)
     return 0
 
 

@@ -105,3 +105,32 @@ def test_the_script_refuses_bad_input_before_compiling(tmp_path, capsys, args, m
                                                          "--out", out, "--no-progress"], capsys)
     assert code == 2 and message in err and err.startswith("error:")
     assert only_array_ops(compiled) and not out.exists()
+
+
+def test_the_optional_end_terms_are_the_target_height_off_the_net_and_under_the_clearance():
+    """``vertical`` adds the target's smoothed height off the net's centre and ``ground``
+    its depth under ``ground_clearance``, recomputed here in NumPy from the state; with
+    both weights zero the end value is the plain one."""
+    from mysim_jax.grad.objective import end_value
+
+    env, params = make_env(load_config(CONFIGS / "capture_env_falling.yaml", SMALL[:3]))
+    _, state = env.reset(jax.random.PRNGKey(0), params)
+    phys = state.sim.phys
+    target = np.asarray(phys.body_pos[env.target_body], np.float64)
+    for z in (float(target[2]), 0.2):                                # spawned high, then near the ground
+        pos = phys.body_pos.at[env.target_body, 2].set(z)
+        s = state.replace(sim=state.sim.replace(phys=phys.replace(body_pos=pos)))
+        knots = np.asarray(s.sim.phys.point_pos, np.float64)[np.asarray(env.knot_points)]
+        vel = np.asarray(s.sim.phys.point_vel, np.float64)[np.asarray(env.knot_points)]
+        centre, p = knots.mean(0), np.r_[target[:2], z]
+        eps = 0.01
+        smooth = lambda x: np.sqrt(np.sum(x * x) + eps * eps) - eps          # noqa: E731
+        plain = smooth(p[:2] - centre[:2]) + 0.2 * smooth(np.asarray(s.sim.phys.body_vel[env.target_body]) - vel.mean(0))
+        low = eps * np.log1p(np.exp((0.5 - z) / eps))
+        w = ObjectiveWeights(vertical=1.0, ground=5.0)
+        assert float(end_value(env, ObjectiveWeights(), s, params)) == pytest.approx(plain, rel=1e-5)
+        assert float(end_value(env, w, s, params)) == pytest.approx(plain + smooth(p[2:] - centre[2:]) + 5.0 * low,
+                                                                     rel=1e-5)
+    assert low == pytest.approx(0.3, abs=1e-6)                            # 0.2 m against a 0.5 m clearance
+    with pytest.raises(ValueError, match="ground"):
+        ObjectiveWeights(ground=-1.0)

@@ -99,6 +99,7 @@ def test_the_scripts_methods_are_the_searchs():
     (["--method", "grad", "--budget", "1000", "--truncate", "0"], "--truncate 0"),
     (["--method", "cmaes", "--budget", "1000", "--box", "0.1", "0.5"], "--box"),
     (["--method", "random", "--budget", "1000", "--episodes", "0"], "--episodes 0"),
+    (["--method", "random", "--budget", "1000", "--ground-weight", "-1"], "--ground-weight -1: must be >= 0"),
 ])
 def test_the_script_refuses_bad_input_before_compiling(tmp_path, capsys, args, message):
     out = tmp_path / "tune"

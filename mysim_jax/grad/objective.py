@@ -14,6 +14,14 @@ For a horizon of ``n`` policy steps from a state ``s_0`` to ``s_n``::
 * ``effort`` [1]: the mean over every rotor of ``(omega / omega_max)^2`` (the rotor
   speed's share of its maximum, squared; about thrust per maximum thrust); ``w_e`` [m].
 
+* ``d_z`` [m] (optional, weight ``w_z`` = ``vertical``, 0 by default): the target's height
+  above or below the net's centre at the horizon's end, smoothed like ``d_xy``, added to
+  the end terms when ``w_z`` is not zero: a team that shadows the target far below it, or
+  lets it fall past the net to the ground, pays the height between them;
+* ``low`` [m] (optional, weight ``w_g`` = ``ground``, 0 by default): how far the target's
+  centre is under ``ground_clearance`` at the horizon's end (a softplus over
+  ``smooth_length``): a target on the ground fails the capture verdict wherever the net is.
+
 So ``J`` is in metres. The two penalties are means over the horizon's steps, so a
 horizon's length does not scale them. Everything here is for one environment and pure.
 """
@@ -42,9 +50,12 @@ class ObjectiveWeights:
     tension_softness: float = 0.2    # N, 1 / beta of the softplus
     smooth_length: float = 0.01      # m, eps of the smoothed horizontal distance
     smooth_speed: float = 0.01       # m/s, eps of the smoothed relative speed
+    vertical: float = 0.0            # w_z, m per m of the target's height off the net's centre (0: no term)
+    ground: float = 0.0              # w_g, m per m of the target's centre under ground_clearance (0: no term)
+    ground_clearance: float = 0.5    # m, the height above the ground (z = 0) the target should stay over
 
     def __post_init__(self):
-        for name in ("speed", "tension", "effort", "tension_limit"):
+        for name in ("speed", "tension", "effort", "tension_limit", "vertical", "ground", "ground_clearance"):
             if not getattr(self, name) >= 0.0:
                 raise ValueError(f"objective weight {name}: {getattr(self, name)!r}, expected >= 0")
         for name in ("tension_softness", "smooth_length", "smooth_speed"):
@@ -86,15 +97,19 @@ def _smooth_norm(x, eps):
 
 
 def end_terms(env, weights: ObjectiveWeights, state, params) -> dict:
-    """The end-of-horizon terms of one state, unweighted: ``distance`` [m] and
-    ``relative_speed`` [m/s]."""
+    """The end-of-horizon terms of one state, unweighted: ``distance`` [m],
+    ``relative_speed`` [m/s], ``height`` [m] (the target's centre above or below the
+    net's centre, smoothed like ``distance``) and ``low`` [m] (how far the target's centre
+    is under ``ground_clearance``, smoothed as a softplus over ``smooth_length``)."""
     phys = state.sim.phys
     knots = np.asarray(env.knot_points, dtype=np.int32)
     centre = jnp.mean(phys.point_pos[knots], axis=0)
     v_net = jnp.mean(phys.point_vel[knots], axis=0)
     p, v = phys.body_pos[env.target_body], phys.body_vel[env.target_body]
     return {"distance": _smooth_norm(p[:2] - centre[:2], weights.smooth_length),
-            "relative_speed": _smooth_norm(v - v_net, weights.smooth_speed)}
+            "relative_speed": _smooth_norm(v - v_net, weights.smooth_speed),
+            "height": _smooth_norm(p[2:] - centre[2:], weights.smooth_length),
+            "low": jax.nn.softplus((weights.ground_clearance - p[2]) / weights.smooth_length) * weights.smooth_length}
 
 
 def running_terms(env, weights: ObjectiveWeights, state, params, springs) -> dict:
@@ -109,9 +124,14 @@ def running_terms(env, weights: ObjectiveWeights, state, params, springs) -> dic
 
 
 def end_value(env, weights: ObjectiveWeights, state, params):
-    """``d_xy + w_v v_rel`` [m] of the horizon's last state."""
+    """``d_xy + w_v v_rel (+ w_z d_z + w_g low)`` [m] of the horizon's last state; the
+    optional terms only when their weights are not zero (so the objective without them is
+    unchanged)."""
     t = end_terms(env, weights, state, params)
-    return t["distance"] + weights.speed * t["relative_speed"]
+    value = t["distance"] + weights.speed * t["relative_speed"]
+    if weights.vertical:
+        value = value + weights.vertical * t["height"]
+    return value + weights.ground * t["low"] if weights.ground else value
 
 
 def running_value(env, weights: ObjectiveWeights, state, params, springs):
