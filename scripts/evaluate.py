@@ -135,8 +135,9 @@ def main(argv=None) -> int:
 
     import jax
 
-    if config.sim.precision == "float64":
-        jax.config.update("jax_enable_x64", True)
+    from mysim_jax.core.precision import use_precision
+
+    use_precision(config.sim.precision)
 
     from mysim_jax.mappo.policies import make_checked_policy
     from mysim_jax.tasks.capture import make_env

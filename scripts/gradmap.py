@@ -85,10 +85,9 @@ def main(argv=None) -> int:
         print(f"error: {err}", file=sys.stderr)
         return 2
 
-    if any(c.sim.precision == "float64" for c in configs.values()):
-        import jax
+    from mysim_jax.core.precision import use_precision
 
-        jax.config.update("jax_enable_x64", True)
+    use_precision(*(c.sim.precision for c in configs.values()))
 
     from mysim_jax.grad.gradmap_run import run_gradmap
 

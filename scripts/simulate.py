@@ -79,10 +79,9 @@ def main(argv=None) -> int:
         print("note: replay.html skipped: the HTML replay needs plotly (pip install -e '.[plots]')", file=sys.stderr)
         args.no_replay = True
 
-    import jax
+    from mysim_jax.core.precision import use_precision
 
-    if config.sim.precision == "float64":
-        jax.config.update("jax_enable_x64", True)
+    use_precision(config.sim.precision)
 
     from mysim_jax.tasks.run_scene import simulate_scene, summary_lines
 

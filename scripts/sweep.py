@@ -97,10 +97,9 @@ def main(argv=None) -> int:
     except (ConfigError, OutputError, PolicyError) as err:
         return _error(one_line(str(err)))
 
-    import jax
+    from mysim_jax.core.precision import use_precision
 
-    if plan.precision == "float64":
-        jax.config.update("jax_enable_x64", True)
+    use_precision(plan.precision)
 
     from mysim_jax.mappo.policies import make_checked_policy
     from mysim_jax.tasks.grid import run_sweep

@@ -74,10 +74,9 @@ def main(argv=None) -> int:
         print("error: --horizon must be positive", file=sys.stderr)
         return 2
 
-    import jax
+    from mysim_jax.core.precision import use_precision
 
-    if any(c.sim.precision == "float64" for c in [config] + heldout):
-        jax.config.update("jax_enable_x64", True)
+    use_precision(*(c.sim.precision for c in [config] + heldout))
 
     from mysim_jax.tuning.run import TuneSettings, tune_scene
 

@@ -58,6 +58,7 @@ from tqdm.auto import tqdm
 
 from mysim_jax.core import parallel
 from mysim_jax.core.config_base import ConfigError
+from mysim_jax.core.precision import use_precision
 from mysim_jax.mappo import bc
 from mysim_jax.mappo.algorithm import curriculum_of, run_keys, warm_start
 from mysim_jax.mappo.checkpoint import Checkpoints, load_policy
@@ -108,8 +109,7 @@ def make_environment(p: Prepared):
         env = ReachEnv()
         return env, env.default_params()
 
-    if p.scene.sim.precision == "float64":
-        jax.config.update("jax_enable_x64", True)
+    use_precision(p.scene.sim.precision)
 
     return make_env(p.scene, discount=p.config.algo.gamma)
 
