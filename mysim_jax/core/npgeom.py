@@ -51,3 +51,8 @@ def matrix_to_quat(m) -> np.ndarray:
     q = np.take_along_axis(table, k[..., None, None], axis=-2)[..., 0, :]
     q = q / np.linalg.norm(q, axis=-1, keepdims=True)
     return np.where(q[..., :1] < 0, -q, q)
+
+
+def skew(v) -> np.ndarray:
+    """The matrix ``[v]x`` (3, 3) with ``[v]x w = v x w``."""
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])

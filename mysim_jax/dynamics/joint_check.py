@@ -24,6 +24,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from mysim_jax.core.npgeom import skew
+
 # A joint's own rows are singular below this smallest / largest singular value (assembled
 # joints sit near 1: their Jacobian rows are unit cross products and unit position rows).
 SINGULAR_JOINT_RATIO = 1e-6
@@ -39,10 +41,6 @@ def _matrix(q) -> np.ndarray:
         [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
         [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
     ])
-
-
-def _skew(v) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
 def _frame(config, ref: str):
@@ -74,7 +72,7 @@ def joint_jacobian(config, joint) -> np.ndarray:
         for sign, (b, rot, offset, _) in zip((1.0, -1.0), sides):
             if b is not None:
                 row[6 * b + k] += sign
-                row[6 * b + 3:6 * b + 6] += -sign * (rot @ _skew(offset))[k]
+                row[6 * b + 3:6 * b + 6] += -sign * (rot @ skew(offset))[k]
         rows.append(row)
     (bi, rot_i, _, axes_i), (bj, rot_j, _, axes_j) = sides
     for ai, aj in _ANGULAR_ROWS[joint.type]:

@@ -35,12 +35,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from mysim_jax.core.npgeom import skew
 from mysim_jax.perception.camera import PerceptionError
 from mysim_jax.perception.localize import Localisation, PoseNoise, fuse, record_rays
-
-
-def _skew(b: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -b[2], b[1]], [b[2], 0.0, -b[0]], [-b[1], b[0], 0.0]])
 
 
 def _corrected(p: np.ndarray, b: np.ndarray, th: np.ndarray, cams: np.ndarray):
@@ -61,7 +58,7 @@ def _frame_information(p, b, x0, cams, n_cams: int, angle_sigma: float):
         A = np.zeros((3, n))
         A[:, :3] = P
         A[:, 3 + 6 * i:6 + 6 * i] = P
-        A[:, 6 + 6 * i:9 + 6 * i] = -r * _skew(bi)
+        A[:, 6 + 6 * i:9 + 6 * i] = -r * skew(bi)
         w = 1.0 / (angle_sigma * r) ** 2
         N += w * A.T @ A
         v += w * A.T @ (P @ pi)
