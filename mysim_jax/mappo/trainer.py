@@ -463,10 +463,7 @@ class Trainer:
         c = self.config
         knobs = self.knobs() if knobs is None else knobs
         env_state, obs, gstate, key, traj = self._rollout(ts, knobs)
-        last_value = self._values(ts.params, ts.ret_stats, ts.state_stats, gstate)
-        dones = jnp.broadcast_to(traj.done[..., None], traj.reward.shape)
-        adv, targets = gae(traj.reward, traj.value, dones, last_value, c.gamma, c.gae_lambda)
-        ret_stats = ts.ret_stats.update(targets) if c.value_norm else ts.ret_stats
+        adv, targets, ret_stats = self._targets(ts, traj, gstate)
         policy_coef, anchor_coef = self.schedule(ts.iteration, knobs)
 
         def to_critic_units(x):
@@ -507,6 +504,30 @@ class Trainer:
         key, k_update = jax.random.split(key)
         (params, opt_state, _), aux = jax.lax.scan(epoch, (ts.params, ts.opt_state, jnp.bool_(False)),
                                                    jax.random.split(k_update, c.update_epochs))
+        metrics = {k: jnp.mean(v) for k, v in aux.items()}
+        metrics.update(policy_coef=policy_coef, anchor_coef=anchor_coef)
+        return self._finish(ts, traj, targets, metrics, params=params, opt_state=opt_state, ret_stats=ret_stats,
+                            env_state=env_state, obs=obs, global_state=gstate, key=key)
+
+    def _targets(self, ts: TrainerState, traj: Transition, gstate):
+        """``(advantages, value targets, value normaliser)`` of a rollout ``traj`` ending at
+        the raw global states ``gstate`` (GAE with ``gamma`` and ``gae_lambda``; targets in
+        return units, the normaliser updated with them under ``value_norm``)."""
+        c = self.config
+        last_value = self._values(ts.params, ts.ret_stats, ts.state_stats, gstate)
+        dones = jnp.broadcast_to(traj.done[..., None], traj.reward.shape)
+        adv, targets = gae(traj.reward, traj.value, dones, last_value, c.gamma, c.gae_lambda)
+        ret_stats = ts.ret_stats.update(targets) if c.value_norm else ts.ret_stats
+        return adv, targets, ret_stats
+
+    def _finish(self, ts: TrainerState, traj: Transition, targets, metrics: dict, **new):
+        """The iteration's end, shared by the algorithms: the state ``ts`` with the fields
+        ``new`` (parameters, optimiser, environments, ...), the observation statistics
+        updated with the rollout ``traj``, one more iteration and the curriculum's next
+        stage; and ``metrics`` completed with the rollout's episodes (return, success,
+        length), the critic's explained variance of ``targets`` and the action noise."""
+        c = self.config
+        params = new["params"]
         frozen = self.uses_anchor and c.bc.freeze_obs_norm   # the actor keeps its start's normalisation
         obs_stats = ts.obs_stats.update(traj.raw_obs) if c.normalize_obs and not frozen else ts.obs_stats
         state_stats = ts.state_stats.update(traj.raw_state) if c.normalize_obs else ts.state_stats
@@ -514,7 +535,7 @@ class Trainer:
         ended = traj.done.astype(jnp.float32)
         n_ended = jnp.sum(ended)
         var_t = jnp.var(targets)
-        metrics = {k: jnp.mean(v) for k, v in aux.items()}
+        metrics = dict(metrics)
         metrics.update({
             "episodes": n_ended,
             "mean_return": jnp.sum(traj.episode_return * ended) / jnp.maximum(n_ended, 1.0),
@@ -523,12 +544,8 @@ class Trainer:
             "step_reward": jnp.mean(traj.step_reward),
             "explained_variance": 1.0 - jnp.var(targets - traj.value) / jnp.maximum(var_t, 1e-8),
             "action_std": jnp.mean(jnp.exp(params["actor"]["params"]["log_std"])),
-            "policy_coef": policy_coef,
-            "anchor_coef": anchor_coef,
         })
-        new = ts.replace(params=params, opt_state=opt_state, obs_stats=obs_stats, state_stats=state_stats,
-                         ret_stats=ret_stats, env_state=env_state, obs=obs, global_state=gstate, key=key,
-                         iteration=ts.iteration + 1)
+        new = ts.replace(obs_stats=obs_stats, state_stats=state_stats, iteration=ts.iteration + 1, **new)
         if self.curriculum is not None:
             # the stage this iteration trained in; the next draws from the stage the rule gives
             metrics["curriculum_stage"] = ts.curriculum.stage
