@@ -1,9 +1,12 @@
-"""MAPPO for the capture environment: a shared policy, a centralised critic, PPO.
+"""MAPPO for the capture environment: a shared policy, a centralised critic, PPO (or SHAC).
 
 * :mod:`mysim_jax.mappo.config` — training files (``env:``, ``algo:``, ``run:``), checked
   without JAX;
 * :mod:`mysim_jax.mappo.trainer` — :class:`~mysim_jax.mappo.trainer.Trainer`: MAPPO's
   state, iteration and scan of iterations;
+* :mod:`mysim_jax.mappo.shac` — :class:`~mysim_jax.mappo.shac.ShacTrainer` (``algo.name:
+  shac``): the same trainer with the actor's gradient taken through the simulator over a
+  short horizon; :func:`~mysim_jax.mappo.shac.make_trainer` picks the trainer of ``algo.name``;
 * :mod:`mysim_jax.mappo.networks` — the actor, the critic and the deterministic policy;
 * :mod:`mysim_jax.mappo.algorithm` — a whole run as a pure function of a key
   (:func:`~mysim_jax.mappo.algorithm.make_train`: start, warm start, iterations);

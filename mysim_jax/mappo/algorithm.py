@@ -24,6 +24,7 @@ import jax
 
 from mysim_jax.mappo import bc
 from mysim_jax.mappo.curriculum import Curriculum
+from mysim_jax.mappo.shac import make_trainer
 from mysim_jax.mappo.trainer import Trainer, TrainerState
 from mysim_jax.tasks.capture import scaled_target_ranges
 
@@ -81,7 +82,7 @@ def make_train(config, env, env_params, curriculum=None, init_policy: tuple | No
     (``(n_seeds, ...)`` leaves). One device; model selection, checkpoints and evaluation
     are ``scripts/train.py``'s host steps (module docstring). ``train.trainer`` is the
     :class:`~mysim_jax.mappo.trainer.Trainer`."""
-    trainer = Trainer(config, env, env_params, curriculum=curriculum_of(curriculum))
+    trainer = make_trainer(config, env, env_params, curriculum=curriculum_of(curriculum))
     if config.init == "policy" and init_policy is None:
         raise ValueError("algo.init: policy needs the starting policy: make_train(..., init_policy=(meta, arrays)) "
                          "with mysim_jax.mappo.checkpoint.load_policy(folder)")

@@ -168,14 +168,32 @@ class BCConfig(StrictModel):
     freeze_obs_norm: bool = False
 
 
+class ShacConfig(StrictModel):
+    """SHAC's own settings (``algo.name: shac``, :mod:`mysim_jax.mappo.shac`); the rest of
+    ``algo:`` (environments, horizon ``num_steps``, ``lr`` of the actor, ``gamma``,
+    ``gae_lambda`` of the critic's targets, the critic's ``update_epochs`` x
+    ``num_minibatches``, ``max_grad_norm``, networks, warm starts) means what it means for PPO."""
+
+    critic_lr: PosFloat | None = None      # the critic's Adam step (None: algo.lr)
+    # policy steps the actor's gradient crosses: the rollout's num_steps are cut into windows
+    # of this many, each bootstrapped by the critic at its end (None: one window, num_steps)
+    horizon: PosInt | None = None
+    # the critic's value at a window's end enters the actor's loss with its gradient through
+    # the state (SHAC); false: as a constant, so the actor follows the window's rewards alone
+    value_gradient: bool = True
+
+
 class AlgoConfig(StrictModel):
     """MAPPO's settings (:mod:`mysim_jax.mappo.trainer`). ``num_envs`` environments step
     side by side for ``num_steps`` policy steps per iteration; the ``batch_size`` team
     transitions of an iteration are split into ``num_minibatches`` minibatches and used
     for ``update_epochs`` epochs."""
 
+    # ppo: MAPPO's clipped update (mysim_jax.mappo.trainer); shac: short-horizon actor-critic,
+    # the actor's gradient taken through num_steps steps of the simulator (mysim_jax.mappo.shac)
+    name: Literal["ppo", "shac"] = "ppo"
     num_envs: PosInt = 256
-    num_steps: PosInt = 16                 # policy steps per environment per iteration
+    num_steps: PosInt = 16                 # policy steps per environment per iteration (shac: the horizon)
     total_env_steps: PosInt = 1_000_000    # team (policy) steps over all environments
     update_epochs: PosInt = 4
     num_minibatches: PosInt = 4
@@ -216,6 +234,7 @@ class AlgoConfig(StrictModel):
     init: Literal["none", "bc", "policy"] = "none"
     init_policy: str | None = None         # a policy folder (policy.json), relative to the training file
     bc: BCConfig = BCConfig()
+    shac: ShacConfig = ShacConfig()
 
     @model_validator(mode="after")
     def _sizes(self):
@@ -231,6 +250,18 @@ class AlgoConfig(StrictModel):
             raise ValueError("init: policy starts from a saved policy: give its folder as init_policy"
                              if self.init == "policy" else
                              f"init_policy {self.init_policy!r} is used only with init: policy (init is {self.init!r})")
+        if self.name == "ppo" and self.shac != ShacConfig():
+            raise ValueError("shac: settings of algo.name: shac, and algo.name is ppo")
+        if self.name == "shac":
+            if self.shac.horizon is not None and self.num_steps % self.shac.horizon:
+                raise ValueError(f"shac.horizon {self.shac.horizon} does not divide num_steps {self.num_steps}: the "
+                                 "rollout is cut into whole gradient windows")
+            unused = [f"{f} {getattr(self, f)}" for f, default in (("target_kl", None), ("clip_eps", 0.2),
+                                                                     ("ent_coef", 0.0)) if getattr(self, f) != default]
+            if unused:
+                raise ValueError(f"algo.name: shac has no policy ratio to clip, KL limit to stop at or entropy "
+                                 f"bonus; PPO's {', '.join(unused)} would be ignored: set target_kl to null and "
+                                 "leave clip_eps and ent_coef at their defaults (0.2, 0)")
         return self
 
     @property

@@ -69,6 +69,7 @@ from mysim_jax.mappo.run_files import (CSV_FIELDS, Prepared, describe_run, load_
 from mysim_jax.mappo.run_outputs import FinalEvaluation, SeedRun, Trained, summary, write_seed, write_seeds_table
 from mysim_jax.mappo.toy import ReachEnv
 from mysim_jax.mappo.networks import deterministic_policy
+from mysim_jax.mappo.shac import make_trainer
 from mysim_jax.mappo.trainer import Trainer
 from mysim_jax.tasks.capture import make_env
 from mysim_jax.tasks.evaluate import Evaluator
@@ -254,7 +255,7 @@ def _open_session(p: Prepared, progress: bool, evaluate: bool, log) -> _Session:
         except PolicyError as err:
             raise ConfigError(str(err)) from None
     curriculum = curriculum_of(c.env.curriculum) if p.scene is not None else None
-    trainer = Trainer(c.algo, env, env_params, mesh=training_mesh(c, p.source), curriculum=curriculum)
+    trainer = make_trainer(c.algo, env, env_params, mesh=training_mesh(c, p.source), curriculum=curriculum)
     needs = trainer.memory_needs()
     if c.run.seeds > 1:
         needs = {k: (b * c.run.seeds, f"{fields} x run.seeds") for k, (b, fields) in needs.items()}
