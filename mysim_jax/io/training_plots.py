@@ -89,32 +89,37 @@ def plot_curves(rows: list[dict], path: Path, title: str, best_iteration: int | 
 
 
 def plot_runs(runs: dict[str, list[dict]], path: Path, title: str) -> Path | None:
-    """Several runs' ``metrics.csv`` rows side by side against wall time: the deterministic
-    policy's success on the selection episodes (where the run had model selection) and
-    the training episodes' success (exploration on), one colour per run."""
+    """Several runs' ``metrics.csv`` rows side by side: the deterministic policy's success
+    on the selection episodes (where the run had model selection) and the training
+    episodes' success (exploration on), one colour per run, against the run's wall time
+    (top row) and against the team steps it has simulated (bottom row): runs whose team
+    steps cost differently (another algorithm, level or machine) compare on both."""
     if not runs:
         return None
 
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.2), sharey=True)
+    fig, axes = plt.subplots(2, 2, figsize=(12, 8), sharey=True)
+    palette = plt.get_cmap("tab10" if len(runs) <= 10 else "tab20")
     for i, (name, rows) in enumerate(runs.items()):
-        colour = f"C{i}"
-        minutes = column(rows, "wall_s") / 60.0
+        colour = palette(i % palette.N)
         sel = column(rows, "select_success")
         has = np.isfinite(sel)
-        if has.any():
-            axes[0].plot(minutes[has], sel[has], "o-", ms=4, lw=1.2, color=colour, label=name)
         train = np.where(column(rows, "episodes") > 0, column(rows, "success_rate"), np.nan)
         keep = np.isfinite(train)
-        axes[1].plot(minutes[keep], train[keep], lw=1.0, color=colour, label=name)
-    axes[0].set_title("deterministic policy, selection episodes", fontsize=10)
-    axes[1].set_title("training episodes (exploring)", fontsize=10)
-    for ax in axes:
-        ax.set_xlabel("wall time of the run [min] (cloning, training, selection)")
-        ax.set_ylim(-0.02, 1.02)
-        ax.grid(alpha=0.3)
-        if ax.get_legend_handles_labels()[0]:      # a panel without any run's curve has no legend
-            ax.legend(fontsize=7, loc="lower right")
-    axes[0].set_ylabel("success rate")
+        for row, x in ((axes[0], column(rows, "wall_s") / 60.0), (axes[1], column(rows, "env_steps"))):
+            if has.any():
+                row[0].plot(x[has], sel[has], "o-", ms=4, lw=1.2, color=colour, label=name)
+            row[1].plot(x[keep], train[keep], lw=1.0, color=colour, label=name)
+    for row, xlabel in ((axes[0], "wall time of the run [min] (cloning, training, selection)"),
+                        (axes[1], "team steps simulated in training")):
+        row[0].set_title("deterministic policy, selection episodes", fontsize=10)
+        row[1].set_title("training episodes (exploring)", fontsize=10)
+        row[0].set_ylabel("success rate")
+        for ax in row:
+            ax.set_xlabel(xlabel)
+            ax.set_ylim(-0.02, 1.02)
+            ax.grid(alpha=0.3)
+            if ax.get_legend_handles_labels()[0]:      # a panel without any run's curve has no legend
+                ax.legend(fontsize=7, loc="lower right")
     fig.suptitle(title)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
