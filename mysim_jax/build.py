@@ -263,6 +263,8 @@ def _scene(t: _Tables, sp: _Springs, loads, contact_scene, quad_scene) -> Scene:
         implicit_iterations=config.sim.cg_iterations,
         accumulate=config.sim.accumulate,
         gather=config.sim.gather,
+        smooth_backward=(None if config.sim.smooth_backward is None
+                         else (config.sim.smooth_backward.tension, config.sim.smooth_backward.slack)),
         contact=contact_scene,
         quadrotor=quad_scene,
     )

@@ -117,6 +117,22 @@ class BaumgarteConfig(StrictModel):
 FLOAT32_MIN_TOLERANCE = 1e-6
 
 
+class SmoothBackwardConfig(StrictModel):
+    """The tension-only line law smoothed in the backward pass only (``sim.smooth_backward``).
+
+    The forward pass keeps the exact law, ``T = max(k (l - l0) + c dl/dt, 0)`` while the
+    line is longer than at rest, else 0; reverse-mode gradients (``jax.grad``, ``jax.vjp``)
+    are those of ``tension * softplus(T_lin / tension) * sigmoid((l - l0) / slack)``, with
+    ``T_lin = k (l - l0) + c dl/dt``: the slack/taut switch spread over ``slack`` metres of
+    stretch and the zero-tension kink over ``tension`` newtons. A line switching between
+    slack and taut then no longer multiplies the backward pass at every switch
+    (docs/gradients.md). Nothing a simulation computes changes; forward-mode derivatives
+    (``jax.jvp``) are not defined with it."""
+
+    tension: PosFloat        # N, width of the zero-tension kink in the backward pass
+    slack: PosFloat          # m, width of the slack/taut switch in the backward pass
+
+
 class SimConfig(StrictModel):
     """Time integration settings.
 
@@ -149,6 +165,9 @@ class SimConfig(StrictModel):
     # float round-off, at different speeds per backend (BENCHMARKS.md, sections b and j)
     accumulate: Literal["segment_sum", "matmul"] = "segment_sum"
     gather: Literal["slices", "index"] = "slices"
+    # reverse-mode gradients of the tension-only lines taken from a smoothed law, the
+    # forward pass unchanged (SmoothBackwardConfig; None: the exact law's gradients)
+    smooth_backward: Optional[SmoothBackwardConfig] = None
 
     @property
     def cg_iterations(self) -> int:
@@ -163,6 +182,9 @@ class SimConfig(StrictModel):
             raise ValueError(
                 f"implicit_iterations = {self.implicit_iterations} is a setting of integrator: implicit_euler, "
                 f"not of {self.integrator}: remove it or use integrator: implicit_euler")
+        if self.smooth_backward is not None and self.integrator == "implicit_euler":
+            raise ValueError("smooth_backward smooths the explicit spring forces' gradients; implicit_euler solves "
+                             "its springs apart: remove smooth_backward or use an explicit integrator")
         return self
 
     @property

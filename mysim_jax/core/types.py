@@ -90,6 +90,9 @@ class Scene:
     # how spring ends are gathered (sim.gather): "slices" (static contiguous slices where
     # the index has few runs, markers.take_rows; the default) or "index" (x[index_array])
     gather: str = "slices"
+    # (tension [N], slack [m]) widths of the tension-only law's backward-pass smoothing
+    # (sim.smooth_backward); None: the exact law's gradients
+    smooth_backward: tuple[float, float] | None = None
     # --- contact (mysim_jax/contact): None when the scene has no contact ---------------
     contact: ContactScene | None = None
     # --- quadrotors, their controller and cameras (mysim_jax/dynamics/quadrotor.py) ----

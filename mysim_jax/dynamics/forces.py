@@ -14,8 +14,10 @@ Gravity is not a force here: it is added to the accelerations in ``mysim_jax.sim
 
 from __future__ import annotations
 
+from functools import partial
 from typing import Callable
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
@@ -56,16 +58,50 @@ class Loads:
 ForceStage = Callable[..., Loads]
 
 
-def spring_tension(stiffness, damping, rest_length, length, rate, tension_only):
-    """Scalar tension ``(n_springs,)`` of each spring; ``tension_only`` is a static bool mask."""
+def spring_tension(stiffness, damping, rest_length, length, rate, tension_only, smooth_backward=None):
+    """Scalar tension ``(n_springs,)`` of each spring; ``tension_only`` is a static bool mask.
+    ``smooth_backward`` ``(tension [N], slack [m])`` (static; ``sim.smooth_backward``) keeps
+    these values and gives the tension-only springs the reverse-mode gradients of a
+    smoothed law (:func:`_taut_smoothed`)."""
     tension = stiffness * (length - rest_length) + damping * rate
     mask = np.asarray(tension_only, dtype=bool)
     if not mask.any():
         return tension
-    taut = jnp.where(length > rest_length, jnp.maximum(tension, 0.0), 0.0)
+    if smooth_backward is None:
+        taut = jnp.where(length > rest_length, jnp.maximum(tension, 0.0), 0.0)
+    else:
+        k, c, r = (jnp.broadcast_to(x, length.shape) for x in (stiffness, damping, rest_length))
+        taut = _taut_smoothed(tuple(float(w) for w in smooth_backward), k, c, r, length, rate)
     if mask.all():
         return taut
     return jnp.where(mask, taut, tension)
+
+
+def _smooth_taut(widths, k, c, r, length, rate):
+    """The smoothed tension-only law whose gradients :func:`_taut_smoothed` uses:
+    ``w_T softplus(T_lin / w_T) sigmoid((l - l0) / w_l)``."""
+    w_tension, w_slack = widths
+    linear = k * (length - r) + c * rate
+    return w_tension * jax.nn.softplus(linear / w_tension) * jax.nn.sigmoid((length - r) / w_slack)
+
+
+@partial(jax.custom_vjp, nondiff_argnums=(0,))
+def _taut_smoothed(widths, k, c, r, length, rate):
+    """The exact tension-only law (forward) with :func:`_smooth_taut`'s reverse-mode gradients."""
+    linear = k * (length - r) + c * rate
+    return jnp.where(length > r, jnp.maximum(linear, 0.0), 0.0)
+
+
+def _taut_smoothed_fwd(widths, k, c, r, length, rate):
+    return _taut_smoothed(widths, k, c, r, length, rate), (k, c, r, length, rate)
+
+
+def _taut_smoothed_bwd(widths, inputs, g):
+    _, vjp = jax.vjp(partial(_smooth_taut, widths), *inputs)
+    return vjp(g)
+
+
+_taut_smoothed.defvjp(_taut_smoothed_fwd, _taut_smoothed_bwd)
 
 
 def spring_forces(scene: Scene, params: Params, node_pos, node_vel):
@@ -79,7 +115,7 @@ def spring_forces(scene: Scene, params: Params, node_pos, node_vel):
     rate = vecmath.dot(dv, unit)
     tension = spring_tension(
         params.spring_stiffness, params.spring_damping, params.spring_rest_length,
-        length, rate, scene.spring_tension_only,
+        length, rate, scene.spring_tension_only, scene.smooth_backward,
     )
     f = tension[:, None] * unit        # force on node a (towards b when in tension)
     n = scene.n_nodes
