@@ -170,7 +170,7 @@ class BCConfig(StrictModel):
 
 class ShacConfig(StrictModel):
     """SHAC's own settings (``algo.name: shac``, :mod:`mysim_jax.mappo.shac`); the rest of
-    ``algo:`` (environments, horizon ``num_steps``, ``lr`` of the actor, ``gamma``,
+    ``algo:`` (environments, the rollout's ``num_steps``, ``lr`` of the actor, ``gamma``,
     ``gae_lambda`` of the critic's targets, the critic's ``update_epochs`` x
     ``num_minibatches``, ``max_grad_norm``, networks, warm starts) means what it means for PPO."""
 
@@ -184,16 +184,18 @@ class ShacConfig(StrictModel):
 
 
 class AlgoConfig(StrictModel):
-    """MAPPO's settings (:mod:`mysim_jax.mappo.trainer`). ``num_envs`` environments step
+    """The trainer's settings (:mod:`mysim_jax.mappo.trainer`; ``name: shac``:
+    :mod:`mysim_jax.mappo.shac`). ``num_envs`` environments step
     side by side for ``num_steps`` policy steps per iteration; the ``batch_size`` team
     transitions of an iteration are split into ``num_minibatches`` minibatches and used
     for ``update_epochs`` epochs."""
 
     # ppo: MAPPO's clipped update (mysim_jax.mappo.trainer); shac: short-horizon actor-critic,
-    # the actor's gradient taken through num_steps steps of the simulator (mysim_jax.mappo.shac)
+    # the actor's gradient taken through windows of shac.horizon steps of the simulator
+    # (mysim_jax.mappo.shac)
     name: Literal["ppo", "shac"] = "ppo"
     num_envs: PosInt = 256
-    num_steps: PosInt = 16                 # policy steps per environment per iteration (shac: the horizon)
+    num_steps: PosInt = 16                 # policy steps per environment per iteration
     total_env_steps: PosInt = 1_000_000    # team (policy) steps over all environments
     update_epochs: PosInt = 4
     num_minibatches: PosInt = 4
