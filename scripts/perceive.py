@@ -69,6 +69,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--full-frame", action="store_true", help="--track, learned: search the whole image "
                         "every frame (default: around where the tracker expects the target, the whole image when "
                         "it has lost it)")
+    parser.add_argument("--no-teammates", action="store_true", help="--track, learned: do not tell the region "
+                        "detector where the team's own UAVs are expected in each image (default: it is told, from "
+                        "their positions with VIO-like errors, and drops detections a teammate explains)")
     parser.add_argument("--det-noise", type=float, default=1.0, metavar="PX", help="--track, oracle: box edge noise "
                         "(px, default 1)")
     parser.add_argument("--miss-rate", type=float, default=0.0, help="--track, oracle: probability of a missed "
@@ -190,7 +193,8 @@ def _track(args) -> int:
     t0 = time.perf_counter()
     try:
         record = run_tracking(config, detector, intr, frame_rate=args.camera_rate, t_end=args.t_end,
-                              initial_cue=not args.no_cue, range_sigma=args.range_sigma, progress=not args.no_progress)
+                              initial_cue=not args.no_cue, range_sigma=args.range_sigma,
+                              team_seed=None if args.no_teammates else args.seed, progress=not args.no_progress)
     except PerceptionError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

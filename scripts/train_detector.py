@@ -28,7 +28,9 @@ second stage is trained (from FILE's second stage with ``refine.fine_tune: true`
 ``--modes full region`` also evaluates the CNN in region mode, as gimbal tracking runs it:
 around a hint of where the target is, drawn near the truth with the tracker's prediction
 errors (``mysim_jax.perception.detect.train.region_hints``); ``cnn_region/...`` in
-``metrics.json``.
+``metrics.json``. ``region_team`` does the same with the detector also told where the team's
+own UAVs appear (``teammate_hints``: from their drawn positions with VIO-like errors), so it
+drops detections a teammate explains; ``cnn_region_team/...``.
 
 ``--eval-seed N`` draws the evaluation frames with seed N instead of ``data.seed`` (fresh frames
 of the same splits; the training frames keep ``data.seed``); ``--eval-images N`` makes each
@@ -60,9 +62,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "data.eval_seed, else data.seed)")
     parser.add_argument("--eval-images", type=int, help="frames per evaluation set (default: the config's "
                         "data.eval_images)")
-    parser.add_argument("--modes", nargs="+", choices=("full", "region"), default=["full"],
+    parser.add_argument("--modes", nargs="+", choices=("full", "region", "region_team"), default=["full"],
                         help="how the CNN is evaluated: on the whole image (full, default) and / or around a "
-                        "tracker's hint drawn near the truth (region: the mode gimbal tracking uses)")
+                        "tracker's hint drawn near the truth (region: the mode gimbal tracking uses), and told where the "
+                        "team's UAVs are (region_team)")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bars")
     return parser
 

@@ -361,13 +361,14 @@ def test_closed_loop_looks_where_the_track_expects_the_target(small_config):
 
     from mysim_jax.perception.track_detectors import OUT_OF_VIEW, RegionDetector
 
-    calls = []
+    calls, teams = [], []
 
     class Recording(RegionDetector):
         def __call__(self, frame, hint=None):
             self.frame = frame
             if hint is not None and hint is not OUT_OF_VIEW and frame.target.box is not None:
                 calls.append(np.linalg.norm(np.asarray(hint.centre) - np.asarray(frame.target.centre)))
+                teams.append(hint.teammates)
             return super().__call__(frame, hint)
 
     def oracle():
@@ -386,3 +387,7 @@ def test_closed_loop_looks_where_the_track_expects_the_target(small_config):
     assert st["full"]["calls"] == 0 and st["region"]["calls"] == len(rec.t), st
     assert len(calls) >= len(rec.t) - 1 and np.median(calls) < 3.0 and max(calls[1:]) < 12.0, calls
     assert rec.in_view()[:, 0].all()
+    # told where the team's other UAVs are: there are none here (one UAV), and the stand-in's
+    # detect_region does not take them, so it is called as before
+    assert teams and all(t is not None and t.shape == (0, 4) for t in teams)
+    assert not det.takes_teammates

@@ -56,3 +56,12 @@ def matrix_to_quat(m) -> np.ndarray:
 def skew(v) -> np.ndarray:
     """The matrix ``[v]x`` (3, 3) with ``[v]x w = v x w``."""
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def rotvec_to_matrix(w) -> np.ndarray:
+    """(3, 3) rotation by the rotation vector ``w`` (3,) rad (Rodrigues' formula)."""
+    th = float(np.linalg.norm(w))
+    if th < 1e-12:
+        return np.eye(3)
+    K = skew(np.asarray(w, float) / th)
+    return np.eye(3) + np.sin(th) * K + (1 - np.cos(th)) * K @ K

@@ -33,6 +33,7 @@ from typing import Sequence
 import numpy as np
 
 from mysim_jax.control.build import R_Y_90, gimbal_marker_frames
+from mysim_jax.core.npgeom import rotvec_to_matrix
 from mysim_jax.perception.camera import Intrinsics, PerceptionError
 from mysim_jax.perception.track_detectors import box_centre
 
@@ -43,16 +44,6 @@ from mysim_jax.perception.track_detectors import box_centre
 def _rot_z(a: float) -> np.ndarray:
     c, s = np.cos(a), np.sin(a)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-def _rotvec_matrix(w) -> np.ndarray:
-    """(3, 3) rotation by the rotation vector ``w`` (rad)."""
-    th = float(np.linalg.norm(w))
-    if th < 1e-12:
-        return np.eye(3)
-    k = np.asarray(w, float) / th
-    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    return np.eye(3) + np.sin(th) * K + (1 - np.cos(th)) * K @ K
 
 
 def _wrap(a):
@@ -197,7 +188,7 @@ class GimbalTracker:
 
     def _aim(self, direction_world, uav_R, near) -> np.ndarray:
         if self.uav_omega is not None:      # the UAV's attitude one lead time ahead
-            uav_R = uav_R @ _rotvec_matrix(self.uav_omega * self.lead)
+            uav_R = uav_R @ rotvec_to_matrix(self.uav_omega * self.lead)
         return self.geometry.aim(uav_R.T @ direction_world, near, self.config.tilt_limits)
 
     def update(self, t: float, detections: Sequence, angles, uav_R: np.ndarray, camera_R: np.ndarray,

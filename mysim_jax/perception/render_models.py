@@ -18,7 +18,7 @@ import numpy as np
 
 __all__ = ["Model", "quadrotor_model", "camera_model", "sphere_model", "stack_models", "auto_target_style",
            "body_models", "line_segments", "HULL", "FRONT", "REAR", "MOTOR", "ROTOR", "TARGET", "TARGET_DRONE",
-           "NET", "TETHER", "CAMERA", "LENS"]
+           "NET", "TETHER", "CAMERA", "LENS", "TIP_RATIO"]
 
 
 @dataclass
@@ -60,9 +60,14 @@ CAMERA = (0.12, 0.12, 0.14)
 LENS = (0.02, 0.02, 0.03)
 
 
+# a quadrotor's rotor tips from its centre / its mean arm length: the arm (1) and the rotor
+# disc's semi-axis (0.48) of quadrotor_model
+TIP_RATIO = 1.48
+
+
 def quadrotor_model(arm_length, angle, hull=HULL, front=FRONT, rear=REAR) -> Model:
     """A quadrotor: hull, arms to ``d_i = l_i (sin a_i, cos a_i, 0)`` (the scene's rotor layout),
-    motors and rotor discs, sized by the mean arm length L (rotor tips at 1.48 L)."""
+    motors and rotor discs, sized by the mean arm length L (rotor tips at ``TIP_RATIO`` L)."""
     arm = np.asarray(arm_length, float)
     ang = np.asarray(angle, float)
     L = float(arm.mean())
@@ -120,7 +125,7 @@ def body_models(config, target_style):
         style = auto_target_style(config) if target_style == "auto" else target_style
         bodies.append(target.name)
         if style == "drone":
-            L = target.radius / 1.48
+            L = target.radius / TIP_RATIO
             models.append(quadrotor_model((L,) * 4, tuple(np.pi / 4 + k * np.pi / 2 for k in range(4)),
                                           hull=TARGET_DRONE, front=TARGET, rear=TARGET_DRONE))
         else:

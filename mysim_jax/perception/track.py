@@ -39,12 +39,15 @@ from mysim_jax.core.npgeom import quat_to_matrix
 from mysim_jax.effects.gimbal_servo import GIMBAL_SERVO
 from mysim_jax.perception.camera import Intrinsics, PerceptionError, intrinsics as make_intrinsics
 from mysim_jax.perception.detect.model import load_detector
+from mysim_jax.perception.detect.team import (TEAM_ATTITUDE_SIGMA_RAD, TEAM_POSITION_SIGMA_M, expected_boxes,
+                                              perturbed_positions)
 from mysim_jax.perception.gimbal_tracker import GimbalGeometry, GimbalTracker, GimbalTrackerConfig
 from mysim_jax.perception.localize import RANGE_SIGMA, PoseNoise
 from mysim_jax.perception.render import Renderer
-from mysim_jax.perception.render_models import auto_target_style
+from mysim_jax.perception.render_models import TIP_RATIO, auto_target_style
 from mysim_jax.perception.track_cues import _associate_all, _RegionMemory, _team_point
-from mysim_jax.perception.track_detectors import FrameDetector, OracleDetector, RegionDetector, image_detector
+from mysim_jax.perception.track_detectors import (OUT_OF_VIEW, FrameDetector, OracleDetector, RegionDetector,
+                                                  image_detector)
 from mysim_jax.sim import rollout
 from mysim_jax.tasks.scripted import team_policy
 
@@ -277,7 +280,8 @@ def run_tracking(config, detector: FrameDetector | None = None, intr: Intrinsics
                  frame_rate: float = 25.0, tracker_config: GimbalTrackerConfig = GimbalTrackerConfig(),
                  t_end: float | None = None, initial_cue: bool = True, cooperative_cue: bool = True,
                  force_loss: tuple[float, float] | None = None, target_style: str = "auto",
-                 range_sigma: float | None = None, progress: bool = True) -> TrackingRecord:
+                 range_sigma: float | None = None, team_seed: int | None = 0,
+                 progress: bool = True) -> TrackingRecord:
     """Simulate ``config`` (a scene config with gimbal cameras and a target) with every gimbal
     steered by a :class:`GimbalTracker` from its rendered images (see the module doc).
 
@@ -295,7 +299,12 @@ def run_tracking(config, detector: FrameDetector | None = None, intr: Intrinsics
     box sizes in the teammates' point (the cooperative cue and the region hints; default
     :data:`~mysim_jax.perception.localize.RANGE_SIGMA` of the target's look). A detector
     that takes hints (:class:`RegionDetector`) is told where each camera expects the
-    target (:func:`region_hint`, :func:`point_hint`).
+    target (:func:`region_hint`, :func:`point_hint`), and where the team's other UAVs are
+    expected in the camera's image (:func:`~mysim_jax.perception.detect.team.expected_boxes`
+    from their positions and the camera's pose with the VIO-like errors of
+    :func:`~mysim_jax.perception.detect.team.perturbed_positions`, drawn each frame from
+    ``team_seed``), so it drops detections a teammate explains; ``team_seed=None`` does not
+    tell it.
     """
     check_tracking_scene(config)
     if not frame_rate > 0:
@@ -321,6 +330,8 @@ def run_tracking(config, detector: FrameDetector | None = None, intr: Intrinsics
     range_sigma = RANGE_SIGMA[auto_target_style(config)] if range_sigma is None else float(range_sigma)
     memory = _RegionMemory(len(cams), (tracker_config.hold_frames + 1) * frame_dt, intr, config.target.radius,
                            range_sigma)
+    team_rng = None if team_seed is None else np.random.default_rng(team_seed)
+    team_radius = {q.body: TIP_RATIO * float(np.mean(q.rotors.arm_length)) for q in config.quadrotors}
     rec = {k: [] for k in ("t", "camera_R", "camera_p", "angles", "command", "mode", "det_box", "true_box",
                            "true_centre", "true_depth", "visible_fraction", "target_pos", "target_vel")}
     rows = []
@@ -331,7 +342,15 @@ def run_tracking(config, detector: FrameDetector | None = None, intr: Intrinsics
         t = float(cols["time"][0])
         bq, bp = _finite_poses(state, t)
         cue_now = cue_point(t) if initial_cue else None
-        hint_of = lambda g, frame: memory.hint(g, trackers[g], t, frame, cue_now)  # noqa: E731
+        def hint_of(g, frame):
+            hint = memory.hint(g, trackers[g], t, frame, cue_now)
+            if hint is None or hint is OUT_OF_VIEW or team_rng is None:
+                return hint
+            others = [u for u in team_radius if u != uavs[g]]
+            pos, R = perturbed_positions(team_rng, [bp[bi[u]] for u in others], frame.R, TEAM_POSITION_SIGMA_M,
+                                         TEAM_ATTITUDE_SIGMA_RAD)
+            boxes = expected_boxes(intr, R, frame.p, pos, [team_radius[u] for u in others])
+            return dataclasses.replace(hint, teammates=boxes)
         frames, dets, angles, uav_Rs = _detect(renderer, detector, cams, geoms, cols, bq, bi, t, force_loss, hint_of)
         if tracker_config.gate_deg is not None:
             ref_of = lambda g: cue_point(t) if initial_cue and trackers[g].last_seen_t is None else None  # noqa: E731

@@ -8,6 +8,7 @@ renderer's ground-truth box. The hints themselves come from
 
 from __future__ import annotations
 
+import inspect
 import time
 from dataclasses import dataclass
 from typing import Callable
@@ -35,6 +36,7 @@ class RegionHint:
 
     centre: np.ndarray      # (2,) px, the expected box centre
     side: float             # px, the expected box's longer side
+    teammates: np.ndarray | None = None   # (K, 4) px, where the team's own UAVs are expected (detect.team)
 
 
 # the hint that the target is expected outside the image (behind the camera or beyond its
@@ -48,7 +50,8 @@ class RegionDetector:
 
     Called as ``detector(frame, hint)``: with a :class:`RegionHint` it runs
     ``detector.detect_region(image, hint.centre, hint.side, region)`` (the learned
-    detector's :meth:`~mysim_jax.perception.detect.model.CNNDetector.detect_region`);
+    detector's :meth:`~mysim_jax.perception.detect.model.CNNDetector.detect_region`; with
+    the hint's ``teammates`` too, when it has them and ``detect_region`` takes them);
     without a hint, ``detector.detect(image)`` on the whole image; with :data:`OUT_OF_VIEW`
     nothing (the target is expected outside this image). With ``fallback_full``,
     a region that finds nothing is followed by the whole image in the same frame (off by
@@ -64,6 +67,10 @@ class RegionDetector:
             raise PerceptionError(f"region mode needs a detector with detect and detect_region; "
                                   f"got {type(detector).__name__}")
         self.detector, self.region, self.fallback_full = detector, region, fallback_full
+        try:        # told where the teammates are only if it takes them (a detector of one's own may not)
+            self.takes_teammates = "teammates" in inspect.signature(detector.detect_region).parameters
+        except (TypeError, ValueError):
+            self.takes_teammates = False
         self.seconds: list[float] = []
         self.kinds: list[str] = []          # "region", "region+full" (the fallback ran), "full"
 
@@ -75,7 +82,8 @@ class RegionDetector:
         t0 = time.perf_counter()
         kind = "full"
         if hint is not None:
-            found = self.detector.detect_region(frame.image, hint.centre, hint.side, self.region)
+            team = {"teammates": hint.teammates} if hint.teammates is not None and self.takes_teammates else {}
+            found = self.detector.detect_region(frame.image, hint.centre, hint.side, self.region, **team)
             kind = "region"
             if not found and self.fallback_full:
                 found, kind = self.detector.detect(frame.image), "region+full"

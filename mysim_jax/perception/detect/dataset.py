@@ -63,6 +63,7 @@ from mysim_jax.config.scene import config_from_dict
 from mysim_jax.perception.camera import CameraPoses, Intrinsics, intrinsics
 from mysim_jax.perception.ground import GroundTexture
 from mysim_jax.perception.render import Lighting, Renderer
+from mysim_jax.perception.render_models import TIP_RATIO
 
 ROOT = Path(__file__).resolve().parents[3]
 SCENE_FILES = {"sphere": ROOT / "configs" / "capture_falling.yaml",
@@ -166,7 +167,8 @@ class Sample:
     truncation: float = 0.0      # share of the whole silhouette outside the image (0: none cut by the border)
     meta: dict = field(default_factory=dict)   # sampled parameters: lighting, texture seed, scene, camera pose
                                                # (camera_R (3, 3) OpenCV -> world, camera_p (3,) m), target_pos (3,) m,
-                                               # formation (onboard frames: the camera's UAV, tether k, net pose)
+                                               # formation (onboard frames: the camera's UAV, tether k, net pose),
+                                               # uavs (the UAVs drawn: name, pos (3,) m, radius m)
 
 
 @lru_cache(maxsize=2)
@@ -437,6 +439,19 @@ def _occluders(spec: DatasetSpec, rng, rng_onboard, config, cols, intr, R, p, of
     return meta_occ, hide, formation
 
 
+def _uavs_drawn(config, cols: _Columns, hide) -> list[dict]:
+    """The UAVs the frame draws (not parked under the ground, not the onboard camera's own):
+    per UAV its ``name``, ``pos`` (3,) m and ``radius`` m (its rotor tips' distance from its
+    centre), as the team's own estimates would give them."""
+    out = []
+    for q in config.quadrotors:
+        pos = [float(cols.cols[f"{q.body}_{a}"][0]) for a in "xyz"]
+        if q.body in hide or pos[2] < PARK_Z / 2:
+            continue
+        out.append(dict(name=q.body, pos=pos, radius=float(TIP_RATIO * np.mean(q.rotors.arm_length))))
+    return out
+
+
 def render_sample(spec: DatasetSpec, index: int) -> Sample:
     """Frame ``index`` of the dataset ``spec`` (deterministic for (spec.seed, spec.split, index))."""
     split = SPLITS[spec.split]
@@ -496,7 +511,7 @@ def render_sample(spec: DatasetSpec, index: int) -> Sample:
                 pitch_deg=float(np.degrees(pitch)), roll_deg=float(np.degrees(roll)), camera_height_m=float(h_cam),
                 scene=meta_occ, pixel=(float(u), float(v)), camera_R=R.tolist(), camera_p=p.tolist(),
                 target_pos=None if empty else target_pos.tolist(), target_radius=float(radius),
-                formation=formation)
+                formation=formation, uavs=_uavs_drawn(config, cols, hide))
     return Sample(image=frame.image, box=box, ignore=bool(ignore), kind=kind,
                   distance=float("nan") if empty else float(distance), visible_fraction=float(fraction),
                   visible_px=int(visible_px), truncation=float(truncation), meta=meta)

@@ -67,6 +67,7 @@ from mysim_jax.core import rng
 from mysim_jax.perception.camera import PerceptionError
 from mysim_jax.perception.detect import Detection, default_weights_path
 from mysim_jax.perception.detect.refine import Refiner, RefineSettings, normalise
+from mysim_jax.perception.detect.team import explained_by_teammates
 
 STRIDE = 4          # px of network input per output cell
 PYRAMID_NMS_IOU = 0.5   # boxes of pyramid levels overlapping more than this are one detection
@@ -220,6 +221,9 @@ class RegionSettings:
     min_window_px: float = 96.0    # px of the image, the smallest window side (room for prediction errors)
     max_candidates: int = 4        # first-stage candidates the second stage looks at, best first
     max_level: float | None = None  # largest scale (x the pyramid's level 1) for a small target; None: the pyramid's
+    teammate_gate: float = 0.8     # a detection fitting a teammate's expected box below this, and better than the
+    teammate_margin: float = 0.5   # target's by this margin, is the teammate's (detect.team.fit: centre offset /
+                                   # side + |log size ratio|; chosen on the selection draw, docs/detector.md)
 
     def __post_init__(self):
         if self.input_px < PAD_TO or self.input_px % PAD_TO:
@@ -229,6 +233,9 @@ class RegionSettings:
         if not (self.target_px > 0 and self.min_window_px > 0):
             raise PerceptionError(f"region target_px and min_window_px must be positive, got "
                                   f"{self.target_px}, {self.min_window_px}")
+        if not (self.teammate_gate >= 0 and self.teammate_margin >= 0):
+            raise PerceptionError(f"region teammate_gate and teammate_margin must be >= 0, got "
+                                  f"{self.teammate_gate}, {self.teammate_margin}")
 
 
 @dataclass
@@ -365,7 +372,7 @@ class CNNDetector:
         return np.array([x0, y0, side]), scale
 
     def detect_region(self, image: np.ndarray, centre, side_px: float, region: RegionSettings | None = None,
-                      min_score: float | None = None) -> list[Detection]:
+                      min_score: float | None = None, teammates: np.ndarray | None = None) -> list[Detection]:
         """Detections near where a tracker expects the target (region-of-interest mode).
 
         ``centre``: (2,) px, the expected box centre; ``side_px``: the expected box's longer
@@ -376,7 +383,13 @@ class CNNDetector:
         stage on the full image as in :meth:`detect`. Boxes are in ``image``'s pixels, best
         first. Far cheaper than :meth:`detect` (one small input instead of the pyramid); a
         target outside the window is not found, so a tracker without a usable hint uses
-        :meth:`detect`."""
+        :meth:`detect`.
+
+        ``teammates``: (K, 4) px boxes where the team's own UAVs are expected in ``image``
+        (:func:`~mysim_jax.perception.detect.team.expected_boxes`); detections that a
+        teammate explains better than the expected target
+        (:func:`~mysim_jax.perception.detect.team.explained_by_teammates`,
+        ``region.teammate_gate`` and ``teammate_margin``) are dropped."""
         image = check_image(image)
         region = self.region if region is None else region
         if not (np.all(np.isfinite(np.asarray(centre, float))) and np.isfinite(side_px) and side_px > 0):
@@ -412,6 +425,10 @@ class CNNDetector:
         if self.refiner is not None:
             dets = self.refiner.refine([image], [dets[: region.max_candidates]])[0]
             dets = [d for d in _suppress(dets) if d.score >= floor]
+        if teammates is not None and dets:
+            theirs = explained_by_teammates(np.array([d.box for d in dets]), centre, side_px, teammates,
+                                            region.teammate_gate, region.teammate_margin)
+            dets = [d for d, t in zip(dets, theirs) if not t]
         return dets
 
     # --- files --------------------------------------------------------------------------------

@@ -45,7 +45,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-from mysim_jax.perception.camera import PerceptionError
+from mysim_jax.perception.camera import PerceptionError, intrinsics
 from mysim_jax.perception.detect.classical import ColourBlobDetector
 from mysim_jax.perception.detect.config import DetectorConfig
 from mysim_jax.perception.detect.dataset import DatasetSpec, is_ignored, render_sample
@@ -54,6 +54,8 @@ from mysim_jax.perception.detect.model import CNNDetector, CenterNet, encode_tar
 from mysim_jax.perception.detect.refine import RefineSettings, Refiner, normalise
 from mysim_jax.perception.detect.refine_train import SamplePool, cached_candidates, train_refiner
 from mysim_jax.perception.detect.steps import photometric, prefetch, run_steps, truths
+from mysim_jax.perception.detect.team import (TEAM_ATTITUDE_SIGMA_RAD, TEAM_POSITION_SIGMA_M, expected_boxes,
+                                              perturbed_positions)
 
 SETS = {"train": "train", "eval_in": "train", "eval_held_out": "held_out"}
 # frame indices of the in-distribution evaluation set start here (after any training frame)
@@ -75,7 +77,7 @@ def spec_of(cfg: DetectorConfig, which: str) -> DatasetSpec:
 
 
 # bumped when the labels of a rendered set change meaning, so older cached sets are not reused
-LABELS_VERSION = 2
+LABELS_VERSION = 3
 
 
 def _label(s) -> dict:
@@ -330,17 +332,43 @@ def region_hints(labels: list[dict], seed: int) -> list[tuple[np.ndarray, float]
     return out
 
 
+# Region mode told where the team's own UAVs are (:func:`teammate_hints`): each UAV drawn in
+# a frame is expected where the team's estimates put it, with the VIO-like errors of
+# :mod:`~mysim_jax.perception.detect.team` (TEAM_POSITION_SIGMA_M, TEAM_ATTITUDE_SIGMA_RAD).
+
+
+def teammate_hints(labels: list[dict], seed: int, width: int, height: int) -> list[np.ndarray]:
+    """Per frame (K, 4) px: the boxes where the team expects its UAVs drawn in the frame
+    (``meta["uavs"]``; see the constants above); deterministic for ``seed``."""
+    intr = intrinsics(width=width, height=height)
+    out = []
+    for i, lab in enumerate(labels):
+        rng = np.random.default_rng([seed, 8, i])
+        uavs = lab["meta"].get("uavs")
+        if uavs is None:
+            raise PerceptionError("these frames' labels do not list the UAVs drawn (meta['uavs']): render them again")
+        if not uavs:
+            out.append(np.zeros((0, 4)))
+            continue
+        pos, R = perturbed_positions(rng, [u["pos"] for u in uavs], np.asarray(lab["meta"]["camera_R"]),
+                                     TEAM_POSITION_SIGMA_M, TEAM_ATTITUDE_SIGMA_RAD)
+        out.append(expected_boxes(intr, R, np.asarray(lab["meta"]["camera_p"]), pos, [u["radius"] for u in uavs]))
+    return out
+
+
 def evaluate(detector, images, labels, cfg: DetectorConfig, min_score: float, progress: bool = True,
-             name: str = "", hints: list | None = None) -> tuple[dict, list, list[dict]]:
+             name: str = "", hints: list | None = None, teammates: list | None = None) -> tuple[dict, list, list[dict]]:
     """Metrics of ``detector`` on a set (detections down to score 0.01 for AP) and its speed:
     median over frames of one ``detect`` call, frames/s. With ``hints`` (per frame
     ``(centre, side)``, :func:`region_hints`) the detector runs in region mode
-    (``detect_region``) instead of on the whole image. Returns the metrics, the detections
-    per frame and the per-target rows (:func:`target_rows`)."""
+    (``detect_region``) instead of on the whole image, and with ``teammates`` (per frame
+    (K, 4) px, :func:`teammate_hints`) it is told where the team's UAVs are. Returns the
+    metrics, the detections per frame and the per-target rows (:func:`target_rows`)."""
     def run_one(i, img):
         if hints is None:
             return detector.detect(img, min_score=0.01)
-        return detector.detect_region(img, hints[i][0], hints[i][1], min_score=0.01)
+        return detector.detect_region(img, hints[i][0], hints[i][1], min_score=0.01,
+                                      **({} if teammates is None else {"teammates": teammates[i]}))
 
     dets, times = [], []
     run_one(0, np.asarray(images[0]))     # compile / warm up
@@ -504,17 +532,20 @@ def _evaluate_sets(cfg: DetectorConfig, cnn, sets: dict, out: Path, modes, metri
     curves = {}
     for set_name, (images, labels) in sets.items():
         results = {}
-        hints = region_hints(labels, spec_of(cfg, "eval_held_out").seed) if "region" in modes else None
-        runs = [("cnn", cnn, cfg.eval.min_score, None)] if "full" in modes else []
-        runs += [("cnn_region", cnn, cfg.eval.min_score, hints)] if "region" in modes else []
-        for det_name, det, thr, h in runs + [("baseline", baseline, 0.3, None)]:
+        seed = spec_of(cfg, "eval_held_out").seed
+        hints = region_hints(labels, seed) if {"region", "region_team"} & set(modes) else None
+        team = (teammate_hints(labels, seed, cfg.data.width, cfg.data.height) if "region_team" in modes else None)
+        runs = [("cnn", cnn, cfg.eval.min_score, None, None)] if "full" in modes else []
+        runs += [("cnn_region", cnn, cfg.eval.min_score, hints, None)] if "region" in modes else []
+        runs += [("cnn_region_team", cnn, cfg.eval.min_score, hints, team)] if "region_team" in modes else []
+        for det_name, det, thr, h, tm in runs + [("baseline", baseline, 0.3, None, None)]:
             m, dets, rows = evaluate(det, images, labels, cfg, thr, progress=progress,
-                                     name=f"{det_name} {set_name}", hints=h)
+                                     name=f"{det_name} {set_name}", hints=h, teammates=tm)
             metrics[f"{det_name}/{set_name}"] = m
             results[det_name] = dets
             if det_name.startswith("cnn"):     # per-target diagnostics: which targets are missed, and how
                 (out / "targets").mkdir(exist_ok=True)
-                suffix = "" if det_name == "cnn" else "_region"
+                suffix = det_name[len("cnn"):]
                 (out / "targets" / f"{set_name}{suffix}.json").write_text(json.dumps(rows))
                 plot_misses(out / "targets" / f"misses_{set_name}{suffix}.png", images, rows)
             curves[f"{det_name}, {set_name.replace('_', '-')}"] = pr_curve(match(dets, truths(labels), cfg.eval.iou_threshold))
@@ -531,7 +562,8 @@ def run(cfg: DetectorConfig, out: Path, progress: bool = True, cache: Path | Non
     the same ``model.widths``) training starts from those weights instead of a random init.
     ``modes``: how the CNN is evaluated, ``"full"`` (the whole image, ``cnn/<set>``) and / or
     ``"region"`` (around a tracker's hint, :func:`region_hints` with the evaluation seed,
-    ``cnn_region/<set>``)."""
+    ``cnn_region/<set>``) and ``"region_team"`` (the same, told where the team's UAVs are,
+    :func:`teammate_hints`, ``cnn_region_team/<set>``)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "config.yaml").write_text(yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False))
