@@ -124,7 +124,7 @@ def main(argv=None) -> int:
             f"{metrics['train_seconds']:.0f} s" +
             (f", the second stage {cfg.refine.steps} steps in {metrics['refine_seconds']:.0f} s" if cfg.refine else ""))
     print(f"{done}; wrote {out}/ ({time.perf_counter() - t0:.0f} s in all)")
-    names = [n for n in ("cnn", "cnn_region", "baseline") if f"{n}/held_out" in metrics]
+    names = [n for n in ("cnn", "cnn_region", "cnn_region_team", "baseline") if f"{n}/held_out" in metrics]
     for key in [f"{n}/{set_name}" for set_name in ("held_out", "in_distribution") for n in names]:
         m = metrics[key]
         print(f"  {key:26s} precision {m['precision']:.3f}  recall {m['recall']:.3f}  mean IoU {m['mean_iou']:.3f}  "

@@ -151,3 +151,6 @@ def test_region_mode_drops_a_detection_a_teammate_explains():
         if done == 3:
             break
     assert done == 3
+    from mysim_jax.perception.detect.model import RegionSettings
+    with pytest.raises(PerceptionError, match="teammate_gate and teammate_margin"):
+        RegionSettings(teammate_margin=-0.1)

@@ -221,7 +221,7 @@ class RegionSettings:
     min_window_px: float = 96.0    # px of the image, the smallest window side (room for prediction errors)
     max_candidates: int = 4        # first-stage candidates the second stage looks at, best first
     max_level: float | None = None  # largest scale (x the pyramid's level 1) for a small target; None: the pyramid's
-    teammate_gate: float = 0.8     # a detection fitting a teammate's expected box below this, and better than the
+    teammate_gate: float = 1.5     # a detection fitting a teammate's expected box below this, and better than the
     teammate_margin: float = 0.5   # target's by this margin, is the teammate's (detect.team.fit: centre offset /
                                    # side + |log size ratio|; chosen on the selection draw, docs/detector.md)
 
