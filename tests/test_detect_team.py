@@ -154,3 +154,30 @@ def test_region_mode_drops_a_detection_a_teammate_explains():
     from mysim_jax.perception.detect.model import RegionSettings
     with pytest.raises(PerceptionError, match="teammate_gate and teammate_margin"):
         RegionSettings(teammate_margin=-0.1)
+
+
+def test_region_detector_passes_the_teammates_to_a_detector_that_takes_them():
+    """RegionDetector hands a hint's teammates to ``detect_region`` when it has a
+    ``teammates`` parameter, and calls one without it as before."""
+    from types import SimpleNamespace
+
+    from mysim_jax.perception.track_detectors import RegionDetector, RegionHint
+
+    seen = []
+
+    def takes(image, centre, side, region, teammates=None):
+        seen.append(teammates)
+        return []
+
+    def plain(image, centre, side, region):
+        seen.append("plain")
+        return []
+
+    frame = SimpleNamespace(image=np.zeros((8, 8, 3), np.uint8))
+    boxes = np.array([[1.0, 2.0, 3.0, 4.0]])
+    hint = RegionHint(centre=np.array([4.0, 4.0]), side=3.0, teammates=boxes)
+    RegionDetector(SimpleNamespace(detect=lambda image: [], detect_region=takes))(frame, hint)
+    RegionDetector(SimpleNamespace(detect=lambda image: [], detect_region=takes))(
+        frame, RegionHint(centre=np.array([4.0, 4.0]), side=3.0))
+    RegionDetector(SimpleNamespace(detect=lambda image: [], detect_region=plain))(frame, hint)
+    assert seen[0] is boxes and seen[1] is None and seen[2] == "plain"
