@@ -44,6 +44,7 @@ from mysim_jax.perception.detect.team import (TEAM_ATTITUDE_SIGMA_RAD, TEAM_POSI
 from mysim_jax.perception.gimbal_tracker import GimbalGeometry, GimbalTracker, GimbalTrackerConfig
 from mysim_jax.perception.localize import RANGE_SIGMA, PoseNoise
 from mysim_jax.perception.render import Renderer
+from mysim_jax.perception.render_io import Frame
 from mysim_jax.perception.render_models import TIP_RATIO, auto_target_style
 from mysim_jax.perception.track_cues import _associate_all, _RegionMemory, _team_point
 from mysim_jax.perception.track_detectors import (OUT_OF_VIEW, FrameDetector, OracleDetector, RegionDetector,
@@ -276,6 +277,35 @@ def _finite_poses(state, t: float) -> tuple[np.ndarray, np.ndarray]:
     return bq, bp
 
 
+# what a tracking run records per frame (TrackingRecord's per-frame fields)
+_RECORDED = ("t", "camera_R", "camera_p", "angles", "command", "mode", "det_box", "true_box", "true_centre",
+             "true_depth", "visible_fraction", "target_pos", "target_vel")
+
+
+class _Teammates:
+    """Where a tracking run's other UAVs are expected in a camera's image
+    (:func:`~mysim_jax.perception.detect.team.expected_boxes`), as the team knows it: their
+    positions and the camera's pose with the VIO-like errors of
+    :func:`~mysim_jax.perception.detect.team.perturbed_positions`, drawn each frame from
+    ``seed``; with ``seed`` None nobody is told."""
+
+    def __init__(self, config, intr: Intrinsics, seed: int | None):
+        self.rng = None if seed is None else np.random.default_rng(seed)
+        self.radius = {q.body: TIP_RATIO * float(np.mean(q.rotors.arm_length)) for q in config.quadrotors}
+        self.intr = intr
+
+    def told(self, hint, frame: Frame, own: str, positions: dict):
+        """``hint`` with the boxes of the UAVs other than ``own`` (``positions``: body -> (3,)
+        m) in ``frame``; ``hint`` as it is when there is none or nobody is told."""
+        if hint is None or hint is OUT_OF_VIEW or self.rng is None:
+            return hint
+        others = [u for u in self.radius if u != own]
+        pos, R = perturbed_positions(self.rng, [positions[u] for u in others], frame.R, TEAM_POSITION_SIGMA_M,
+                                     TEAM_ATTITUDE_SIGMA_RAD)
+        return dataclasses.replace(hint, teammates=expected_boxes(self.intr, R, frame.p, pos,
+                                                                   [self.radius[u] for u in others]))
+
+
 def run_tracking(config, detector: FrameDetector | None = None, intr: Intrinsics | None = None,
                  frame_rate: float = 25.0, tracker_config: GimbalTrackerConfig = GimbalTrackerConfig(),
                  t_end: float | None = None, initial_cue: bool = True, cooperative_cue: bool = True,
@@ -299,12 +329,8 @@ def run_tracking(config, detector: FrameDetector | None = None, intr: Intrinsics
     box sizes in the teammates' point (the cooperative cue and the region hints; default
     :data:`~mysim_jax.perception.localize.RANGE_SIGMA` of the target's look). A detector
     that takes hints (:class:`RegionDetector`) is told where each camera expects the
-    target (:func:`region_hint`, :func:`point_hint`), and where the team's other UAVs are
-    expected in the camera's image (:func:`~mysim_jax.perception.detect.team.expected_boxes`
-    from their positions and the camera's pose with the VIO-like errors of
-    :func:`~mysim_jax.perception.detect.team.perturbed_positions`, drawn each frame from
-    ``team_seed``), so it drops detections a teammate explains; ``team_seed=None`` does not
-    tell it.
+    target (:func:`region_hint`, :func:`point_hint`) and where the team's other UAVs are
+    (:class:`_Teammates`, its errors drawn from ``team_seed``; None: it is not told).
     """
     check_tracking_scene(config)
     if not frame_rate > 0:
@@ -313,12 +339,10 @@ def run_tracking(config, detector: FrameDetector | None = None, intr: Intrinsics
     detector = OracleDetector() if detector is None else detector
     config, scene, params, state, steps = _tracking_scene(config, initial_cue, frame_rate)
     frame_dt = steps * scene.dt
-    t_end = config.sim.t_end if t_end is None else float(t_end)
-    n_frames = int(np.floor(t_end / frame_dt + 1e-9)) + 1
+    n_frames = int(np.floor((config.sim.t_end if t_end is None else float(t_end)) / frame_dt + 1e-9)) + 1
     policy = team_policy(config, scene)
     cams = gimbal_cameras(config)
-    names = tuple(c.name for _, c in cams)
-    uavs = tuple(u for u, _ in cams)
+    names, uavs = tuple(c.name for _, c in cams), tuple(u for u, _ in cams)
     geoms = [GimbalGeometry(c) for _, c in cams]
     renderer = _SkyRenderer(config, intr, target_style=target_style)
     trackers = [GimbalTracker(g, intr, frame_dt, tracker_config, c.command.angle) for g, (_, c) in zip(geoms, cams)]
@@ -330,10 +354,8 @@ def run_tracking(config, detector: FrameDetector | None = None, intr: Intrinsics
     range_sigma = RANGE_SIGMA[auto_target_style(config)] if range_sigma is None else float(range_sigma)
     memory = _RegionMemory(len(cams), (tracker_config.hold_frames + 1) * frame_dt, intr, config.target.radius,
                            range_sigma)
-    team_rng = None if team_seed is None else np.random.default_rng(team_seed)
-    team_radius = {q.body: TIP_RATIO * float(np.mean(q.rotors.arm_length)) for q in config.quadrotors}
-    rec = {k: [] for k in ("t", "camera_R", "camera_p", "angles", "command", "mode", "det_box", "true_box",
-                           "true_centre", "true_depth", "visible_fraction", "target_pos", "target_vel")}
+    team = _Teammates(config, intr, team_seed)
+    rec = {k: [] for k in _RECORDED}
     rows = []
     bar = tqdm(total=n_frames, desc="track (render, detect, steer, simulate)", unit="frame", disable=not progress)
     for k in range(n_frames):
@@ -342,15 +364,8 @@ def run_tracking(config, detector: FrameDetector | None = None, intr: Intrinsics
         t = float(cols["time"][0])
         bq, bp = _finite_poses(state, t)
         cue_now = cue_point(t) if initial_cue else None
-        def hint_of(g, frame):
-            hint = memory.hint(g, trackers[g], t, frame, cue_now)
-            if hint is None or hint is OUT_OF_VIEW or team_rng is None:
-                return hint
-            others = [u for u in team_radius if u != uavs[g]]
-            pos, R = perturbed_positions(team_rng, [bp[bi[u]] for u in others], frame.R, TEAM_POSITION_SIGMA_M,
-                                         TEAM_ATTITUDE_SIGMA_RAD)
-            boxes = expected_boxes(intr, R, frame.p, pos, [team_radius[u] for u in others])
-            return dataclasses.replace(hint, teammates=boxes)
+        hint_of = lambda g, frame: team.told(memory.hint(g, trackers[g], t, frame, cue_now), frame,  # noqa: E731
+                                             uavs[g], {u: bp[bi[u]] for u in team.radius})
         frames, dets, angles, uav_Rs = _detect(renderer, detector, cams, geoms, cols, bq, bi, t, force_loss, hint_of)
         if tracker_config.gate_deg is not None:
             ref_of = lambda g: cue_point(t) if initial_cue and trackers[g].last_seen_t is None else None  # noqa: E731
