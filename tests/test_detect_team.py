@@ -14,7 +14,7 @@ from mysim_jax.perception.detect.metrics import iou
 from mysim_jax.perception.detect.team import expected_boxes, explained_by_teammates, fit, perturbed_positions
 from mysim_jax.perception.ground import GroundTexture
 from mysim_jax.perception.render import Renderer
-from mysim_jax.perception.render_models import TIP_RATIO
+from mysim_jax.perception.render_models import tip_radius
 
 
 def test_expected_boxes_bound_the_rendered_uavs():
@@ -27,7 +27,7 @@ def test_expected_boxes_bound_the_rendered_uavs():
     config = scene_config("drone")
     intr = intrinsics(width=640, height=360)
     uav = config.quadrotors[0]
-    radius = TIP_RATIO * float(np.mean(uav.rotors.arm_length))
+    radius = tip_radius(uav.rotors.arm_length)
     renderer = Renderer(config=config, intr=intr, texture=GroundTexture(seed=0))
     rng = np.random.default_rng(1)
     checked = 0

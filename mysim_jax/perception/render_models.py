@@ -18,7 +18,7 @@ import numpy as np
 
 __all__ = ["Model", "quadrotor_model", "camera_model", "sphere_model", "stack_models", "auto_target_style",
            "body_models", "line_segments", "HULL", "FRONT", "REAR", "MOTOR", "ROTOR", "TARGET", "TARGET_DRONE",
-           "NET", "TETHER", "CAMERA", "LENS", "TIP_RATIO"]
+           "NET", "TETHER", "CAMERA", "LENS", "TIP_RATIO", "tip_radius"]
 
 
 @dataclass
@@ -63,6 +63,11 @@ LENS = (0.02, 0.02, 0.03)
 # a quadrotor's rotor tips from its centre / its mean arm length: the arm (1) and the rotor
 # disc's semi-axis (0.48) of quadrotor_model
 TIP_RATIO = 1.48
+
+
+def tip_radius(arm_length) -> float:
+    """m, a drawn quadrotor's rotor tips from its centre, for its arm lengths (m)."""
+    return TIP_RATIO * float(np.mean(arm_length))
 
 
 def quadrotor_model(arm_length, angle, hull=HULL, front=FRONT, rear=REAR) -> Model:

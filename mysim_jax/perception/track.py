@@ -45,7 +45,7 @@ from mysim_jax.perception.gimbal_tracker import GimbalGeometry, GimbalTracker, G
 from mysim_jax.perception.localize import RANGE_SIGMA, PoseNoise
 from mysim_jax.perception.render import Renderer
 from mysim_jax.perception.render_io import Frame
-from mysim_jax.perception.render_models import TIP_RATIO, auto_target_style
+from mysim_jax.perception.render_models import auto_target_style, tip_radius
 from mysim_jax.perception.track_cues import _associate_all, _RegionMemory, _team_point
 from mysim_jax.perception.track_detectors import (OUT_OF_VIEW, FrameDetector, OracleDetector, RegionDetector,
                                                   image_detector)
@@ -291,7 +291,7 @@ class _Teammates:
 
     def __init__(self, config, intr: Intrinsics, seed: int | None):
         self.rng = None if seed is None else np.random.default_rng(seed)
-        self.radius = {q.body: TIP_RATIO * float(np.mean(q.rotors.arm_length)) for q in config.quadrotors}
+        self.radius = {q.body: tip_radius(q.rotors.arm_length) for q in config.quadrotors}
         self.intr = intr
 
     def told(self, hint, frame: Frame, own: str, positions: dict):

@@ -63,7 +63,7 @@ from mysim_jax.config.scene import config_from_dict
 from mysim_jax.perception.camera import CameraPoses, Intrinsics, intrinsics
 from mysim_jax.perception.ground import GroundTexture
 from mysim_jax.perception.render import Lighting, Renderer
-from mysim_jax.perception.render_models import TIP_RATIO
+from mysim_jax.perception.render_models import tip_radius
 
 ROOT = Path(__file__).resolve().parents[3]
 SCENE_FILES = {"sphere": ROOT / "configs" / "capture_falling.yaml",
@@ -448,7 +448,7 @@ def _uavs_drawn(config, cols: _Columns, hide) -> list[dict]:
         pos = [float(cols.cols[f"{q.body}_{a}"][0]) for a in "xyz"]
         if q.body in hide or pos[2] < PARK_Z / 2:
             continue
-        out.append(dict(name=q.body, pos=pos, radius=float(TIP_RATIO * np.mean(q.rotors.arm_length))))
+        out.append(dict(name=q.body, pos=pos, radius=tip_radius(q.rotors.arm_length)))
     return out
 
 
