@@ -41,9 +41,11 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--uav", nargs="+", required=True, metavar="METRICS", help="perceive.py VIO metrics.json, per UAV")
     fit.add_argument("--target", required=True, metavar="METRICS", help="perceive.py target localisation metrics.json")
     fit.add_argument("--out", required=True, help="YAML file to write")
-    fit.add_argument("--target-block", default="error_model", choices=("error_model", "error_model_draws"),
+    fit.add_argument("--target-block", default="error_model",
+                     choices=("error_model", "error_model_draws", "error_model_plain", "error_model_draws_plain"),
                      help="which fit of the target's metrics.json: the run's pose-noise draw (error_model, default) "
-                     "or the draws of perceive.py --pose-seeds pooled (error_model_draws)")
+                     "or the draws of perceive.py --pose-seeds pooled (error_model_draws); the team's track filters "
+                     "the self-calibrated fusion, the *_plain blocks the plain fusion's track")
     cmp_ = sub.add_parser("compare", help="the gap between two scripts/evaluate.py folders")
     cmp_.add_argument("true_dir", help="evaluation on true states")
     cmp_.add_argument("perceived_dir", help="the same episodes with --perception")

@@ -391,3 +391,68 @@ def test_closed_loop_looks_where_the_track_expects_the_target(small_config):
     # detect_region does not take them, so it is called as before
     assert teams and all(t is not None and t.shape == (0, 4) for t in teams)
     assert not det.takes_teammates
+
+
+def _formation_record(frames: int = 120, seed: int = 0):
+    """A TrackingRecord of four gimbal cameras (a 1.5 m square formation at 5 m) that keep a
+    target (a 0.15 m sphere) in the image centre as it flies from 2 m to 8 m away from them
+    (the evading drone's run in miniature); boxes are the projections with 0.5 px of noise."""
+    from mysim_jax.perception.track import TrackingRecord
+
+    rng = np.random.default_rng(seed)
+    intr = intrinsics(width=640, height=360)
+    t = np.arange(frames) * 0.05
+    s = t / t[-1]
+    target = np.stack([1.0 + 6.0 * s ** 1.5, 1.0 * np.sin(2 * s), 3.5 + 0.5 * s], -1)
+    origins = np.array([[0.75, 0.75, 5.0], [-0.75, 0.75, 5.0], [-0.75, -0.75, 5.0], [0.75, -0.75, 5.0]])
+    R = np.stack([[_looking_at(o, x) for o in origins] for x in target])
+    p = np.broadcast_to(origins, (frames, 4, 3)).copy()
+    depth = np.linalg.norm(target[:, None] - p, axis=-1)
+    box = np.stack([[_box_at(intr, R[k, g], p[k, g], target[k], half=intr.fx * 0.15 / depth[k, g]) for g in range(4)]
+                    for k in range(frames)])
+    box = box + rng.normal(0.0, 0.5, box.shape)
+    centre = np.stack([(box[..., 0] + box[..., 2]) / 2, (box[..., 1] + box[..., 3]) / 2], -1)
+    zeros = np.zeros((frames, 4, 2))
+    return TrackingRecord(cameras=("c0", "c1", "c2", "c3"), uavs=("u0", "u1", "u2", "u3"), t=t, camera_R=R,
+                          camera_p=p, angles=zeros, command=zeros, mode=np.full((frames, 4), "track"), det_box=box,
+                          true_box=box, true_centre=centre,
+                          true_depth=depth, visible_fraction=np.ones((frames, 4)),
+                          target_pos=target, target_vel=np.gradient(target, t, axis=0), target_radius=0.15, intr=intr)
+
+
+def test_the_team_track_filters_the_self_calibrated_fusion_under_pose_errors(tmp_path):
+    """With camera poses that carry VIO-like errors the team's target track filters the fusion
+    of the rays corrected by the self-calibrated pose biases (error_model, error_model_draws);
+    the plain fusion's track is reported beside it (*_plain); with the true poses the track
+    filters the plain fusion."""
+    from mysim_jax.perception.localize import PoseNoise, localize_record
+    from mysim_jax.perception.pose_bias import localize_self_calibrated
+    from mysim_jax.perception.track_report import (SELF_CALIBRATED, TEAM_METHOD, pooled_error_model,
+                                                   pose_noise_seeds, target_error_model, write_tracking_report)
+
+    record = _formation_record(frames=60)
+    noise = PoseNoise(0.036, 0.004, 0, 16.5)
+    draws = pose_noise_seeds(record, noise, 2, range_sigma=0.3)
+    team, plain = draws["error_model"], draws["error_model_plain"]
+    assert plain["method"] == TEAM_METHOD and team["method"] == f"{TEAM_METHOD}, pose biases self-calibrated"
+    for seed in range(2):   # each draw's model is the filtered track of that draw's fusion
+        n = PoseNoise(0.036, 0.004, seed, 16.5)
+        cal = target_error_model(record, localize_self_calibrated(record, n, range_sigma=0.3), poses="perturbed",
+                                 method=SELF_CALIBRATED)
+        raw = target_error_model(record, localize_record(record, pose_noise=n, methods=(TEAM_METHOD,), range_sigma=0.3),
+                                 poses="perturbed")
+        assert team["position_m"]["draws"][seed]["sigma"] == pytest.approx(cal["position_m"]["pooled"]["sigma"])
+        assert plain["position_m"]["draws"][seed]["sigma"] == pytest.approx(raw["position_m"]["pooled"]["sigma"])
+        assert cal["position_error_mean_m"] != pytest.approx(raw["position_error_mean_m"], rel=1e-3)
+    assert team == pooled_error_model([target_error_model(record, localize_self_calibrated(
+        record, PoseNoise(0.036, 0.004, s, 16.5), range_sigma=0.3), poses="perturbed", method=SELF_CALIBRATED)
+        for s in range(2)])
+    (tmp_path / "noisy").mkdir(), (tmp_path / "true").mkdir()
+    metrics = write_tracking_report(record, tmp_path / "noisy", pose_noise=noise, progress=False, range_sigma=0.3)
+    assert metrics["error_model"]["method"] == team["method"] and metrics["error_model_plain"]["method"] == TEAM_METHOD
+    assert metrics["error_model"]["position_error_mean_m"] == pytest.approx(
+        target_error_model(record, localize_self_calibrated(record, noise, range_sigma=0.3), poses="perturbed",
+                           method=SELF_CALIBRATED)["position_error_mean_m"])
+    metrics = write_tracking_report(record, tmp_path / "true", progress=False, range_sigma=0.3)
+    assert metrics["error_model"]["method"] == TEAM_METHOD and metrics["error_model"]["camera_poses"] == "true"
+    assert "error_model_plain" not in metrics

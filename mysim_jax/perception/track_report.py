@@ -122,6 +122,12 @@ def _plot_size_range(data: dict, fits: dict, path: Path) -> None:
 
 
 TEAM_METHOD = "triples_weighted"     # the fusion whose estimate the team's target track filters
+# With camera poses that carry errors (a team's poses always do: each UAV's VIO), the team's
+# track filters TEAM_METHOD's fusion of the rays corrected by the self-calibrated pose biases
+# (:mod:`mysim_jax.perception.pose_bias`); with the true poses there is nothing to calibrate
+# and it filters the plain fusion. ``error_model_plain`` / ``error_model_draws_plain`` keep
+# the plain fusion's track beside it.
+SELF_CALIBRATED = "self_calibrated"
 # m/s^3: the net stops a falling target from ~6 m/s within ~0.1 s; a smaller value lags
 # behind that (velocity RMS error on the falling gimbal run, VIO-like pose noise: 1.1,
 # 0.71, 0.55, 0.47, 0.41 m/s for 5, 20, 50, 100, 200), a larger one is noisier in the fall
@@ -142,7 +148,8 @@ def target_error_model(record: TrackingRecord, loc, poses: str = "true", method:
     first = int(np.argmax(ok))
     t = loc.t[first:]
     p_err = np.linalg.norm(p[first:] - record.target_pos[first:], axis=1)
-    return {"method": method, "camera_poses": poses,
+    name = f"{TEAM_METHOD}, pose biases self-calibrated" if method == SELF_CALIBRATED else method
+    return {"method": name, "camera_poses": poses,
             "filter": {"kind": "constant acceleration", "position_sigma_m": position_sigma,
                        "jerk_sigma_m_s3": jerk_sigma},
             "first_fix_s": float(loc.t[first]),
@@ -176,21 +183,23 @@ def pose_noise_seeds(record: TrackingRecord, pose_noise: PoseNoise, seeds: int, 
     from the target's rays (:mod:`mysim_jax.perception.pose_bias`, assuming ``pose_noise``'s
     spreads; ``true_poses``: with the true poses, the cost of calibrating what is not
     there); ``error_model``: the team track's error model pooled over the draws
-    (:func:`pooled_error_model`)."""
+    (:func:`pooled_error_model`), the track filtering the self-calibrated fusion, and
+    ``error_model_plain`` the same of the plain fusion's track."""
     truth = dataclasses.replace(record, det_box=np.where(np.isfinite(record.det_box), record.true_box, np.nan))
     out = {"seeds": seeds, "method": method}
     calibrated = {}
-    models = []
+    models, models_plain = [], []
     for name, rec in (("detections", record), ("true_boxes", truth)):
         plain, cal = [], []
         for seed in range(seeds):
             noise = dataclasses.replace(pose_noise, seed=seed)
             loc = localize_record(rec, pose_noise=noise, methods=(method,), range_sigma=range_sigma)
+            loc_cal = localize_self_calibrated(rec, noise, range_sigma=range_sigma, method=method)
             plain.append(_error_stats(loc, method))
-            cal.append(_error_stats(localize_self_calibrated(rec, noise, range_sigma=range_sigma, method=method),
-                                    "self_calibrated"))
+            cal.append(_error_stats(loc_cal, SELF_CALIBRATED))
             if name == "detections":
-                models.append(target_error_model(record, loc, poses="perturbed", method=method))
+                models.append(target_error_model(record, loc_cal, poses="perturbed", method=SELF_CALIBRATED))
+                models_plain.append(target_error_model(record, loc, poses="perturbed", method=method))
         out[name] = _draw_summary(plain)
         calibrated[name] = _draw_summary(cal)
     loc = localize_self_calibrated(record, pose_sigma=(pose_noise.position_m, pose_noise.rotation_rad),
@@ -198,6 +207,7 @@ def pose_noise_seeds(record: TrackingRecord, pose_noise: PoseNoise, seeds: int, 
     mean, p95 = _error_stats(loc, "self_calibrated")
     out["self_calibrated"] = {**calibrated, "true_poses": {"error_mean_m": mean, "error_p95_m": p95}}
     out["error_model"] = pooled_error_model(models)
+    out["error_model_plain"] = pooled_error_model(models_plain)
     return out
 
 
@@ -226,7 +236,9 @@ def write_tracking_report(record: TrackingRecord, out: Path, pose_noise: PoseNoi
     """Write ``metrics.json``, ``tracking.npz``, ``localisation.csv`` and the plots into ``out``;
     returns the metrics. ``range_sigma``: the relative range noise the fusion assumes;
     ``pose_seeds``: with ``pose_noise``, also :func:`pose_noise_seeds` over that many draws
-    (``localisation.perturbed_poses_draws``, and the pooled ``error_model_draws``)."""
+    (``localisation.perturbed_poses_draws``, and the pooled ``error_model_draws``). With
+    ``pose_noise`` the team's track (``error_model``) filters the self-calibrated fusion
+    (``error_model_plain``: the plain one's; see SELF_CALIBRATED above)."""
     out = Path(out)
     metrics = {"tracking": tracking_metrics(record)}
     loc = localize_record(record, progress=progress, range_sigma=range_sigma)
@@ -242,9 +254,13 @@ def write_tracking_report(record: TrackingRecord, out: Path, pose_noise: PoseNoi
         if pose_seeds:
             draws = pose_noise_seeds(record, pose_noise, pose_seeds, range_sigma)
             metrics["error_model_draws"] = draws.pop("error_model")
+            metrics["error_model_draws_plain"] = draws.pop("error_model_plain")
             metrics["localisation"]["perturbed_poses_draws"] = draws
-    metrics["error_model"] = target_error_model(record, noisy if pose_noise is not None else loc,
-                                                poses="perturbed" if pose_noise is not None else "true")
+        cal = localize_self_calibrated(record, pose_noise, range_sigma=range_sigma)
+        metrics["error_model"] = target_error_model(record, cal, poses="perturbed", method=SELF_CALIBRATED)
+        metrics["error_model_plain"] = target_error_model(record, noisy, poses="perturbed")
+    else:
+        metrics["error_model"] = target_error_model(record, loc, poses="true")
     n_det = loc.n_detecting
     metrics["localisation"]["detecting_cameras_histogram"] = {str(k): int((n_det == k).sum())
                                                               for k in range(len(record.cameras) + 1)}
@@ -282,7 +298,7 @@ def _team_track_line(model: dict) -> str:
     """One summary line of a team-track error model (:func:`target_error_model`, or
     :func:`pooled_error_model` over pose-noise draws)."""
     pp, vp = model["position_m"]["pooled"], model["velocity_m_s"]["pooled"]
-    return (f"  team track ({model['camera_poses']} poses, filtered): position error mean "
+    return (f"  team track ({model['camera_poses']} poses, {model['method']}, filtered): position error mean "
             f"{model['position_error_mean_m']:.4f} m, p95 {model['position_error_p95_m']:.4f} m (Gauss-Markov sigma "
             f"{pp['sigma']:.4f} m, {pp['correlation_time_s']:.2f} s); velocity error mean "
             f"{model['velocity_error_mean_m_s']:.3f} m/s (sigma {vp['sigma']:.3f} m/s, {vp['correlation_time_s']:.2f} s)")
@@ -323,7 +339,7 @@ def tracking_summary_lines(scene: str, record, metrics: dict, frame_rate: float,
                          f"{d['error_p95_m']:.4f} m; true boxes: mean {tb['error_mean_m']:.4f} m, p95 "
                          f"{tb['error_p95_m']:.4f} m; true poses: mean {tp['error_mean_m']:.4f} m, p95 "
                          f"{tp['error_p95_m']:.4f} m")
-    for key in ("error_model", "error_model_draws"):
+    for key in ("error_model", "error_model_plain", "error_model_draws", "error_model_draws_plain"):
         if "position_m" in metrics.get(key, {}):
             lines.append(_team_track_line(metrics[key]))
     dt = metrics.get("detection_time")
