@@ -395,7 +395,7 @@ def test_closed_loop_looks_where_the_track_expects_the_target(small_config):
 
 def _formation_record(frames: int = 120, seed: int = 0):
     """A TrackingRecord of four gimbal cameras (a 1.5 m square formation at 5 m) that keep a
-    target (a 0.15 m sphere) in the image centre as it flies from 2 m to 8 m away from them
+    target (a 0.15 m sphere) in the image centre as it flies from about 2 m to 7 m away from them
     (the evading drone's run in miniature); boxes are the projections with 0.5 px of noise."""
     from mysim_jax.perception.track import TrackingRecord
 
