@@ -18,10 +18,11 @@ keyframes per image), plots (``estimation_paths.png``, ``estimation_error.png``,
 The images are the full renderer's (mysim_jax/perception/render.py): the textured ground
 and every other UAV, the net, the tethers and the target in view.
 
-``--camera`` picks a fixed camera (default: the first one, on ``--body`` if given). Bad
-input (a missing folder or column, an unknown body or camera, a zero image size, a camera
-that sees no ground, an unusable OUT) is a one-line error and exit code 2 before any long
-work; outputs are written to a temporary folder and moved into OUT only when complete.
+``--camera`` picks a fixed camera (default: the first one, on ``--body`` if given);
+``--t-end S`` estimates the run up to S seconds (e.g. before its UAV tumbles). Bad input (a
+missing folder or column, an unknown body or camera, a zero image size, a camera that sees
+no ground, an unusable OUT) is a one-line error and exit code 2 before any long work;
+outputs are written to a temporary folder and moved into OUT only when complete.
 
 Target tracking (``--track CONFIG``, mysim_jax/perception/track.py and localize.py)::
 
@@ -60,7 +61,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("run_dir", nargs="?", help="run folder written by scripts/simulate.py (VIO mode)")
     parser.add_argument("--track", metavar="CONFIG", help="gimbal tracking + target localisation: simulate "
                         "CONFIG closed loop (instead of VIO on RUN_DIR)")
-    parser.add_argument("--t-end", type=float, metavar="S", help="--track: simulated time (default: the config's)")
+    parser.add_argument("--t-end", type=float, metavar="S", help="--track: simulated time (default: the config's); VIO: "
+                        "estimate the run up to this time (default: to its end), e.g. before its UAV crashes")
     parser.add_argument("--detector", choices=("oracle", "learned"), default="oracle",
                         help="--track: the ground-truth box with noise (oracle, default) or the learned detector "
                         "(mysim_jax.perception.detect)")
@@ -127,7 +129,7 @@ def main(argv=None) -> int:
     try:
         out = check_output_dir(args.out)
         job = prepare_perception(args.run_dir, camera=args.camera, body=args.body, size=args.size,
-                                 camera_rate=args.camera_rate, seed=args.seed)
+                                 camera_rate=args.camera_rate, seed=args.seed, t_end=args.t_end)
     except (OutputError, PerceptionError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

@@ -116,3 +116,23 @@ def test_camera_looking_at_the_sky_is_rejected(tmp_path, capsys):
     up = tmp_path / "sky"
     write_synthetic_run(up, 1.0, camera_quat=(np.cos(np.radians(25)), 0.0, -np.sin(np.radians(25)), 0.0))
     _expect_bad(capsys, tmp_path / "never", up, message=["sees nothing of the ground", "Pitch the camera down"])
+
+
+def test_t_end_estimates_a_run_up_to_before_its_camera_loses_the_ground(run_dir, tmp_path, capsys):
+    """A run whose camera ends below the ground (a crash) is refused with a hint to end it
+    earlier; ``--t-end`` before that estimates the rows up to it."""
+    crash = tmp_path / "crash"
+    crash.mkdir()
+    (crash / "config.yaml").write_text((run_dir / "config.yaml").read_text())
+    cols = read_trajectory_csv(run_dir / "trajectory.csv")
+    cols["cam_fixed_z"] = np.where(cols["time"] > 1.2, -0.1, cols["cam_fixed_z"])
+    write_trajectory_csv(crash / "trajectory.csv", cols)
+    _expect_bad(capsys, tmp_path / "never", crash, message=["at or below the ground", "t = 1.25 s", "--t-end S"])
+    _expect_bad(capsys, tmp_path / "never", crash, "--t-end", "0", message="must be after the run's start")
+    out = tmp_path / "until"
+    code = _main(crash, "--t-end", "1.0", "--out", out, "--size", "192x108", "--no-progress", "--no-video",
+                 "--no-replay")
+    assert code == 0, capsys.readouterr().err
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["frames"] == 21
+    assert read_tum(out / "trajectory_vio.tum").t[-1] == pytest.approx(1.0)

@@ -112,9 +112,9 @@ def _pick_camera(config, camera, body, run_dir):
     return camera, carrier, cam_cfg
 
 
-def _read_columns(run: Path, body: str, camera: str) -> dict:
-    """The run's trajectory columns, checked for what VIO reads (present, finite, at
-    increasing times)."""
+def _read_columns(run: Path, body: str, camera: str, t_end: float | None = None) -> dict:
+    """The run's trajectory columns (up to ``t_end``), checked for what VIO reads (present,
+    finite, at increasing times)."""
     try:
         columns = read_trajectory_csv(run / "trajectory.csv")
     except (OSError, ValueError) as exc:
@@ -128,11 +128,25 @@ def _read_columns(run: Path, body: str, camera: str) -> dict:
     t = np.asarray(columns["time"], dtype=float)
     if len(t) < 3 or not np.all(np.diff(t) > 0):
         raise PerceptionError(f"{run / 'trajectory.csv'}: needs at least 3 rows at increasing times")
+    if t_end is not None:
+        columns = _until(columns, t_end, run)
     bad = [k for k in need if not np.all(np.isfinite(columns[k]))]
     if bad:
         raise PerceptionError(f"{run / 'trajectory.csv'}: non-finite values in {', '.join(bad[:6])}; the run "
                               f"diverged (see its metrics.json)")
     return columns
+
+
+def _until(columns: dict, t_end: float, run: Path) -> dict:
+    """The rows of ``columns`` at times up to ``t_end`` (s)."""
+    t = np.asarray(columns["time"], dtype=float)
+    if not (np.isfinite(t_end) and t_end > t[0]):
+        raise PerceptionError(f"t_end {t_end!r} s: must be after the run's start, t = {t[0]:g} s")
+    n = int(np.searchsorted(t, t_end, side="right"))
+    if n < 3:
+        raise PerceptionError(f"t_end {t_end:g} s keeps only {n} rows of {run / 'trajectory.csv'}; "
+                              f"VIO needs at least 3")
+    return {k: v[:n] for k, v in columns.items()}
 
 
 def _image_rows(t: np.ndarray, camera_rate: float) -> np.ndarray:
@@ -153,9 +167,12 @@ def _image_rows(t: np.ndarray, camera_rate: float) -> np.ndarray:
 
 def prepare_perception(run_dir: str | os.PathLike, camera: str | None = None, body: str | None = None,
                        size: tuple[int, int] = (640, 360), camera_rate: float = 20.0, seed: int = 0,
-                       imu_config=None) -> PerceptionJob:
+                       imu_config=None, t_end: float | None = None) -> PerceptionJob:
     """Read and check a run folder (``trajectory.csv`` and ``config.yaml``) for perception,
     and simulate the body's IMU (``imu_config``, default the paper's; seeded).
+
+    ``t_end`` (s of the run's time, default its end) keeps only the rows up to that time:
+    the part of a run before its UAV crashes or tumbles, when its camera still sees ground.
 
     Raises :class:`PerceptionError` naming what is wrong: a missing folder or file, a
     body or camera not in the run (listing those that are), a camera that is not on a
@@ -185,11 +202,15 @@ def prepare_perception(run_dir: str | os.PathLike, camera: str | None = None, bo
     gravity = np.asarray(config.gravity, dtype=float)
     if abs(gravity[0]) > 0 or abs(gravity[1]) > 0 or not gravity[2] < 0:
         raise PerceptionError(f"the run's gravity {gravity.tolist()} is not along -z; the estimator assumes it is")
-    columns = _read_columns(run, body, camera)
+    columns = _read_columns(run, body, camera, t_end)
     rows = _image_rows(np.asarray(columns["time"], dtype=float), camera_rate)
 
     poses = camera_poses(columns, camera)
-    check_sees_ground(intr, CameraPoses(name=camera, t=poses.t[rows], R=poses.R[rows], p=poses.p[rows]))
+    try:
+        check_sees_ground(intr, CameraPoses(name=camera, t=poses.t[rows], R=poses.R[rows], p=poses.p[rows]))
+    except PerceptionError as err:
+        raise PerceptionError(f"{err}; to estimate the part of the run before that, end it earlier "
+                              f"(perceive.py --t-end S)") from None
 
     imu_config = imu_config or ImuConfig()
     try:
