@@ -224,6 +224,22 @@ def test_numbered_episodes_are_the_same_whatever_the_batch_and_the_team():
         Evaluator(env, params, lambda *a: None, batch=0)
 
 
+@pytest.mark.float64
+def test_a_float64_scene_is_evaluated_in_float64():
+    """The slots' sums of reward terms take the scene's precision, so a float64 scene runs
+    (it failed on a float32 carry) and its returns are the sums of its terms."""
+    from mysim_jax.tasks.capture import make_env
+    from mysim_jax.tasks.evaluate import Evaluator, scripted_policy
+
+    sets = [s for s in SMALL if not s.startswith("sim.precision")] + ["sim.precision=float64"]
+    env, params = make_env(load_config(CONFIG, ["env={}", *sets]))
+    run = Evaluator(env, params, lambda k, o, s, p, a: scripted_policy(env)(k, o, s, p), batch=2)(
+        jax.random.PRNGKey(1), 2)
+    assert run.n == 2 and np.all(run.length > 0)
+    assert run.returns.dtype == np.float64 and all(v.dtype == np.float64 for v in run.terms.values())
+    np.testing.assert_allclose(sum(run.terms.values()), run.returns, rtol=1e-9, atol=1e-9)
+
+
 def test_tether_tensions_of_tethers_without_interior_masses():
     """A tether with ``n_masses: 0`` is one segment from the knot to the UAV's marker: the
     report's tension (from the saved columns: the marker moved with the body's pose and

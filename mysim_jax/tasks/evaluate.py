@@ -172,6 +172,7 @@ class Evaluator:
         # slots begin idle (episode -1) on placeholder zeros: their first step starts their
         # first episode from ``advance``'s reset, so no separate reset program is compiled
         self._blank = jax.eval_shape(lambda: env.reset(jax.random.PRNGKey(0), params))
+        self._float = self._blank[0].dtype              # the scene's precision (float32 or float64)
         block = batching.chunk_for(self._blank[1]) if env_batching == "batch_last" else None
         self._batched = batching.batch(advance, env_batching, in_axes=(0, None, None), chunk=block)
         self._compiled = {}
@@ -196,7 +197,7 @@ class Evaluator:
         queue = batch                                   # the next episode number to hand out
         carry = (obs, state, Slots(episode=jnp.full(batch, -1, jnp.int32), t=jnp.zeros(batch, jnp.int32),
                                    next=jnp.asarray(first, jnp.int32),
-                                   term_sum=jnp.zeros((batch, self._n_terms), jnp.float32)))
+                                   term_sum=jnp.zeros((batch, self._n_terms), self._float)))
         rows = {}
         bar = None
         if progress:
