@@ -103,6 +103,33 @@ def test_ppo_is_the_default_trainer():
     assert type(trainer) is Trainer
 
 
+def test_the_memory_estimate_counts_what_the_backward_pass_keeps():
+    """A SHAC trainer's estimate adds, to PPO's parts, the residuals reverse mode saves
+    over the rollout (from jax.eval_shape of the actor loss's vjp): at least the actor's two
+    hidden layers per step, environment and agent, growing with the environments and the
+    steps; a machine that holds PPO's parts but not these refuses the run."""
+    from mysim_jax.mappo.config import check_memory_needs
+
+    env = ReachEnv()
+    base = {**SHAC, "num_envs": 16, "num_steps": 4, "num_minibatches": 1}
+
+    def needs(**change):
+        return make_trainer(AlgoConfig(**{**base, **change}), env, env.default_params()).memory_needs()
+
+    one = needs()
+    ppo = Trainer(AlgoConfig(**base), env, env.default_params()).memory_needs()      # PPO's count of the same sizes
+    assert {k: v for k, v in one.items() if k != "backward pass"} == ppo
+    saved, fields = one["backward pass"]
+    assert fields == "algo.num_envs x algo.num_steps"
+    assert saved >= 2 * 4 * base["num_envs"] * base["num_steps"] * env.n_agents * 128
+    assert needs(num_envs=32)["backward pass"][0] > 1.5 * saved
+    assert needs(num_steps=8)["backward pass"][0] > 1.5 * saved
+    ppo_total = sum(b for b, _ in ppo.values())
+    check_memory_needs(ppo, "t.yaml", available=ppo_total)
+    with pytest.raises(ConfigError, match=r"backward pass .* \(algo.num_envs x algo.num_steps\)"):
+        check_memory_needs(one, "t.yaml", available=ppo_total)
+
+
 @pytest.mark.parametrize("algo, words", [
     ({"name": "shac", "target_kl": 0.02}, "target_kl"),
     ({"name": "shac", "clip_eps": 0.1}, "clip_eps"),

@@ -69,6 +69,19 @@ class ShacTrainer(Trainer):
         c = self.config
         return c.num_steps if c.shac.horizon is None else c.shac.horizon
 
+    def memory_needs(self) -> dict:
+        """PPO's parts (:meth:`Trainer.memory_needs`) and what the actor's backward pass
+        keeps: the residuals reverse mode saves over the rollout (every step's carried
+        environment state, the networks' activations), counted from ``jax.eval_shape`` of
+        the loss's ``jax.vjp`` (traced, not compiled)."""
+        needs = super().memory_needs()
+        ts = jax.eval_shape(self.init, jax.random.PRNGKey(0))
+        saved = jax.eval_shape(lambda t: jax.vjp(lambda a: self._actor_loss(a, t, 1.0, 0.0)[0],
+                                                 t.params["actor"])[1], ts)
+        needs["backward pass"] = (sum(x.size * x.dtype.itemsize for x in jax.tree.leaves(saved)),
+                                  "algo.num_envs x algo.num_steps")
+        return needs
+
     # --- optimisers: one per network --------------------------------------------------
     def _schedule(self):
         """The actor's learning rate as a function of its steps taken (one per iteration)."""
