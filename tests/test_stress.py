@@ -168,6 +168,21 @@ def _records(plan, rates: dict) -> dict:
     return out
 
 
+def test_a_failing_value_is_shown_with_the_decimals_that_show_it_fails(tmp_path):
+    """A lower end of -1.048 points against -1 fails and reads -1.05, not -1.0; a fraction
+    of 0.7996 against 0.8 reads 0.7996; values away from the bound keep their usual digits."""
+    path = _file(tmp_path, criterion={"fraction_of_nominal": 0.8, "lead_low95_points": -1})
+    plan = plan_stress(path, tmp_path / "out")
+    records = _records(plan, {NOMINAL: [(0.9, 0.4, 0.45, 0.55)],
+                              "mass": [(0.9, 0.4, 0.4, 0.6), (0.71964, 0.3, -0.01048, 0.5)]})
+    judged = [r for r in stress_rows(plan, records) if r["judged"]]
+    assert judged[0]["failing"] == "0.7996 of nominal < 0.8; difference's lower end -1.05 < -1 points"
+    records = _records(plan, {NOMINAL: [(0.9, 0.4, 0.45, 0.55)],
+                              "mass": [(0.9, 0.4, 0.4, 0.6), (0.5, 0.3, -0.02, 0.5)]})
+    judged = [r for r in stress_rows(plan, records) if r["judged"]]
+    assert judged[0]["failing"] == "0.56 of nominal < 0.8; difference's lower end -2.0 < -1 points"
+
+
 def test_the_criterion_the_table_and_the_figure(tmp_path):
     path = _file(tmp_path, factors=[GOOD["factors"][0], {**GOOD["factors"][0], "name": "mass_b"},
                                     {**GOOD["factors"][0], "name": "mass_c"}],

@@ -105,6 +105,15 @@ def plan_stress(path, out, episodes: int | None = None) -> StressPlan:
 # --- results ---------------------------------------------------------------------------
 
 
+def _below(x: float, bound: float, digits: int, sign: str) -> str:
+    """``x`` (which is below ``bound``) with ``digits`` decimals, or as many more (up to 6)
+    as it takes for the shown value to be below ``bound`` too: a lower end of -1.048 against
+    -1 reads -1.05, not -1.0."""
+    while digits < 6 and float(f"{x:{sign}.{digits}f}") >= bound:
+        digits += 1
+    return f"{x:{sign}.{digits}f}"
+
+
 def _pair(rows: list[dict], point: int) -> tuple[dict, dict]:
     mine = [r for r in rows if r["point"] == point]
     return next(r for r in mine if r["team"] == "policy"), next(r for r in mine if r["team"] == "compare")
@@ -133,12 +142,13 @@ def stress_rows(plan: StressPlan, records: dict) -> list[dict]:
             failing = []
             k = c.criterion
             if k.fraction_of_nominal is not None and not frac >= k.fraction_of_nominal:
-                failing.append(f"{frac:.2f} of nominal < {k.fraction_of_nominal:g}")
+                failing.append(f"{_below(frac, k.fraction_of_nominal, 2, '')} of nominal < {k.fraction_of_nominal:g}")
             if k.lead_points is not None and not r["difference_points"] >= k.lead_points:
-                failing.append(f"difference {r['difference_points']:+.1f} < {k.lead_points:+g} points")
+                failing.append(f"difference {_below(r['difference_points'], k.lead_points, 1, '+')} < "
+                               f"{k.lead_points:+g} points")
             if k.lead_low95_points is not None and not r["difference_low95_points"] >= k.lead_low95_points:
-                failing.append(f"difference's lower end {r['difference_low95_points']:+.1f} < "
-                               f"{k.lead_low95_points:+g} points")
+                failing.append(f"difference's lower end {_below(r['difference_low95_points'], k.lead_low95_points, 1, '+')}"
+                               f" < {k.lead_low95_points:+g} points")
             r["passes"] = not failing
             r["failing"] = "; ".join(failing)
         return r
