@@ -55,13 +55,16 @@ def test_summary_lines_judge_the_targets_and_name_their_sections():
         "d": rope, "g": {"iteration": 50.0, "env": 200.0},
         "f": {"library": 3.0e6, "floor": 9.0e6},
         "k": {"whole image": 1.4, "region": 23.5, "region, first stage only": 60.0},
+        "levels": {"full": {"rate": {256: 900.0, 1024: 1200.0}}, "train": {"rate": {1024: 9000.0}}},
     }
     lines = report.summary_lines(results)
     assert lines[:2] == ["## Summary", ""] and lines[-1] == ""
     text = "\n".join(lines)
     assert "**2,500,000 env-steps/s** — target ≥ 1,000,000: **met**" in text
     assert "B=1024: **0.90×**, B=4096: **0.70×**" in text and "**NOT met**." in text
-    assert "**2,048.0 team steps/s** at 25 Hz on the level `full` — target ≥ 20,000: **NOT met**" in text
+    assert "**2,048.0 team steps/s** at 25 Hz on the level `full` (where the time goes: (e); the levels' targets: (i))" in text
+    assert ("- Fidelity levels (i), B = 1024, 10 Hz: `full` 1,200 team steps/s, target ≥ 1,000: met; "
+            "`train` 9,000 team steps/s, target ≥ 12,000: NOT met.") in text
     assert "rk4 1e-04 float64: 2.0e-09 m at 0.500 s/sim-s" in text and "tsit5" not in text
     assert "({:.0%})".format(50 / 200) in text
     assert "gravity-only floor 9,000,000." in text and "`jax.vmap`" not in text.split("Profile (f)")[1]
@@ -96,3 +99,12 @@ def test_write_report_points_plot_links_at_the_plots_and_splices_on_update(tmp_p
     spliced = out.read_text()
     assert "C2" in spliced and "C1" not in spliced and "throughput.png" in spliced
     assert "kept from the earlier file (day 1, git a, on m)" in spliced
+
+
+def test_the_levels_target_line_judges_each_level_timed_at_1024():
+    from mysim_jax.bench.levels import target_lines
+
+    rows = {"full": {"rate": {256: 900.0, 1024: 999.0}}, "train": {"rate": {1024: 12000.0}}, "fast": {"rate": {1024: 5.0}}}
+    assert target_lines(rows) == ["", "**Targets at B = 1024, 10 Hz: `full` 999 team steps/s, target ≥ 1,000: NOT MET; "
+                                      "`train` 12,000 team steps/s, target ≥ 12,000: MET**."]
+    assert target_lines({"full": {"rate": {256: 900.0}}}) == []
