@@ -130,6 +130,25 @@ def test_a_factor_the_scene_does_not_draw_is_refused(tmp_path):
         plan_stress(path, tmp_path / "out")
 
 
+def test_the_files_scene_overrides_reach_every_point_and_the_table(tmp_path):
+    """``set`` (scene overrides of every point, here the allocation's saturation handling)
+    reaches the nominal and every shifted point, and the table says so; a bad one is
+    refused naming the key before anything runs."""
+    sets = [f"quadrotors.{i}.controller.saturation=attitude_priority" for i in range(4)]
+    plan = plan_stress(_file(tmp_path, set=sets), tmp_path / "out")
+    points = [p for _, sweep in plan.sweeps for p in sweep.points]
+    assert len(points) == 3
+    for p in points:
+        assert [q.controller.saturation for q in p.config.quadrotors] == ["attitude_priority"] * 4
+    plain = plan_stress(_file(tmp_path), tmp_path / "out2")
+    assert {q.controller.saturation for _, s in plain.sweeps for p in s.points for q in p.config.quadrotors} == {"clip"}
+    rows = stress_rows(plan, _records(plan, {NOMINAL: [(1.0, 1.0, -0.1, 0.1)],
+                                             "mass": [(1.0, 1.0, -0.1, 0.1), (0.5, 0.5, -0.1, 0.1)]}))
+    assert table_markdown(plan, rows).startswith("Every point with `quadrotors.0.controller.saturation=attitude_priority`")
+    with pytest.raises(ConfigError, match="saturation"):
+        plan_stress(_file(tmp_path, set=["quadrotors.0.controller.saturation=always"]), tmp_path / "out3")
+
+
 def test_overrides_are_yaml_the_scene_loader_reads():
     cfg = load_stress(STRESS / "maneuvering.yaml")
     wind = next(f for f in cfg.factors if f.kind == "box")

@@ -134,6 +134,11 @@ class ControllerConfig(StrictModel):
     ``feedforward`` (differential flatness): ``acceleration`` adds ``m a_d`` to the
     desired thrust; ``full`` (default) also feeds the reference's body rates and
     accelerations (from its jerk and snap) to the attitude loop; ``none`` is plain PID.
+    ``saturation`` says what the allocation does when a motor would leave its limits:
+    ``clip`` (default) clips each motor alone, which loses torque (all four at the top
+    speed give none); ``attitude_priority`` keeps the torque and moves the collective
+    thrust instead, giving up yaw, then roll and pitch, only when no thrust fits, as
+    flight stacks' mixers do (:mod:`mysim_jax.control.pid`, step 4).
     ``max_tilt`` (rad) limits the tilt of the desired thrust vector. Integrators are clamped to ``±position_integral_limit`` (m s) and
     ``±attitude_integral_limit`` (rad s) and frozen while a motor saturates
     (anti-windup). ``mass`` is the mass the controller assumes (default: the UAV body
@@ -151,6 +156,7 @@ class ControllerConfig(StrictModel):
     attitude: GainSet = GainSet(**PAPER_ATTITUDE_GAINS)
     attitude_gain_units: Literal["dyne_cm", "rotor_speed_squared", "torque"] = "dyne_cm"
     feedforward: Literal["none", "acceleration", "full"] = "full"
+    saturation: Literal["clip", "attitude_priority"] = "clip"
     max_tilt: Annotated[Finite, Field(gt=0, lt=math.pi / 2)] = 0.8
     position_integral_limit: PosFloat = 2.0
     attitude_integral_limit: PosFloat = 1.0

@@ -77,6 +77,7 @@ class StressConfig(StrictModel):
     batch: Annotated[int, Field(ge=1)] = 250
     seed: Annotated[int, Field(ge=0)]
     perception: str | None = None               # env.perception block file, for perception_scale
+    set: list[str] = []                         # scene overrides (KEY=VALUE, as --set) of every point
     criterion: StressCriterion = StressCriterion()
     factors: Annotated[list[StressFactor], Field(min_length=1)]
 

@@ -41,7 +41,20 @@ and ``max_speed`` first.
    ``τ_ff = ω × Jω − J(ω × RᵀR_d ω_s − RᵀR_d α_s)``.
 4. **Allocation** about the centre of mass of the whole vehicle: cameras move it to
    ``r_c`` (body frame), so the rotors must add ``r_c × (0, 0, T)`` to hold the attitude;
-   ``ω² = M⁻¹ (T, τ + r_c × T e_z)``, clipped to the motor limits.
+   ``ω² = M⁻¹ (T, τ + r_c × T e_z)``, clipped to the motor limits (``saturation: clip``,
+   the default). When a motor would leave its limits, each one is clipped alone, so the
+   torque the rotors give is no longer ``τ``: with all four at their top speed a vehicle
+   has no torque left and tips. ``saturation: attitude_priority`` instead keeps the
+   torque and moves the collective thrust, as flight stacks' mixers do (PX4's
+   desaturation): with ``a = M⁻¹ (1, r_c × e_z)`` (per motor, ``ω²`` per newton of
+   thrust) and ``d = M⁻¹ (0, τ)``, every thrust ``T'`` in ``[L, U]`` with
+   ``L = maxᵢ (ω²_min − dᵢ)/aᵢ``, ``U = minᵢ (ω²_max − dᵢ)/aᵢ`` keeps every motor inside
+   its limits, and the allocation takes ``T' = clip(T, L, U)``, the feasible thrust closest to
+   the demand. When no thrust fits the whole torque (``L > U``), the yaw torque is
+   scaled down by the largest factor in ``[0, 1]`` that fits with the full roll and
+   pitch torques; when those alone do not fit, yaw is dropped and roll and pitch are
+   scaled down alike (:func:`attitude_priority_speeds`). A command inside the limits is
+   the same under both.
 5. **Anti-windup**: both integrators are clamped to their limits and frozen while any
    motor of that quadrotor saturates; the position integrator also while the tilt
    limit is active (position mode; velocity mode has none).
@@ -256,6 +269,54 @@ def flat_body_rates(params, t):
     return omega, alpha
 
 
+def _feasible_interval(a, d, lo, hi):
+    """The thrusts ``[L, U]`` (per quadrotor) that keep every motor of ``a T + d`` within
+    ``[lo, hi]`` (``a > 0``); empty when ``L > U``."""
+    return jnp.max((lo - d) / a, axis=-1), jnp.min((hi - d) / a, axis=-1)
+
+
+def _largest_fitting_fraction(a, base, extra, lo, hi):
+    """The largest ``γ`` in ``[0, 1]`` for which some thrust ``T`` keeps every motor of
+    ``a T + base + γ extra`` within ``[lo, hi]``, given that ``γ = 0`` fits. A thrust fits
+    ``γ`` when ``(lo − baseᵢ − γ extraᵢ)/aᵢ <= (hi − baseⱼ − γ extraⱼ)/aⱼ`` for every pair
+    of motors ``i, j``; each pair whose bound tightens with ``γ`` caps it."""
+    low = (lo - base) / a                                   # (n_quads, 4): motor i's lower bound on T at γ = 0
+    high = (hi - base) / a
+    slope = extra / a
+    room = high[..., None, :] - low[..., :, None]           # [i, j]: U_j − L_i at γ = 0 (>= 0 when it fits)
+    tightening = slope[..., None, :] - slope[..., :, None]  # [i, j]: how fast U_j − L_i shrinks with γ
+    safe = jnp.where(tightening > 0, tightening, 1.0)
+    cap = jnp.where(tightening > 0, room / safe, jnp.inf)
+    return jnp.clip(jnp.min(cap, axis=(-2, -1)), 0.0, 1.0)
+
+
+def attitude_priority_speeds(inverse, thrust, torque, com_offset, lo, hi):
+    """Squared motor speeds ``(n_quads, 4)`` that keep the roll and pitch torque, then the
+    yaw torque, and move the collective thrust to the nearest that fits the motor limits
+    ``[lo, hi]`` (``saturation: attitude_priority``, module docstring step 4).
+
+    ``inverse`` is ``M⁻¹`` (n_quads, 4, 4), ``thrust`` (n_quads,) N, ``torque``
+    (n_quads, 3) N m the attitude loop's torque about the vehicle's centre of mass,
+    ``com_offset`` (n_quads, 3) m its offset from the rotors' centre (the allocation adds
+    ``com_offset × T e_z``, a torque that moves with the thrust). The result may still
+    leave the limits by round-off; the caller clips it.
+    """
+    e_z = jnp.zeros_like(com_offset).at[:, 2].set(1.0)
+    per_thrust = jnp.concatenate([jnp.ones_like(thrust)[:, None], vecmath.cross(com_offset, e_z)], axis=-1)
+    a = jnp.einsum("qij,qj->qi", inverse, per_thrust)                      # ω² per N of thrust, > 0
+    roll_pitch = jnp.einsum("qij,qj->qi", inverse[:, :, 1:3], torque[:, :2])
+    yaw = inverse[:, :, 3] * torque[:, 2:3]
+    low, high = _feasible_interval(a, roll_pitch, lo, hi)
+    roll_pitch_fits = low <= high
+    yaw_kept = jnp.where(roll_pitch_fits, _largest_fitting_fraction(a, roll_pitch, yaw, lo, hi), 0.0)
+    roll_pitch_kept = jnp.where(roll_pitch_fits, 1.0,
+                                _largest_fitting_fraction(a, jnp.zeros_like(roll_pitch), roll_pitch, lo, hi))
+    d = roll_pitch_kept[:, None] * roll_pitch + yaw_kept[:, None] * yaw
+    low, high = _feasible_interval(a, d, lo, hi)
+    kept_thrust = jnp.minimum(jnp.maximum(thrust, low), high)
+    return a * kept_thrust[:, None] + d
+
+
 @final
 class CascadedPID(Controller):
     """Position PID → desired attitude → attitude PID → allocation (module docstring)."""
@@ -293,12 +354,19 @@ class CascadedPID(Controller):
             torque = torque + jnp.where(full, vecmath.cross(omega, j_omega) - j_terms, 0.0)
         # allocate about the vehicle's centre of mass (cameras move it off the body centre)
         zero = jnp.zeros_like(thrust)
-        torque = torque + vecmath.cross(cp.com_offset, jnp.stack([zero, zero, thrust], axis=-1))
-        wrench = jnp.concatenate([thrust[:, None], torque], axis=-1)
-        speed_sq = jnp.einsum("qij,qj->qi", allocation_inverse(qp), wrench)
+        inverse = allocation_inverse(qp)
+        wrench = jnp.concatenate(
+            [thrust[:, None], torque + vecmath.cross(cp.com_offset, jnp.stack([zero, zero, thrust], axis=-1))],
+            axis=-1)
+        speed_sq = jnp.einsum("qij,qj->qi", inverse, wrench)
         lo, hi = qp.omega_min[:, None] ** 2, qp.omega_max[:, None] ** 2
-        clipped = jnp.clip(speed_sq, lo, hi)
         saturated = jnp.any((speed_sq < lo) | (speed_sq > hi), axis=-1)
+        priority = np.asarray([s == "attitude_priority" for s in qs.saturation], dtype=bool)
+        if priority.any():
+            with jax.named_scope("attitude_priority_allocation"):
+                kept = attitude_priority_speeds(inverse, thrust, torque, cp.com_offset, lo, hi)
+            speed_sq = jnp.where((priority & saturated)[:, None], kept, speed_sq)
+        clipped = jnp.clip(speed_sq, lo, hi)
         omega_cmd = safe_sqrt(clipped)
 
         pos_lim = cp.position_integral_limit[:, None]

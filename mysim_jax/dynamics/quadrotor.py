@@ -55,6 +55,7 @@ class QuadrotorScene:
     controller: str = "none"                 # "cascaded_pid" | "none" (motor commands from step's control)
     feedforward: tuple[str, ...] = ()        # (n_quads,) "none" | "acceleration" | "full"
     attitude_gain_units: tuple[str, ...] = ()  # (n_quads,) "rotor_speed_squared" | "torque"
+    saturation: tuple[str, ...] = ()         # (n_quads,) "clip" | "attitude_priority": motor-limit handling
     setpoint_mode: str = "position"          # "position" | "velocity": what the controller's setpoint fixes
     has_motor_lag: bool = False
 

@@ -20,7 +20,8 @@ draw, shifted one at a time with every other draw at its training range:
   1: its rotors stop).
 
 The nominal point is the scene as the team trained on it (every draw at its training
-range, true states). Every point flies the same episodes (episode ``i`` of seed ``seed``,
+range, true states), with the file's ``set`` overrides if it has any: they apply to every
+point (e.g. another motor-saturation handling of the controller, ``quadrotors.N.controller.saturation``). Every point flies the same episodes (episode ``i`` of seed ``seed``,
 as ``scripts/evaluate.py --seed`` draws it), so a point differs from the nominal and from
 the other team only in what was shifted (:mod:`mysim_jax.tasks.grid` runs the points).
 
@@ -81,7 +82,7 @@ def plan_stress(path, out, episodes: int | None = None) -> StressPlan:
     if n < 1:
         raise ConfigError(f"episodes {n}: must be at least 1")
     out = check_output_dir(out)
-    sets = override_list(level=cfg.level)
+    sets = [*cfg.set, *override_list(level=cfg.level)]
     base = load_config(cfg.scene, sets)
     if getattr(base, "env", None) is None:
         raise ConfigError(f"{cfg.scene}: a stress suite needs a capture scene with an env: block")
@@ -173,7 +174,8 @@ def table_markdown(plan: StressPlan, rows: list[dict]) -> str:
     with intervals, the paired difference, the fraction of nominal, the verdict where judged."""
     c = plan.config
     labels = {f.name: f.label for f in c.factors}
-    lines = [f"| shift | value | training range | '{c.policy}' | '{c.compare}' | difference [points] | "
+    lines = [f"Every point with {', '.join(f'`{x}`' for x in c.set)}.", ""] if c.set else []
+    lines += [f"| shift | value | training range | '{c.policy}' | '{c.compare}' | difference [points] | "
              "of nominal | judged |", "|---|---:|---:|---:|---:|---:|---:|---|"]
     for r in rows:
         if r["factor"] == NOMINAL:
