@@ -21,8 +21,9 @@ draw, shifted one at a time with every other draw at its training range:
 
 The nominal point is the scene as the team trained on it (every draw at its training
 range, true states), with the file's ``set`` overrides if it has any: they apply to every
-point (e.g. another motor-saturation handling of the controller, ``quadrotors.N.controller.saturation``). Every point flies the same episodes (episode ``i`` of seed ``seed``,
-as ``scripts/evaluate.py --seed`` draws it), so a point differs from the nominal and from
+point (e.g. another motor-saturation handling of the controller,
+``quadrotors.N.controller.saturation``). Every point flies the same episodes (episode
+``i`` of seed ``seed``, as ``scripts/evaluate.py --seed`` draws it), so a point differs from
 the other team only in what was shifted (:mod:`mysim_jax.tasks.grid` runs the points).
 
 The file also states the criterion a shift is judged by, at the value ``judged_at`` of
