@@ -110,15 +110,20 @@ def test_dagger_rounds_let_the_clone_fly_and_label_its_states_with_the_scripted_
 
 def test_demonstrations_are_the_same_with_either_batching():
     """``algo.batching``: the scripted team's demonstrations collected with ``jax.vmap``
-    equal those of the batch-last vmap to float32 round-off (4 environments x 6 steps, on
-    the level ``train``; measured: largest difference 4e-5, in the observed velocities)."""
+    equal those of the batch-last vmap to float32 round-off (4 environments x 4 steps, on
+    the level ``train``). The two programs round differently, and the closed loop amplifies
+    a round-off 10-200x per team step once the UAVs manoeuvre (the body rates first): over
+    6 steps the difference reached 4e-5 on the family-25 machine and 1.3e-3 on the Intel one
+    (docs/machines.md), so the comparison stops at 4 steps, where on the Intel machine it
+    stayed under 1e-6 with the suite's XLA flags (7e-6 with XLA's defaults). A wrong
+    batching (another environment's state, a lost step) differs by far more."""
     from mysim_jax.mappo import bc
 
     runs = {}
     for kind in ("batch_last", "vmap"):
-        trainer = _trainer("env.level=train", "algo.bc.num_envs=4", "algo.bc.steps=6", f"algo.batching={kind}")
+        trainer = _trainer("env.level=train", "algo.bc.num_envs=4", "algo.bc.steps=4", f"algo.batching={kind}")
         assert trainer.env_batching == kind
         runs[kind] = bc.collect(trainer, jax.random.PRNGKey(3))
     for a, b in zip(jax.tree.leaves(runs["batch_last"]), jax.tree.leaves(runs["vmap"])):
-        assert a.shape == b.shape and a.shape[:2] == (6, 4)
-        np.testing.assert_allclose(np.asarray(a, np.float64), np.asarray(b, np.float64), rtol=1e-4, atol=5e-4)
+        assert a.shape == b.shape and a.shape[:2] == (4, 4)
+        np.testing.assert_allclose(np.asarray(a, np.float64), np.asarray(b, np.float64), rtol=1e-5, atol=5e-5)
