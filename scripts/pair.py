@@ -39,6 +39,10 @@ def main(argv=None) -> int:
     except PairingError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
+    if args.out:
+        out = Path(args.out)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(result, indent=2))
     print(f"{result['scene']}, {result['episodes']} episodes of seed {result['seed']} "
           f"({result['method']}):\n\n{pairing_table(result)}")
     for row in result["teams"]:
@@ -46,9 +50,6 @@ def main(argv=None) -> int:
         extra += ["--perception"] if row["perception"] else []
         if extra:
             print(f"  {row['folder']}: {' '.join(extra)}")
-    if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(json.dumps(result, indent=2))
     return 0
 
 
