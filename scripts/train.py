@@ -29,6 +29,11 @@ side in one program (vmapped): each seed's files go to ``OUT/seed_<seed>/``, and
 ``--resume OUT`` continues from OUT's last complete checkpoint (a run killed at any
 moment loses at most one checkpoint interval) and finishes as the uninterrupted run would.
 
+A training file with ``run.then: FILE`` is a chain (mysim_jax/mappo/chain.py): when its run
+has ended, FILE (``algo.init: policy``) trains from the run's policy into ``OUT/then/``;
+the chain's team is ``OUT/then/policy``, and ``--resume OUT`` continues whichever run it
+stopped in.
+
 The environments are split over every device JAX sees (``run.devices``). Several
 processes (hosts) train one run together when each is started with the same arguments and
 ``--coordinator HOST:PORT --num-processes N --process-id I`` (``jax.distributed``; OUT on a
@@ -86,7 +91,8 @@ def main(argv=None) -> int:
     from mysim_jax.config.overrides import override_list
     from mysim_jax.core.config_base import ConfigError
     from mysim_jax.io.output import OutputError
-    from mysim_jax.mappo.run import describe_run, prepare, train_run
+    from mysim_jax.mappo.chain import train_chain
+    from mysim_jax.mappo.run import describe_run, prepare
 
     if args.resume is not None and (args.config is not None or args.out is not None or args.profile is not None
                                     or args.seeds is not None):
@@ -110,11 +116,12 @@ def main(argv=None) -> int:
     from mysim_jax.mappo.checkpoint import CheckpointError
 
     try:
-        summary = train_run(prepared, progress=not args.no_progress, evaluate=not args.no_eval)
+        summaries = train_chain(prepared, progress=not args.no_progress, evaluate=not args.no_eval)
     except (CheckpointError, ConfigError) as err:
         return _error(str(err))
-    if summary:                # the first (or only) process
-        print(json.dumps({k: v for k, v in summary.items() if k != "evaluation"}, indent=None))
+    for summary in summaries:
+        if summary:            # the first (or only) process
+            print(json.dumps({k: v for k, v in summary.items() if k != "evaluation"}, indent=None))
     return 0
 
 

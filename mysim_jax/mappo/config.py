@@ -319,6 +319,10 @@ class RunConfig(StrictModel):
     # devices the environments are split over (algo.num_envs must be divisible by their
     # number); None: every device JAX sees (one on a plain CPU machine)
     devices: PosInt | None = None
+    # a training file to train next, from this run's final policy (relative to this file;
+    # its algo.init must be policy, its algo.init_policy is replaced by this run's policy/),
+    # into OUT/then/: the chain's team is the last run's (mysim_jax/mappo/chain.py)
+    then: str | None = None
 
 
 class TrainConfig(StrictModel):

@@ -303,8 +303,10 @@ def _restore(s: _Session, state) -> tuple[object, int, bool]:
             restored = True
     for one in s.seeds:
         one.rows = read_rows(one.out / "metrics.csv", start_iteration)
-    if s.p.resume:
+    if restored:
         s.log(f"resuming {s.p.out} at iteration {start_iteration} of {s.c.algo.num_iterations}")
+    elif s.p.resume:
+        s.log(f"{s.p.out}: no checkpoint yet, starting at iteration 0 of {s.c.algo.num_iterations}")
     return state, start_iteration, restored
 
 

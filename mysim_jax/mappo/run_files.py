@@ -15,6 +15,7 @@ import yaml
 from mysim_jax.config.scene import dump_config
 from mysim_jax.core.config_base import ConfigError
 from mysim_jax.io.output import check_output_dir
+from mysim_jax.mappo.chain import THEN_DIR, prepare_then
 from mysim_jax.mappo.config import (TrainConfig, check_memory, describe, init_policy_path, load_eval_scene,
                                     load_scene, load_train_config, train_config_from_dict)
 
@@ -40,6 +41,7 @@ class Prepared:
     source: str
     eval_scene: object | None = None   # the scene of the final evaluation (None: ``scene``)
     profile: str | None = None         # the training file's profile applied (``--profile``)
+    then: Prepared | None = None       # ``run.then``'s run, trained next (mysim_jax/mappo/chain.py)
 
     @property
     def evaluates_elsewhere(self) -> bool:
@@ -70,7 +72,8 @@ def prepare(config_path: str | None, overrides=(), out: str | None = None, resum
         check_memory(config.algo, str(run / TRAIN_FILE))
         scene = load_scene(config, run / TRAIN_FILE)
         return Prepared(config, scene, run, True, str(run / TRAIN_FILE),
-                        load_eval_scene(config, run / TRAIN_FILE, scene))
+                        load_eval_scene(config, run / TRAIN_FILE, scene),
+                        then=prepare_then(config, run / TRAIN_FILE, run))
     if config_path is None:
         raise ConfigError("give a training file, or --resume RUN_DIR")
     config = load_train_config(config_path, overrides, profile)
@@ -82,7 +85,7 @@ def prepare(config_path: str | None, overrides=(), out: str | None = None, resum
         raise ConfigError(f"--out {target}: holds a training run already; continue it with --resume {target}, "
                           "or choose another folder")
     return Prepared(config, scene, target, False, str(config_path), load_eval_scene(config, config_path, scene),
-                    profile)
+                    profile, prepare_then(config, config_path, target))
 
 
 def describe_run(p: Prepared) -> str:
@@ -92,12 +95,17 @@ def describe_run(p: Prepared) -> str:
         what += f", evaluated at level {p.eval_scene.level}"
     if p.profile is not None:
         what += f", profile {p.profile}"
-    return f"{p.config.name} on {what}: {describe(p.config)}; writing {p.out}/" + (" (resuming)" if p.resume else "")
+    line = f"{p.config.name} on {what}: {describe(p.config)}; writing {p.out}/" + (" (resuming)" if p.resume else "")
+    if p.then is not None:
+        line += f"; then {p.then.config.name} from its policy: {describe(p.then.config)}; writing {p.then.out}/"
+    return line
 
 
-def write_run_files(p: Prepared) -> None:
+def write_run_files(p: Prepared, copy_start: bool = True) -> None:
     """The run folder's ``train.yaml`` (resolved: the profile applied, the scene in
-    ``scene.yaml``), its scenes and a copy of the starting policy."""
+    ``scene.yaml``), its scenes and a copy of the starting policy (``copy_start``; the
+    second run of a chain starts from the first's, ``algo.init_policy`` as given), and with
+    ``run.then`` the next run's folder (its ``train.yaml`` and scenes)."""
     p.out.mkdir(parents=True, exist_ok=True)
     data = p.config.model_dump(mode="json")
     # resolved: the profile's values are in the file; its description names it
@@ -112,7 +120,10 @@ def write_run_files(p: Prepared) -> None:
         if p.evaluates_elsewhere:
             (p.out / EVAL_SCENE_FILE).write_text(dump_config(p.eval_scene))
             data["env"]["eval_scene"] = EVAL_SCENE_FILE
-    if p.config.algo.init_policy is not None:
+    if p.then is not None:
+        data["run"]["then"] = f"{THEN_DIR}/{TRAIN_FILE}"
+        write_run_files(p.then, copy_start=False)
+    if p.config.algo.init_policy is not None and copy_start:
         # the starting policy travels with the run (--resume needs nothing outside the folder)
         start = init_policy_path(p.config, p.source)
         if start.resolve() != (p.out / INIT_POLICY_DIR).resolve():
