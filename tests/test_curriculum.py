@@ -128,7 +128,8 @@ def test_scaled_ranges_scale_the_target_s_difficulty_only_and_resets_draw_from_t
 CURRICULUM_RUN = ["algo.num_envs=4", "algo.num_steps=2", "algo.total_env_steps=24", "algo.num_minibatches=2",
                   "algo.init=bc", "algo.bc.num_envs=4", "algo.bc.steps=4", "algo.bc.epochs=1",
                   "algo.bc.critic_warmup=1", "run.selection=null", "run.checkpoint_every=1", "run.keep_checkpoints=3",
-                  "env.curriculum={stages: [0.25, 0.5, 1.0], advance_success: null, max_iterations: 1}"]
+                  "env.curriculum={stages: [0.25, 0.5, 1.0], advance_success: null, max_iterations: 1}",
+                  "run.then=null"]    # the file's run alone, not the fine-tuning it chains after it
 
 
 @pytest.fixture(scope="module")
