@@ -1,6 +1,8 @@
 """A training run's folder on disk: the checked run (:class:`Prepared`), the files that make
 the folder self-contained (``train.yaml``, ``scene.yaml``, ``scene_eval.yaml``, a copy of
-the starting policy) and its ``metrics.csv``. The run itself is :mod:`mysim_jax.mappo.run`.
+the starting policy), its ``metrics.csv``, and a chain's second run (``run.then``,
+:func:`prepare_then`). The run itself is :mod:`mysim_jax.mappo.run`, a chain
+:mod:`mysim_jax.mappo.chain`.
 Imports no JAX: a training file is checked, and a run folder read, without it."""
 
 from __future__ import annotations
@@ -13,9 +15,8 @@ from pathlib import Path
 import yaml
 
 from mysim_jax.config.scene import dump_config
-from mysim_jax.core.config_base import ConfigError
+from mysim_jax.core.config_base import ConfigError, read_yaml_file
 from mysim_jax.io.output import check_output_dir
-from mysim_jax.mappo.chain import THEN_DIR, prepare_then
 from mysim_jax.mappo.config import (TrainConfig, check_memory, describe, init_policy_path, load_eval_scene,
                                     load_scene, load_train_config, train_config_from_dict)
 
@@ -28,6 +29,10 @@ CSV_FIELDS = ("iteration", "env_steps", "wall_s", "iteration_s", "episodes", "me
               "explained_variance", "grad_norm", "action_std", "lr", "updates_applied", "policy_coef",
               "anchor_coef", "anchor_loss", "select_success", "select_return", "curriculum_stage",
               "curriculum_fraction")
+# a chain's second run (run.then; mysim_jax/mappo/chain.py trains it)
+THEN_DIR = "then"                    # the second run's folder, inside the first's
+START = "../policy"                  # its starting policy, relative to its train.yaml
+NETWORK_FIELDS = ("hidden", "activation", "normalize_obs", "residual")
 
 
 @dataclass
@@ -48,6 +53,49 @@ class Prepared:
         """Whether the final evaluation runs on another scene than training."""
         return (self.scene is not None and self.eval_scene is not None
                 and dump_config(self.eval_scene) != dump_config(self.scene))
+
+
+def then_path(config, source: str | Path) -> Path | None:
+    """``run.then``'s file, resolved relative to the training file ``source`` (None
+    without one)."""
+    if config.run.then is None:
+        return None
+    p = Path(config.run.then)
+    return p if p.is_absolute() else Path(source).parent / p
+
+
+def prepare_then(config, source: str | Path, out: Path):
+    """The second run of a chain whose first run is ``config`` (read from ``source``,
+    writing ``out``), checked: the file exists, starts from a policy (``algo.init:
+    policy``; its ``algo.init_policy`` becomes ``../policy``, the first run's), has this
+    file's networks, names no ``run.then`` itself, and the chain trains one seed
+    (:mod:`mysim_jax.mappo.chain`). None when ``config`` has no ``run.then``. Raises
+    ConfigError naming the problem; imports no JAX."""
+    path = then_path(config, source)
+    if path is None:
+        return None
+    where = f"{source}: run.then {config.run.then}"
+    if config.run.seeds > 1:
+        raise ConfigError(f"{where}: a chain trains one seed (run.seeds {config.run.seeds} here); train each seed's "
+                          "chain on its own (--set run.seed=N)")
+    if not path.is_file():
+        raise ConfigError(f"{where}: no such training file ({path}; paths are relative to the training file)")
+    raw = read_yaml_file(path, "training file")
+    algo = raw.get("algo") if isinstance(raw, dict) else None
+    if not isinstance(algo, dict) or algo.get("init") != "policy":
+        raise ConfigError(f"{where}: the file trained next starts from this run's policy: give it algo.init: policy "
+                          f"(it has {(algo or {}).get('init', 'none') if isinstance(algo, dict) else 'no algo:'})")
+    nxt = train_config_from_dict(raw, str(path), [f"algo.init_policy={START}"])
+    if nxt.run.then is not None:
+        raise ConfigError(f"{where}: that file names run.then {nxt.run.then} itself; a chain has two files")
+    if nxt.run.seeds > 1:
+        raise ConfigError(f"{where}: a chain trains one seed (run.seeds {nxt.run.seeds} there)")
+    differ = [f"{k} {getattr(config.algo, k)!r} here, {getattr(nxt.algo, k)!r} there" for k in NETWORK_FIELDS
+              if getattr(config.algo, k) != getattr(nxt.algo, k)]
+    if differ:
+        raise ConfigError(f"{where}: its networks must be this file's, which it starts from ({'; '.join(differ)})")
+    scene = load_scene(nxt, path)
+    return Prepared(nxt, scene, Path(out) / THEN_DIR, False, str(path), load_eval_scene(nxt, path, scene))
 
 
 def load_run_config(config_path: str, overrides=(), profile: str | None = None) -> Prepared:
