@@ -126,9 +126,10 @@ def test_a_second_file_of_another_environment_is_refused_before_anything_is_writ
     code, _, err, _ = run_script_main("train", [first, "--out", out, "--no-eval", "--no-progress"], capsys)
     assert code == 2 and "run.then second.yaml: this run's policy" in err and "trained on observations" in err, err
     assert not out.exists()
-    with pytest.raises(ConfigError, match="no such training file"):
-        from mysim_jax.mappo.run import prepare
+    # the library's prepare() refuses too (the script's check is not the only one)
+    from mysim_jax.mappo.run import prepare
 
-        (tmp_path / "x").mkdir()
-        _files(tmp_path / "x", then="nope.yaml")
+    (tmp_path / "x").mkdir()
+    _files(tmp_path / "x", then="nope.yaml")
+    with pytest.raises(ConfigError, match="no such training file"):
         prepare(str(tmp_path / "x" / "first.yaml"), [], str(tmp_path / "y"))

@@ -85,7 +85,7 @@ def test_folders_with_other_episodes_are_refused(tmp_path):
     other_env = _folder(tmp_path / "env", a, env={"randomize": {"target_mass": {"low": 0.2, "high": 0.7}}})
     with pytest.raises(PairingError, match="differ in seed"):
         pair_outcomes([base, other_seed])
-    with pytest.raises(PairingError, match="differ in env"):
+    with pytest.raises(PairingError, match=r"differ in env \(env.randomize\)"):
         pair_outcomes([base, other_env])
     with pytest.raises(PairingError, match="comparison_episodes.csv"):
         read_outcomes(f"{base}:compare")

@@ -71,6 +71,8 @@ def read_outcomes(spec: str | Path) -> TeamOutcomes:
         if not path.is_file():
             raise PairingError(f"{folder}: no comparison_episodes.csv; ':compare' needs a folder evaluated "
                                "with scripts/evaluate.py --compare")
+        if not (folder / "comparison.json").is_file():
+            raise PairingError(f"{folder}: no comparison.json; pass folders written by scripts/evaluate.py --compare")
         team = str(json.loads((folder / "comparison.json").read_text()).get("compare"))
     if not path.is_file():
         raise PairingError(f"{folder}: no {path.name}; pass folders written by scripts/evaluate.py")
@@ -106,7 +108,11 @@ def pair_outcomes(specs: list[str | Path]) -> dict:
         other = _episode_key(t)
         for k in ref:
             if ref[k] != other[k]:
-                shown = "" if k == "env" else f" ({ref[k]!r} and {other[k]!r})"
+                if k == "env":
+                    keys = sorted(set(ref[k]) | set(other[k]))
+                    shown = " (" + ", ".join(f"env.{e}" for e in keys if ref[k].get(e) != other[k].get(e)) + ")"
+                else:
+                    shown = f" ({ref[k]!r} and {other[k]!r})"
                 raise PairingError(f"{first.label} and {t.label} differ in {k}{shown}: "
                                    "their episodes are not the same; evaluate both on one scene with the same "
                                    "--seed and --episodes")
