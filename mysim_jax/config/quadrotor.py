@@ -139,6 +139,11 @@ class ControllerConfig(StrictModel):
     speed give none); ``attitude_priority`` keeps the torque and moves the collective
     thrust instead, giving up yaw, then roll and pitch, only when no thrust fits, as
     flight stacks' mixers do (:mod:`mysim_jax.control.pid`, step 4).
+    ``thrust_limit`` says what the position loop does when its desired thrust is more than
+    the rotors give at their top speed: ``none`` (default) asks for it anyway (the
+    allocation then gives less, along the tilted axis, so the vertical part is lost with
+    the horizontal); ``vertical_priority`` keeps the vertical part first and shortens the
+    horizontal part to what is left, as flight stacks limit the thrust vector (step 1).
     ``max_tilt`` (rad) limits the tilt of the desired thrust vector. Integrators are clamped to ``±position_integral_limit`` (m s) and
     ``±attitude_integral_limit`` (rad s) and frozen while a motor saturates
     (anti-windup). ``mass`` is the mass the controller assumes (default: the UAV body
@@ -157,6 +162,7 @@ class ControllerConfig(StrictModel):
     attitude_gain_units: Literal["dyne_cm", "rotor_speed_squared", "torque"] = "dyne_cm"
     feedforward: Literal["none", "acceleration", "full"] = "full"
     saturation: Literal["clip", "attitude_priority"] = "clip"
+    thrust_limit: Literal["none", "vertical_priority"] = "none"
     max_tilt: Annotated[Finite, Field(gt=0, lt=math.pi / 2)] = 0.8
     position_integral_limit: PosFloat = 2.0
     attitude_integral_limit: PosFloat = 1.0

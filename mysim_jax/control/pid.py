@@ -31,7 +31,13 @@ and ``max_speed`` first.
      its next setpoints. The position integrator stays untouched.
 
    ``F_d`` is limited to ``max_tilt`` from vertical (and to at least a tenth of the
-   weight upwards).
+   weight upwards). With ``thrust_limit: vertical_priority`` it is then limited to the
+   rotors' top thrust ``T_max = Σ c_L ω_max²`` (the motors' present top speed, which a
+   motor fault lowers; the allocation's limits): the vertical part first,
+   ``F_z ← min(F_z, T_max)``, and the horizontal part to what is left,
+   ``|F_xy| ≤ √(T_max² − F_z²)`` (PX4's thrust-vector saturation). Without it
+   (``none``, the default) a demand beyond ``T_max`` is handed on, and the allocation
+   gives less thrust along the tilted axis, losing height with the horizontal push.
 2. **Desired attitude** (Lee, Leok & McClamroch 2010): ``b₃ = F_d/|F_d|``,
    ``b₂ = b₃ × (cos ψ_s, sin ψ_s, 0)`` normalised, ``b₁ = b₂ × b₃``; thrust
    ``T = F_d · (R e_z)``.
@@ -220,6 +226,20 @@ def desired_thrust(scene, params, state, setpoint):
     tilt_limited = h_norm > h_max
     scale = jnp.minimum(1.0, h_max / jnp.maximum(h_norm, 1e-12))
     force = (horizontal * scale[:, None]).at[:, 2].set(f_z)
+    vertical_first = np.asarray([t == "vertical_priority" for t in qs.thrust_limit], dtype=bool)
+    if vertical_first.any():
+        with jax.named_scope("thrust_vector_limit"):
+            qp = params.quadrotor
+            t_max = jnp.sum(qp.lift_coefficient, axis=-1) * qp.omega_max ** 2      # (n_quads,) N
+            f_z_kept = jnp.minimum(f_z, t_max)
+            h_left = safe_sqrt(jnp.maximum(t_max ** 2 - f_z_kept ** 2, 0.0))
+            h_now = h_norm * scale
+            over = vecmath.safe_norm(force) > t_max
+            shrink = jnp.minimum(1.0, h_left / jnp.maximum(h_now, 1e-12))
+            limited = (horizontal * (scale * shrink)[:, None]).at[:, 2].set(f_z_kept)
+            apply = vertical_first & over
+            force = jnp.where(apply[:, None], limited, force)
+            tilt_limited = tilt_limited | apply
     return force, tilt_limited, e
 
 

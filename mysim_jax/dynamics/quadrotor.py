@@ -56,6 +56,7 @@ class QuadrotorScene:
     feedforward: tuple[str, ...] = ()        # (n_quads,) "none" | "acceleration" | "full"
     attitude_gain_units: tuple[str, ...] = ()  # (n_quads,) "rotor_speed_squared" | "torque"
     saturation: tuple[str, ...] = ()         # (n_quads,) "clip" | "attitude_priority": motor-limit handling
+    thrust_limit: tuple[str, ...] = ()       # (n_quads,) "none" | "vertical_priority": thrust-vector limit
     setpoint_mode: str = "position"          # "position" | "velocity": what the controller's setpoint fixes
     has_motor_lag: bool = False
 
