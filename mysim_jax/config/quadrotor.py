@@ -144,6 +144,11 @@ class ControllerConfig(StrictModel):
     allocation then gives less, along the tilted axis, so the vertical part is lost with
     the horizontal); ``vertical_priority`` keeps the vertical part first and shortens the
     horizontal part to what is left, as flight stacks limit the thrust vector (step 1).
+    ``descent_limit`` (velocity mode only): ``none`` (default) passes a descent setpoint as
+    it is; ``braking`` slows it to what the vehicle can stop from above the flyable box's
+    floor, ``v_z >= -sqrt(2 b (z - z_low))`` with ``b`` half the upward acceleration its
+    rotors' present top thrust gives beyond its weight (a motor fault lowers it;
+    :func:`mysim_jax.control.setpoint.brake_descent`).
     ``max_tilt`` (rad) limits the tilt of the desired thrust vector. Integrators are clamped to ``±position_integral_limit`` (m s) and
     ``±attitude_integral_limit`` (rad s) and frozen while a motor saturates
     (anti-windup). ``mass`` is the mass the controller assumes (default: the UAV body
@@ -163,6 +168,7 @@ class ControllerConfig(StrictModel):
     feedforward: Literal["none", "acceleration", "full"] = "full"
     saturation: Literal["clip", "attitude_priority"] = "clip"
     thrust_limit: Literal["none", "vertical_priority"] = "none"
+    descent_limit: Literal["none", "braking"] = "none"
     max_tilt: Annotated[Finite, Field(gt=0, lt=math.pi / 2)] = 0.8
     position_integral_limit: PosFloat = 2.0
     attitude_integral_limit: PosFloat = 1.0
@@ -170,6 +176,14 @@ class ControllerConfig(StrictModel):
     setpoint_mode: Literal["position", "velocity"] = "position"
     flyable_box: FlyableBox = FlyableBox()
     max_speed: PosFloat = DEFAULT_MAX_SPEED
+
+    @model_validator(mode="after")
+    def _descent_limit_needs_velocity_mode(self):
+        if self.descent_limit != "none" and self.setpoint_mode != "velocity":
+            raise ValueError(f"descent_limit: {self.descent_limit} limits velocity setpoints: it needs "
+                             f"setpoint_mode: velocity (this controller's is {self.setpoint_mode}), or "
+                             f"descent_limit: none")
+        return self
 
 
 class YawReference(StrictModel):

@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from mysim_jax.control.pid import CONTROLLERS, control_time
-from mysim_jax.control.setpoint import Setpoint, as_setpoint, limit_setpoint, reference_setpoint
+from mysim_jax.control.setpoint import Setpoint, as_setpoint, brake_descent, limit_setpoint, reference_setpoint
 from mysim_jax.dynamics.quadrotor import ActuatorInputs, motor_response
 
 
@@ -41,7 +41,10 @@ def _setpoint(scene, params, state, control):
     else:
         setpoint = as_setpoint(control, qs.n_quads, dtype)
     position = state.phys.body_pos[np.asarray(qs.body, dtype=np.int32)]
-    return limit_setpoint(setpoint, cp, qs.setpoint_mode, position)
+    setpoint = limit_setpoint(setpoint, cp, qs.setpoint_mode, position)
+    if qs.setpoint_mode == "velocity" and "braking" in qs.descent_limit:
+        setpoint = brake_descent(setpoint, scene, params, position)
+    return setpoint
 
 
 def actuate(scene, params, state, control=None):

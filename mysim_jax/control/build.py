@@ -150,6 +150,7 @@ def _quadrotor_scene(quads, body_names) -> QuadrotorScene:
         attitude_gain_units=tuple(q.controller.attitude_gain_units if q.controller else "torque" for q in quads),
         saturation=tuple(q.controller.saturation if q.controller else "clip" for q in quads),
         thrust_limit=tuple(q.controller.thrust_limit if q.controller else "none" for q in quads),
+        descent_limit=tuple(q.controller.descent_limit if q.controller else "none" for q in quads),
         setpoint_mode=quads[0].controller.setpoint_mode if quads[0].controller else "position",
         has_motor_lag=any(q.rotors.time_constant is not None for q in quads),
     )

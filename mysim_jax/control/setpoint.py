@@ -29,6 +29,8 @@ them before the controller sees it:
 
 * ``position`` is clipped to the box per axis;
 * ``velocity`` is scaled down to ``max_speed`` if faster (its direction kept);
+* with ``controller.descent_limit: braking`` (velocity mode), a descent is slowed to what
+  the vehicle can stop from above the box's floor (:func:`brake_descent`);
 * velocity components pointing out of the box are zeroed where the point they apply to
   is at or beyond that face: in position mode the setpoint's own (unclipped) position,
   in velocity mode the vehicle's position. A velocity setpoint therefore stops
@@ -152,6 +154,28 @@ def limit_setpoint(setpoint: Setpoint, controller_params, mode: str, vehicle_pos
     outward = (beyond_high & (velocity > 0.0)) | (beyond_low & (velocity < 0.0))
     velocity = jnp.where(outward, 0.0, velocity)
     return setpoint.replace(position=jnp.clip(setpoint.position, low, high), velocity=velocity)
+
+
+BRAKING_SHARE = 0.5     # of the upward acceleration beyond the weight that brake_descent plans to use
+
+
+def brake_descent(setpoint: Setpoint, scene, params, vehicle_position) -> Setpoint:
+    """Velocity mode, quadrotors with ``controller.descent_limit: braking``: the descent
+    setpoint slowed to ``v_z >= -sqrt(2 b (z - z_low))``, where ``z_low`` is the flyable
+    box's floor and ``b`` the braking deceleration planned, ``BRAKING_SHARE`` times
+    ``T_max / m - g`` (``T_max = Σ c_L ω_max²``, the rotors' top thrust at their present top
+    speed, which a motor fault lowers; ``m`` the mass the controller assumes). A vehicle at
+    or below the floor gets no descent; one short of thrust to hover is planned a small
+    deceleration (1 mm/s²) rather than none. Others pass unchanged."""
+    qs, qp, cp = scene.quadrotor, params.quadrotor, params.controller
+    braking = jnp.asarray([d == "braking" for d in qs.descent_limit], dtype=bool)
+    t_max = jnp.sum(qp.lift_coefficient, axis=-1) * qp.omega_max ** 2
+    spare = t_max / cp.mass - vecmath.safe_norm(params.gravity)
+    b = BRAKING_SHARE * jnp.maximum(spare, 1e-3)
+    room = jnp.maximum(vehicle_position[:, 2] - cp.box_low[:, 2], 0.0)
+    slowest = -jnp.sqrt(2.0 * b * room)
+    v_z = jnp.where(braking, jnp.maximum(setpoint.velocity[:, 2], slowest), setpoint.velocity[:, 2])
+    return setpoint.replace(velocity=setpoint.velocity.at[:, 2].set(v_z))
 
 
 def setpoint_from_action(scene, params, action, yaw=0.0) -> Setpoint:

@@ -57,6 +57,7 @@ class QuadrotorScene:
     attitude_gain_units: tuple[str, ...] = ()  # (n_quads,) "rotor_speed_squared" | "torque"
     saturation: tuple[str, ...] = ()         # (n_quads,) "clip" | "attitude_priority": motor-limit handling
     thrust_limit: tuple[str, ...] = ()       # (n_quads,) "none" | "vertical_priority": thrust-vector limit
+    descent_limit: tuple[str, ...] = ()      # (n_quads,) "none" | "braking": velocity-mode descent limit
     setpoint_mode: str = "position"          # "position" | "velocity": what the controller's setpoint fixes
     has_motor_lag: bool = False
 
