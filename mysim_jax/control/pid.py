@@ -109,7 +109,7 @@ from flax import struct
 
 from mysim_jax.core import vecmath
 from mysim_jax.control.reference import ReferenceParams, reference_derivatives
-from mysim_jax.dynamics.quadrotor import allocation_inverse, allocation_matrix
+from mysim_jax.dynamics.quadrotor import allocation_inverse, allocation_matrix, top_thrust
 from mysim_jax.dynamics.quaternion import quat_to_matrix
 
 # torque per unit of attitude-PID output for the unit readings that are plain constants
@@ -230,7 +230,7 @@ def desired_thrust(scene, params, state, setpoint):
     if vertical_first.any():
         with jax.named_scope("thrust_vector_limit"):
             qp = params.quadrotor
-            t_max = jnp.sum(qp.lift_coefficient, axis=-1) * qp.omega_max ** 2      # (n_quads,) N
+            t_max = top_thrust(qp)      # (n_quads,) N
             f_z_kept = jnp.minimum(f_z, t_max)
             h_left = safe_sqrt(jnp.maximum(t_max ** 2 - f_z_kept ** 2, 0.0))
             h_now = h_norm * scale

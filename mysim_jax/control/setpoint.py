@@ -53,6 +53,7 @@ from flax import struct
 from mysim_jax.core import vecmath
 from mysim_jax.control.pid import flat_body_rates
 from mysim_jax.control.reference import reference
+from mysim_jax.dynamics.quadrotor import top_thrust
 
 
 @struct.dataclass
@@ -169,7 +170,7 @@ def brake_descent(setpoint: Setpoint, scene, params, vehicle_position) -> Setpoi
     deceleration (1 mm/s²) rather than none. Others pass unchanged."""
     qs, qp, cp = scene.quadrotor, params.quadrotor, params.controller
     braking = jnp.asarray([d == "braking" for d in qs.descent_limit], dtype=bool)
-    t_max = jnp.sum(qp.lift_coefficient, axis=-1) * qp.omega_max ** 2
+    t_max = top_thrust(qp)
     spare = t_max / cp.mass - vecmath.safe_norm(params.gravity)
     b = BRAKING_SHARE * jnp.maximum(spare, 1e-3)
     room = jnp.maximum(vehicle_position[:, 2] - cp.box_low[:, 2], 0.0)

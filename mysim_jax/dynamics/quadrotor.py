@@ -96,6 +96,12 @@ def allocation_matrix(qp: QuadrotorParams):
     return jnp.stack([c, c * d[..., 1], -c * d[..., 0], qp.spin * qp.torque_coefficient], axis=-2)
 
 
+def top_thrust(qp: QuadrotorParams):
+    """``(n_quads,)`` N: the rotors' total thrust at their present top speed ``Σ c_L ω_max²``
+    (a motor fault lowers ``ω_max``)."""
+    return jnp.sum(qp.lift_coefficient, axis=-1) * qp.omega_max ** 2
+
+
 def allocation_inverse(qp: QuadrotorParams):
     """``M⁻¹`` ``(n_quads, 4, 4)``: squared motor speeds from thrust and torques."""
     return jnp.linalg.inv(allocation_matrix(qp))
