@@ -15,6 +15,7 @@ is a complete block::
       noise: {target_position: {low: 0, high: 0}, ...}   # observation noise sigma, drawn per episode
       perception: {uav_position: {sigma: 0.05, correlation_time: 3.0}, ...}   # fly on estimates
       randomize: {target_mass: {low: 0.08, high: 0.12}, wind_force: {low: [..], high: [..]}, ...}
+      observe_top_thrust: false    # true: every UAV observes each UAV's top thrust (motor faults)
 
 The episode's time limit is the scene's ``sim.t_end``. Every randomised quantity is a
 ``{low, high}`` range drawn uniformly per episode from the episode's key; ``low == high``
@@ -283,6 +284,13 @@ class EnvConfig(StrictModel):
     noise: NoiseConfig = NoiseConfig()
     perception: PerceptionConfig | None = None     # None: the team sees true states
     randomize: RandomizeConfig = RandomizeConfig()
+    # Each UAV's observation ends with the UAVs' maximum thrusts as fractions of the nominal
+    # (its own, then its teammates' in the teammates' order), and the critic's state with
+    # all of them: 1 for a healthy UAV, the fault's fraction for a faulty one
+    # (randomize.thrust_loss) from the policy step the fault starts. A flight controller
+    # knows this from its motors (an ESC reports a failing motor; a motor that stays
+    # saturated shows it); the team shares it as it shares positions.
+    observe_top_thrust: bool = False
 
     @field_validator("rewards")
     @classmethod

@@ -24,7 +24,7 @@ from __future__ import annotations
 import jax
 
 from mysim_jax.core.config_base import ConfigError
-from mysim_jax.mappo.policies import PolicyError, check_trained_on
+from mysim_jax.mappo.policies import PolicyError, check_trained_on, widen_policy
 from mysim_jax.mappo.run import make_environment, train_run
 from mysim_jax.mappo.run_files import THEN_DIR, prepare
 from mysim_jax.tasks.contract import environment_contract
@@ -41,7 +41,8 @@ def check_chain_environments(p) -> None:
     if hasattr(env, "scene"):
         meta["environment"] = environment_contract(env, params)
     try:
-        check_trained_on(meta, env2, params2, f"{p.source}: run.then {p.config.run.then}: this run's policy")
+        where = f"{p.source}: run.then {p.config.run.then}: this run's policy"
+        check_trained_on(widen_policy(meta, None, env2, params2, where)[0], env2, params2, where)
     except PolicyError as err:
         raise ConfigError(str(err)) from None
 

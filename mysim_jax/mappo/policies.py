@@ -38,6 +38,7 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from mysim_jax.mappo.checkpoint import is_policy_folder, load_policy
 from mysim_jax.mappo.networks import Actor, deterministic_policy
@@ -125,6 +126,39 @@ def check_trained_on(meta: dict, env, params, where: str, allow_mismatch: bool =
                           f"{tuple(env.action_shape)} (another number of UAVs?)")
     if not allow_mismatch and ("environment" in meta or hasattr(env, "scene")):
         check_environment(meta, env, params, where)
+
+
+def widen_policy(meta: dict, arrays: dict | None, env, params, where: str) -> tuple[dict, dict | None]:
+    """A saved policy (``meta``: its policy.json, ``arrays``: its arrays, or None to widen
+    the record alone) made to read ``env``'s observations when they are the ones it was
+    trained on with features appended (``env.observe_top_thrust``, say): its first layer
+    gets zero weights for the new features, so it acts exactly as before, and its
+    observation normalisation reads them as they are (mean 0, variance 1). A fine-tuning
+    (``algo.init: policy``) then learns what to do with them. ``(meta, arrays)`` unchanged
+    when the layouts are equal or the new one does not extend the recorded one (then
+    :func:`check_trained_on` names the difference)."""
+    recorded = (meta.get("environment") or {}).get("observation_layout")
+    if recorded is None or not hasattr(env, "scene"):
+        return meta, arrays
+    current = [[name, width] for name, width in environment_contract(env, params)["observation_layout"]]
+    recorded = [list(entry) for entry in recorded]
+    if len(current) <= len(recorded) or current[:len(recorded)] != recorded:
+        return meta, arrays
+    extra = sum(width for _, width in current[len(recorded):])
+    if int(meta["obs_size"]) + extra != env.obs_size:
+        raise PolicyError(f"{where}: policy.json records {meta['obs_size']} observation features but an observation "
+                          f"layout of {sum(w for _, w in recorded)}: the file is damaged")
+    meta = {**meta, "obs_size": env.obs_size, "environment": {**meta["environment"], "observation_layout": current},
+            "widened_from_obs_size": int(meta["obs_size"])}
+    if arrays is None:
+        return meta, None
+    first = arrays["actor"]["params"]["Dense_0"]
+    kernel = np.asarray(first["kernel"])
+    kernel = np.concatenate([kernel, np.zeros((extra, kernel.shape[1]), kernel.dtype)], axis=0)
+    actor = {**arrays["actor"], "params": {**arrays["actor"]["params"], "Dense_0": {**first, "kernel": kernel}}}
+    mean = np.concatenate([np.asarray(arrays["obs_mean"]), np.zeros(extra, np.asarray(arrays["obs_mean"]).dtype)])
+    var = np.concatenate([np.asarray(arrays["obs_var"]), np.ones(extra, np.asarray(arrays["obs_var"]).dtype)])
+    return meta, {**arrays, "actor": actor, "obs_mean": mean, "obs_var": var}
 
 
 def _trained_policy_maker(path: Path, flag: str, allow_mismatch: bool = False):

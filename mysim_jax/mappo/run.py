@@ -63,7 +63,7 @@ from mysim_jax.mappo import bc
 from mysim_jax.mappo.algorithm import curriculum_of, run_keys, warm_start
 from mysim_jax.mappo.checkpoint import Checkpoints, load_policy
 from mysim_jax.mappo.config import TrainConfig, check_memory_needs, init_policy_path
-from mysim_jax.mappo.policies import PolicyError, check_trained_on
+from mysim_jax.mappo.policies import PolicyError, check_trained_on, widen_policy
 from mysim_jax.mappo.run_files import (CSV_FIELDS, Prepared, describe_run, load_run_config, prepare, read_rows,
                                        write_rows, write_run_files)
 from mysim_jax.mappo.run_outputs import FinalEvaluation, SeedRun, Trained, summary, write_seed, write_seeds_table
@@ -251,7 +251,9 @@ def _open_session(p: Prepared, progress: bool, evaluate: bool, log) -> _Session:
         # the starting policy must fit this environment (shapes and meaning)
         folder = init_policy_path(c, p.source)
         try:
-            check_trained_on(load_policy(folder)[0], env, env_params, f"{p.source}: algo.init_policy {folder}")
+            where = f"{p.source}: algo.init_policy {folder}"
+            check_trained_on(widen_policy(load_policy(folder)[0], None, env, env_params, where)[0], env, env_params,
+                             where)
         except PolicyError as err:
             raise ConfigError(str(err)) from None
     curriculum = curriculum_of(c.env.curriculum) if p.scene is not None else None
@@ -335,8 +337,11 @@ def _warm_start(s: _Session, state, k_warm, t_start: float):
     init_policy = None
     if c.algo.init == "policy":
         folder = init_policy_path(c, s.p.source)
-        meta, arrays = load_policy(folder)
+        meta, arrays = widen_policy(*load_policy(folder), s.env, s.env_params, f"algo.init_policy {folder}")
         init_policy = (meta, arrays)
+        if "widened_from_obs_size" in meta:
+            s.log(f"the starting policy read {meta['widened_from_obs_size']} observation features; this environment "
+                  f"appends {meta['obs_size'] - meta['widened_from_obs_size']} (zero weights to start)")
         s.log(f"starting from the policy {folder} (iteration {meta.get('selected_iteration')} of "
               f"{meta.get('train')}): exploration std {c.algo.bc.std:g}, critic warm-up "
               f"{c.algo.bc.critic_warmup} iterations")

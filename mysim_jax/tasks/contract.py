@@ -35,7 +35,8 @@ def observation_layout(env) -> list[tuple[str, int]]:
             ("net_centre_position_relative", 3), ("net_centre_velocity_relative", 3),
             (f"teammates_position_velocity_relative_x{n - 1}", 6 * (n - 1)),
             ("catch_point_from_own_slot_per_2m", 3), ("time_to_catch_per_1s", 1),
-            (f"agent_one_hot_x{n}", n), ("episode_fraction_left", 1)]
+            (f"agent_one_hot_x{n}", n), ("episode_fraction_left", 1)] + (
+        [(f"top_thrust_fraction_own_then_teammates_x{n}", n)] if getattr(env, "observe_top_thrust", False) else [])
 
 
 def _rounded(values) -> list:

@@ -56,15 +56,18 @@ class CaptureEnv(VerdictMixin, ObservationsMixin, PerceptionErrorsMixin, Randomi
     scene_name: str = ""                 # the scene file's name: (recorded with a trained policy)
     level: str = "full"                  # the scene's fidelity level (recorded with a trained policy)
     thrust_loss: bool = False            # env.randomize.thrust_loss: one UAV's motor fault per episode
+    observe_top_thrust: bool = False     # env.observe_top_thrust: every UAV's top-thrust fraction observed
 
     # --- sizes ------------------------------------------------------------------------
     @property
     def obs_size(self) -> int:
-        return 13 + 6 + 6 + 6 * (self.n_agents - 1) + CATCH_FEATURES + self.n_agents + 1
+        motors = self.n_agents if self.observe_top_thrust else 0
+        return 13 + 6 + 6 + 6 * (self.n_agents - 1) + CATCH_FEATURES + self.n_agents + 1 + motors
 
     @property
     def state_size(self) -> int:
-        return 13 * self.n_agents + 6 + 6 + CATCH_FEATURES + 1
+        motors = self.n_agents if self.observe_top_thrust else 0
+        return 13 * self.n_agents + 6 + 6 + CATCH_FEATURES + 1 + motors
 
     @property
     def action_shape(self) -> tuple[int, int]:

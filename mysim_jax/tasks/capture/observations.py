@@ -66,7 +66,7 @@ class ObservationsMixin:
         others = np.asarray([[j for j in range(n) if j != i] for i in range(n)], dtype=np.int32).reshape(n, n - 1)
         mates = jnp.concatenate([est_pos[others] - pos[:, None, :], est_vel[others] - vel[:, None, :]], axis=-1)
         left = 1.0 - state.steps.astype(dtype) / self.max_steps
-        obs = jnp.concatenate([
+        parts = [
             pos, vel, phys.body_quat[quads], phys.body_angvel[quads],
             tpos - pos, tvel - vel,
             c_net[None, :] - pos, v_net[None, :] - vel,
@@ -74,7 +74,12 @@ class ObservationsMixin:
             to_slot, catch_time,
             jnp.eye(n, dtype=dtype),
             jnp.broadcast_to(left, (n, 1)),
-        ], axis=-1)
+        ]
+        if self.observe_top_thrust:
+            # own first, then the teammates in the order of ``mates``
+            top = self.top_thrust_fractions(state.episode, state.steps, dtype)
+            parts.append(jnp.concatenate([top[:, None], top[others]], axis=-1))
+        obs = jnp.concatenate(parts, axis=-1)
         return jnp.where(jnp.isfinite(obs), obs, 0.0)
 
     def global_state(self, state: EnvState):
@@ -93,5 +98,7 @@ class ObservationsMixin:
         out = jnp.concatenate([uav, phys.body_pos[self.target_body], phys.body_vel[self.target_body],
                                c_net, jnp.mean(phys.point_vel[knots], axis=0),
                                (catch.point - centre) / CATCH_LENGTH_SCALE, catch.time[None] / CATCH_TIME_SCALE,
-                               left[None]])
+                               left[None]]
+                              + ([self.top_thrust_fractions(state.episode, state.steps, dtype)]
+                                 if self.observe_top_thrust else []))
         return jnp.where(jnp.isfinite(out), out, 0.0)

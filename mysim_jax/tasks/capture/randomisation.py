@@ -57,11 +57,19 @@ class RandomisationMixin:
         at or after the fault's time, the faulty UAV's rotor top speed is √fraction of the
         nominal (its maximum thrust ``fraction`` of the nominal)."""
         qp = sim_params.quadrotor
-        dtype = qp.omega_max.dtype
+        scale = jnp.sqrt(self.top_thrust_fractions(ep, steps, qp.omega_max.dtype))
+        return sim_params.replace(quadrotor=qp.replace(omega_max=qp.omega_max * scale))
+
+    def top_thrust_fractions(self, ep: Episode, steps, dtype):
+        """``(n_agents,)``: each UAV's maximum thrust, as a fraction of its nominal one, for
+        the policy step that starts after ``steps`` steps: the faulty UAV's fraction from
+        the fault on (:meth:`faulted`), 1 otherwise (every UAV without
+        ``env.randomize.thrust_loss``)."""
+        if not self.thrust_loss:
+            return jnp.ones((self.n_agents,), dtype)
         started = steps.astype(dtype) * self.policy_dt >= ep.thrust_loss_time
         faulty = jnp.arange(self.n_agents) == jnp.minimum(jnp.floor(ep.thrust_loss_uav), self.n_agents - 1)
-        scale = jnp.where(started & faulty, jnp.sqrt(ep.thrust_fraction), 1.0).astype(dtype)
-        return sim_params.replace(quadrotor=qp.replace(omega_max=qp.omega_max * scale))
+        return jnp.where(started & faulty, ep.thrust_fraction, 1.0).astype(dtype)
 
 
 TARGET_DIFFICULTY = ("max_speed", "jink_acceleration", "flee_acceleration")
