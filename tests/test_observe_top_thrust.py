@@ -37,6 +37,9 @@ def test_the_features_are_each_uavs_top_thrust_own_first(envs):
     obs0, s0 = plain.reset(key, p_plain)
     obs, state = env.reset(key, params)
     np.testing.assert_array_equal(np.asarray(obs[:, :plain.obs_size]), np.asarray(obs0))
+    # the same episode is drawn (scripts/pair.py pairs evaluations that differ in the option)
+    for a, b in zip(jax.tree.leaves(state.episode), jax.tree.leaves(s0.episode)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     faulty = int(np.floor(float(state.episode.thrust_loss_uav)))
     step = jax.jit(env.step)
     actions = jnp.zeros(env.action_shape)

@@ -93,6 +93,9 @@ def test_folders_with_other_episodes_are_refused(tmp_path):
         read_outcomes(tmp_path / "missing")
     # the perception block may differ: it changes what the team sees, not the episodes
     assert pair_outcomes([base, _folder(tmp_path / "p", a, perception={"target_latency": 0.05})])
+    # nor what the UAVs observe of their motors (tests/test_observe_top_thrust.py: the draws are the same)
+    assert pair_outcomes([base, _folder(tmp_path / "m", a, env={**yaml.safe_load((base / "config.yaml").read_text())[
+        "env"], "observe_top_thrust": True})])
 
 
 def test_script_reproduces_the_kept_perception_gap_and_fails_cleanly(tmp_path):

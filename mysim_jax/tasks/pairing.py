@@ -13,7 +13,8 @@ A folder is named as ``DIR`` (the team of its ``--policy``) or ``DIR:compare`` (
 its ``--compare``, read from ``comparison_episodes.csv``). The folders must agree in what
 draws the episodes: the scene's name, the seed, the episode count, the policy period and
 episode length, and the scene's ``env:`` block as it ran (the folder's ``config.yaml``) apart
-from ``perception``, which changes what a team sees, not what is drawn. What else differs (the
+from what changes what a team sees, not what is drawn (:data:`SEEN_NOT_DRAWN`: ``perception``,
+``observe_top_thrust``). What else differs (the
 policy, ``--set`` overrides such as the controller's allocation, ``--perception``) is what
 is being compared, and the result lists it per folder.
 
@@ -34,6 +35,8 @@ from mysim_jax.tasks.sweep import paired_difference_interval, wilson_interval
 
 # what draws the episodes: the folders must agree on these metrics.json entries
 SAME_EPISODES = ("scene", "seed", "episodes", "policy_dt", "max_steps")
+# env: keys that change what a team observes, not the episodes' draws
+SEEN_NOT_DRAWN = ("perception", "observe_top_thrust")
 
 
 class PairingError(ValueError):
@@ -47,7 +50,7 @@ class TeamOutcomes:
     label: str              # the folder as given (``DIR`` or ``DIR:compare``)
     team: str               # the policy that flew (metrics.json's ``policy`` or ``compare``)
     metrics: dict           # the folder's metrics.json
-    env: dict               # the scene's env: block as it ran, without perception
+    env: dict               # the scene's env: block as it ran, without SEEN_NOT_DRAWN
     success: np.ndarray     # (episodes,) bool, episode i at index i
 
 
@@ -84,7 +87,7 @@ def read_outcomes(spec: str | Path) -> TeamOutcomes:
     episodes = sorted(outcomes)
     if episodes != list(range(len(episodes))):
         raise PairingError(f"{path}: episodes are not 0 .. n-1; the file is not one evaluation's")
-    return TeamOutcomes(spec, team, metrics, {k: v for k, v in env.items() if k != "perception"},
+    return TeamOutcomes(spec, team, metrics, {k: v for k, v in env.items() if k not in SEEN_NOT_DRAWN},
                         np.array([outcomes[i] for i in episodes], bool))
 
 
