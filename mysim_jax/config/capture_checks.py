@@ -97,6 +97,11 @@ def env_problems(scene, discount: float | None = None) -> list[str]:
         problems.append(f"env: a capture environment needs {' and '.join(missing)}: block(s)")
     problems += [f"env: quadrotors.{i} has no controller to take the actions (setpoints)"
                  for i, q in enumerate(scene.quadrotors) if q.controller is None]
+    if env.fault_failsafe != "none":
+        modes = {q.controller.setpoint_mode for q in scene.quadrotors if q.controller is not None}
+        if modes - {"velocity"}:
+            problems.append(f"env.fault_failsafe: {env.fault_failsafe} floors vertical velocity setpoints: it needs "
+                            "controller.setpoint_mode: velocity (this scene's is position), or fault_failsafe: none")
     period = 1.0 / env.policy_rate
     ratio = period / scene.sim.dt
     if round(ratio) < 1 or abs(ratio - round(ratio)) > 1e-6 * ratio:

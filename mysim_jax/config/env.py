@@ -16,6 +16,7 @@ is a complete block::
       perception: {uav_position: {sigma: 0.05, correlation_time: 3.0}, ...}   # fly on estimates
       randomize: {target_mass: {low: 0.08, high: 0.12}, wind_force: {low: [..], high: [..]}, ...}
       observe_top_thrust: false    # true: every UAV observes each UAV's top thrust (motor faults)
+      fault_failsafe: none         # faulty_uav | team: no descent once a UAV has a motor fault
 
 The episode's time limit is the scene's ``sim.t_end``. Every randomised quantity is a
 ``{low, high}`` range drawn uniformly per episode from the episode's key; ``low == high``
@@ -29,7 +30,7 @@ Pydantic only: validating a file never imports JAX.
 from __future__ import annotations
 
 import math
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 import yaml
 from pydantic import Field, field_validator, model_validator
@@ -291,6 +292,14 @@ class EnvConfig(StrictModel):
     # knows this from its motors (an ESC reports a failing motor; a motor that stays
     # saturated shows it); the team shares it as it shares positions.
     observe_top_thrust: bool = False
+    # A motor-fault failsafe between the team's actions and the UAVs' setpoints (velocity
+    # setpoints only): from the policy step a UAV's fault starts (randomize.thrust_loss),
+    # the faulty UAV (``faulty_uav``) or every UAV (``team``) does not descend: its vertical
+    # velocity setpoint is floored at 0. A UAV short of thrust sinks with the load of the
+    # net and a caught target if it is let down; a flight controller knows its motors'
+    # state, as with observe_top_thrust. It acts on whichever team flies (the scripted
+    # team's setpoints too); ``none`` passes the actions as they are.
+    fault_failsafe: Literal["none", "faulty_uav", "team"] = "none"
 
     @field_validator("rewards")
     @classmethod

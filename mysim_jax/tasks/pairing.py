@@ -13,8 +13,8 @@ A folder is named as ``DIR`` (the team of its ``--policy``) or ``DIR:compare`` (
 its ``--compare``, read from ``comparison_episodes.csv``). The folders must agree in what
 draws the episodes: the scene's name, the seed, the episode count, the policy period and
 episode length, and the scene's ``env:`` block as it ran (the folder's ``config.yaml``) apart
-from what changes what a team sees, not what is drawn (:data:`SEEN_NOT_DRAWN`: ``perception``,
-``observe_top_thrust``). What else differs (the
+from what changes what a team sees or how its actions are flown, not what is drawn
+(:data:`SEEN_NOT_DRAWN`: ``perception``, ``observe_top_thrust``, ``fault_failsafe``). What else differs (the
 policy, ``--set`` overrides such as the controller's allocation, ``--perception``) is what
 is being compared, and the result lists it per folder.
 
@@ -35,8 +35,8 @@ from mysim_jax.tasks.sweep import paired_difference_interval, wilson_interval
 
 # what draws the episodes: the folders must agree on these metrics.json entries
 SAME_EPISODES = ("scene", "seed", "episodes", "policy_dt", "max_steps")
-# env: keys that change what a team observes, not the episodes' draws
-SEEN_NOT_DRAWN = ("perception", "observe_top_thrust")
+# env: keys that change what a team observes or how its actions are flown, not the episodes' draws
+SEEN_NOT_DRAWN = ("perception", "observe_top_thrust", "fault_failsafe")
 
 
 class PairingError(ValueError):

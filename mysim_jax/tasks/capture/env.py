@@ -57,6 +57,7 @@ class CaptureEnv(VerdictMixin, ObservationsMixin, PerceptionErrorsMixin, Randomi
     level: str = "full"                  # the scene's fidelity level (recorded with a trained policy)
     thrust_loss: bool = False            # env.randomize.thrust_loss: one UAV's motor fault per episode
     observe_top_thrust: bool = False     # env.observe_top_thrust: every UAV's top-thrust fraction observed
+    fault_failsafe: str = "none"         # env.fault_failsafe: none, faulty_uav or team
 
     # --- sizes ------------------------------------------------------------------------
     @property
@@ -105,6 +106,8 @@ class CaptureEnv(VerdictMixin, ObservationsMixin, PerceptionErrorsMixin, Randomi
         nan = ~jnp.isfinite(self.check_actions(actions))
         actions = self.clean_actions(actions, dtype)
         sim_params = self.episode_params(params, state.episode)
+        if self.thrust_loss and self.fault_failsafe != "none":
+            actions = self.failsafe(actions, state)
         setpoint = setpoint_from_action(self.scene, sim_params, actions)
         if self.thrust_loss:
             sim_params = self.faulted(sim_params, state.episode, state.steps)

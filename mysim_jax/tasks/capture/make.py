@@ -80,6 +80,7 @@ def make_env(config, discount: float | None = None) -> tuple[CaptureEnv, EnvPara
         scales=env_cfg.reward_scales, randomized_wind=env_cfg.randomize.wind_force is not None, scripted=team,
         thrust_loss=env_cfg.randomize.thrust_loss is not None,
         observe_top_thrust=env_cfg.observe_top_thrust,
+        fault_failsafe=env_cfg.fault_failsafe,
         falling=config.target.behaviour == "falling",
         target_drag_per_mass=float(config.target.drag_constant / config.target.mass),
         gravity=tuple(float(g) for g in config.gravity),
