@@ -176,6 +176,16 @@ class CaptureEnv(VerdictMixin, ObservationsMixin, PerceptionErrorsMixin, Randomi
         actions = self.check_actions(actions)
         return jnp.clip(jnp.where(jnp.isfinite(actions), actions.astype(dtype), 0.0), -1.0, 1.0)
 
+    def failsafe(self, actions, state):
+        """``actions`` ``(n_agents, 3)`` (velocity setpoints, normalised) after the motor-fault
+        failsafe (``env.fault_failsafe``): the vertical component of the faulty UAV's
+        (``faulty_uav``) or every UAV's (``team``) floored at 0 from the policy step its
+        fault starts on."""
+        weak = self.top_thrust_fractions(state.episode, state.steps, actions.dtype) < 1.0
+        if self.fault_failsafe == "team":
+            weak = jnp.broadcast_to(jnp.any(weak), weak.shape)
+        return actions.at[:, 2].set(jnp.where(weak, jnp.maximum(actions[:, 2], 0.0), actions[:, 2]))
+
     def _reset_state(self, key, params: EnvParams) -> EnvState:
         k_episode, k_spawn = jax.random.split(key)
         episode = self.draw_episode(k_episode, params.ranges)

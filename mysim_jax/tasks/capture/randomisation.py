@@ -60,16 +60,6 @@ class RandomisationMixin:
         scale = jnp.sqrt(self.top_thrust_fractions(ep, steps, qp.omega_max.dtype))
         return sim_params.replace(quadrotor=qp.replace(omega_max=qp.omega_max * scale))
 
-    def failsafe(self, actions, state):
-        """``actions`` ``(n_agents, 3)`` (velocity setpoints, normalised) after the motor-fault
-        failsafe (``env.fault_failsafe``): the vertical component of the faulty UAV's
-        (``faulty_uav``) or every UAV's (``team``) floored at 0 from the policy step its
-        fault starts on."""
-        weak = self.top_thrust_fractions(state.episode, state.steps, actions.dtype) < 1.0
-        if self.fault_failsafe == "team":
-            weak = jnp.broadcast_to(jnp.any(weak), weak.shape)
-        return actions.at[:, 2].set(jnp.where(weak, jnp.maximum(actions[:, 2], 0.0), actions[:, 2]))
-
     def top_thrust_fractions(self, ep: Episode, steps, dtype):
         """``(n_agents,)``: each UAV's maximum thrust, as a fraction of its nominal one, for
         the policy step that starts after ``steps`` steps: the faulty UAV's fraction from
