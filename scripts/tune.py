@@ -20,6 +20,18 @@ episodes at ``--judge-level`` (an evaluation seeded with ``--judge-seed``) and t
 verdict decides. Writes ``tune.json``, ``history.csv``, ``tune_best.png`` and
 ``judged.json`` into OUT (mysim_jax/grad/tune_run.py).
 
+**The design** instead of the team (``--design KEY=LOW:HIGH ...``, mysim_jax/grad/design.py):
+numeric scene values (e.g. ``net.size=1.5:3.5 net.tethers.length=0.6:2.0``) searched within
+their bounds by ``--method cmaes`` or ``random`` for the scene's scripted team, valued by
+the miss rate of the capture verdict on ``--episodes`` fixed episodes at ``--level``; the
+tethered UAVs' starts move with the net's corners and the tethers' length. Each candidate
+is another scene and compiles its own program. A value the tuning level sets itself (e.g.
+``net.line.EA`` at ``train``) is refused: tune it at a level that keeps it. Judged as the
+team is (``judged.json``); ``tune.json`` holds the ``--set`` entries of the tuned scene:
+
+    python scripts/tune.py configs/train_capture_falling.yaml --design net.size=1.5:3.5 --method cmaes --budget 40000 \
+        --episodes 64 --judge-episodes 200 --judge-level train --out out/design
+
 Every input is checked before anything is compiled: a problem is a one-line error, exit
 code 2, and nothing is written.
 """
@@ -47,8 +59,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--level", default="train", help="fidelity level tuned on (default train)")
     parser.add_argument("--truncate", type=int, default=None, help="grad: truncate the backward pass to M policy steps")
     parser.add_argument("--batch", type=int, default=8, help="random: candidates per batch (default 8)")
-    parser.add_argument("--box", nargs=2, type=float, default=[-0.5, 0.5], metavar=("LOWER", "UPPER"),
-                        help="relative bounds of every field (default -0.5 0.5: +-50 %%)")
+    parser.add_argument("--box", nargs=2, type=float, default=None, metavar=("LOWER", "UPPER"),
+                        help="relative bounds of every team field (default -0.5 0.5: +-50 %%)")
+    parser.add_argument("--design", nargs="+", default=None, metavar="KEY=LOW:HIGH",
+                        help="tune these scene values within their bounds instead of the team (cmaes or random)")
     parser.add_argument("--vertical-weight", type=float, default=0.0, metavar="W",
                         help="weight [m/m] of the target's height off the net's centre at the horizon's end in the "
                              "objective (default 0: no such term)")
@@ -82,6 +96,10 @@ def _checked(args) -> tuple[dict, dict]:
     """``(configs, settings)``; ValueError or ConfigError naming the problem."""
     if args.method not in METHODS:
         raise ValueError(f"--method {args.method!r}: expected one of {', '.join(METHODS)}")
+    if args.design is not None:
+        return _checked_design(args)
+    if args.box is None:
+        args.box = [-0.5, 0.5]
     for flag, value, low in (("--episodes", args.episodes, 1), ("--batch", args.batch, 1),
                              ("--judge-episodes", args.judge_episodes, 0), ("--judge-batch", args.judge_batch, 1),
                              ("--seed", args.seed, 0), ("--judge-seed", args.judge_seed, 0)):
@@ -118,6 +136,47 @@ def _checked(args) -> tuple[dict, dict]:
     return configs, settings
 
 
+def _checked_design(args) -> tuple[dict, dict]:
+    """``--design``'s ``(loaders, settings)``: the scene loaders at the tuning and judging
+    levels and the design problem, checked; ValueError or ConfigError naming the problem."""
+    from mysim_jax.grad.design import DESIGN_METHODS, DesignField, DesignProblem
+    from mysim_jax.mappo.config import capture_scenes
+
+    if args.method not in DESIGN_METHODS:
+        raise ValueError(f"--method {args.method} with --design: expected one of {', '.join(DESIGN_METHODS)} (a "
+                         "design candidate is another scene and its value a count: no gradient to follow)")
+    for flag, given in (("--box", args.box is not None), ("--horizon-s", args.horizon_s is not None),
+                        ("--truncate", args.truncate is not None), ("--vertical-weight", args.vertical_weight != 0.0),
+                        ("--ground-weight", args.ground_weight != 0.0)):
+        if given:
+            raise ValueError(f"{flag} is for tuning the team; with --design each value's bounds are in KEY=LOW:HIGH "
+                             "and the value is the miss rate over whole episodes")
+    for flag, value, low in (("--episodes", args.episodes, 1), ("--batch", args.batch, 1),
+                             ("--judge-episodes", args.judge_episodes, 0), ("--judge-batch", args.judge_batch, 1),
+                             ("--seed", args.seed, 0), ("--judge-seed", args.judge_seed, 0)):
+        if value < low:
+            raise ValueError(f"{flag} {value}: must be at least {low}")
+    fields = [DesignField.parse(text) for text in args.design]
+    capture_scenes(args.config, [args.level], args.overrides)      # the scene itself first, its own errors
+
+    def loader(level):
+        return lambda extra: capture_scenes(args.config, [level], [*args.overrides, *extra])[level]
+
+    problem = DesignProblem(loader(args.level), fields, episodes=args.episodes, seed=args.seed, batch=args.episodes)
+    if args.judge_episodes > 0:
+        capture_scenes(args.config, [args.judge_level], args.overrides)
+    if args.budget < problem.steps_per_evaluation:
+        raise ValueError(f"--budget {args.budget}: less than one design's evaluation ({args.episodes} episodes x "
+                         f"{problem.max_steps} steps = {problem.steps_per_evaluation} team steps)")
+    settings = {"config": args.config, "design": list(args.design), "method": args.method, "budget": args.budget,
+                "episodes": args.episodes, "level": args.level, "batch": args.batch, "seed": args.seed,
+                "overrides": list(args.overrides), "judge_episodes": args.judge_episodes,
+                "judge_level": args.judge_level, "judge_seed": args.judge_seed, "judge_batch": args.judge_batch}
+    loaders = {"tune": loader(args.level), "judge": loader(args.judge_level) if args.judge_episodes > 0 else None,
+               "fields": fields, "precision": problem.base.sim.precision}
+    return loaders, settings
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     from mysim_jax.config.scene import ConfigError
@@ -132,6 +191,13 @@ def main(argv=None) -> int:
 
     from mysim_jax.core.precision import use_precision
 
+    if args.design is not None:
+        from mysim_jax.grad.tune_run import run_design
+
+        use_precision(configs["precision"])
+        run_design(configs["tune"], configs["fields"], settings, out, load_judge=configs["judge"],
+                   progress=not args.no_progress)
+        return 0
     use_precision(*(c.sim.precision for c in configs.values()))
 
     from mysim_jax.grad.objective import ObjectiveWeights
