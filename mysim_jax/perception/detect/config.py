@@ -113,6 +113,7 @@ class RefineConfig(StrictModel):
     flip_test: bool = True               # also look at the mirrored window and average
     score: Literal["refined", "geometric"] = "geometric"   # detection score: p2, or sqrt(p1 * p2)
     members: Annotated[int, Field(ge=1, le=8)] = 1   # networks averaged, trained with seeds seed, seed + 1, ...
+    teammate_channel: bool = False       # a fourth input: where the team expects its own UAVs in the window
     # training
     steps: PosInt = 4000
     batch_size: PosInt = 64

@@ -389,7 +389,9 @@ class CNNDetector:
         (:func:`~mysim_jax.perception.detect.team.expected_boxes`); detections that a
         teammate explains better than the expected target
         (:func:`~mysim_jax.perception.detect.team.explained_by_teammates`,
-        ``region.teammate_gate`` and ``teammate_margin``) are dropped."""
+        ``region.teammate_gate`` and ``teammate_margin``) are dropped, and a second stage
+        with the teammate channel (:attr:`~mysim_jax.perception.detect.refine.Refiner.uses_teammates`)
+        sees them as its fourth input."""
         image = check_image(image)
         region = self.region if region is None else region
         if not (np.all(np.isfinite(np.asarray(centre, float))) and np.isfinite(side_px) and side_px > 0):
@@ -423,7 +425,8 @@ class CNNDetector:
             if box[2] > box[0] and box[3] > box[1]:
                 dets.append(Detection(box=box, score=float(s)))
         if self.refiner is not None:
-            dets = self.refiner.refine([image], [dets[: region.max_candidates]])[0]
+            dets = self.refiner.refine([image], [dets[: region.max_candidates]],
+                                       teammates=None if teammates is None else [teammates])[0]
             dets = [d for d in _suppress(dets) if d.score >= floor]
         if teammates is not None and dets:
             theirs = explained_by_teammates(np.array([d.box for d in dets]), centre, side_px, teammates,

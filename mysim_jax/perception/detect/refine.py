@@ -34,6 +34,17 @@ Scores (``score``). ``"refined"``: a detection's score is the second stage's pro
 alone; ``"geometric"``: the geometric mean of both stages' probabilities, sqrt(p1 * p2), so
 a window the second stage likes but the first stage barely proposed (a background patch
 that looks like a drone at 8 px) is not put above a target both stages see.
+
+The team's UAVs as a fourth channel (``teammate_channel``). A teammate in front of the
+target looks like it (both are small quadrotors), and the target's box is its visible part
+only. A second stage with four input channels also sees, beside the window's colours, a mask
+of where the team expects its own UAVs in that window (:func:`teammate_masks`: 255 inside a
+teammate's expected box, :func:`~mysim_jax.perception.detect.team.expected_boxes`, 0
+elsewhere), so it can tell the teammate's rotor discs from the target's. Without the team's
+boxes (a whole-image search) the mask is empty. The network is the same but for its first
+layer's input channels (:func:`input_channels`); :func:`widen_input` gives a three-channel
+network's parameters a fourth channel of zero weights, which computes exactly what the
+three-channel one did (a fine-tune's start).
 """
 
 from __future__ import annotations
@@ -83,8 +94,47 @@ class RefineNet(nn.Module):
 
 
 def normalise(images: np.ndarray | jnp.ndarray):
-    """uint8 RGB -> float32 in [-0.5, 0.5]."""
+    """uint8 RGB (and the teammate mask, when there is one) -> float32 in [-0.5, 0.5]."""
     return jnp.asarray(images, jnp.float32) * (1.0 / 255.0) - 0.5
+
+
+def input_channels(params) -> int:
+    """The input channels of a second-stage network's parameters: 3 (the window's colours)
+    or 4 (and the teammate mask)."""
+    return int(np.shape(params["down0"]["kernel"])[2])
+
+
+def widen_input(params, channels: int = 4):
+    """``params`` with zero first-layer weights for input channels up to ``channels``: the
+    network computes the same as before whatever the new channels hold."""
+    kernel = np.asarray(params["down0"]["kernel"])
+    if kernel.shape[2] > channels:
+        raise PerceptionError(f"the second stage has {kernel.shape[2]} input channels, more than the {channels} asked for")
+    pad = np.zeros(kernel.shape[:2] + (channels - kernel.shape[2],) + kernel.shape[3:], kernel.dtype)
+    out = dict(params)
+    out["down0"] = {**params["down0"], "kernel": np.concatenate([kernel, pad], axis=2)}
+    return out
+
+
+def teammate_masks(teammates, windows: np.ndarray, size: int) -> np.ndarray:
+    """(N, size, size) uint8: for each (x0, y0, side) window of :func:`windows_of`, 255 on
+    the window pixels (resized to ``size``) that a box of ``teammates`` ((K, 4) renderer
+    boxes px, or None: none) covers, 0 elsewhere. A pixel is covered when its centre is
+    inside the box."""
+    windows = np.asarray(windows, np.int64).reshape(-1, 3)
+    out = np.zeros((len(windows), size, size), np.uint8)
+    tm = np.zeros((0, 4)) if teammates is None else np.asarray(teammates, float).reshape(-1, 4)
+    if len(tm) == 0:
+        return out
+    e = tm + 0.5                                              # edge coordinates
+    centres = np.arange(size) + 0.5                           # window pixel centres, window px
+    for n, (x0, y0, side) in enumerate(windows):
+        f = size / float(side)
+        for u0, v0, u1, v1 in e:
+            cols = (centres >= (u0 - x0) * f) & (centres < (u1 - x0) * f)
+            rows = (centres >= (v0 - y0) * f) & (centres < (v1 - y0) * f)
+            out[n][np.ix_(rows, cols)] = 255
+    return out
 
 
 def windows_of(boxes: np.ndarray, context: float, min_px: float) -> np.ndarray:
@@ -138,9 +188,10 @@ def mirror_window_boxes(boxes):
 
 
 def apply(model: RefineNet, params, windows_u8, prior, flip: bool = False):
-    """Probabilities (N,) and boxes (N, 4) in window units of ``windows_u8`` (N, S, S, 3) uint8
-    whose candidates are ``prior`` (N, 4) window units. ``flip``: also run on the mirrored
-    windows and average the two passes' probabilities and boxes."""
+    """Probabilities (N,) and boxes (N, 4) in window units of ``windows_u8`` (N, S, S, C)
+    uint8 (C = 3, or 4 with the teammate mask) whose candidates are ``prior`` (N, 4) window
+    units. ``flip``: also run on the mirrored windows and average the two passes'
+    probabilities and boxes."""
     out = model.apply({"params": params}, normalise(windows_u8))
     p = jax.nn.sigmoid(out[:, 0])
     box = prior + out[:, 1:]
@@ -256,6 +307,11 @@ class Refiner:
                                   f"got {got}: pass a list of parameter trees, one per network")
         self.members = tuple(members)
         self.settings = settings
+        channels = {input_channels(m) for m in self.members}
+        if len(channels) != 1 or not channels <= {3, 4}:
+            raise PerceptionError(f"the second stage's networks take {sorted(channels)} input channels; expected "
+                                  "3 (colours) or 4 (and the teammate mask), the same for every network")
+        self.channels = channels.pop()
         self.model = RefineNet(widths=tuple(settings.widths), hidden=settings.hidden)
         self._apply = jax.jit(partial(apply_members, self.model, flip=settings.flip_test))
 
@@ -263,9 +319,16 @@ class Refiner:
         s = self.settings
         return windows_of(boxes, s.context, s.min_window_px)
 
-    def refine(self, images: list[np.ndarray], candidates: list[list]) -> list[list]:
+    @property
+    def uses_teammates(self) -> bool:
+        """Whether the networks see the teammate mask (a fourth input channel)."""
+        return self.channels == 4
+
+    def refine(self, images: list[np.ndarray], candidates: list[list], teammates: list | None = None) -> list[list]:
         """Per image, its candidates (Detections, best first) looked at again: Detections with
-        the second stage's box and score (``settings.score``), best first, before suppression."""
+        the second stage's box and score (``settings.score``), best first, before suppression.
+        ``teammates``: per image, (K, 4) px boxes where the team expects its UAVs (or None),
+        for a second stage that sees them (:attr:`uses_teammates`; others ignore them)."""
         s = self.settings
         picked = [c[: s.max_candidates] for c in candidates]
         owner = [i for i, c in enumerate(picked) for _ in c]
@@ -276,6 +339,10 @@ class Refiner:
         windows = self.windows(boxes)
         owner = np.asarray(owner)                         # image of each candidate, in order
         cut = np.concatenate([cut_windows(images[i], windows[owner == i], s.size) for i in np.unique(owner)])
+        if self.uses_teammates:
+            masks = np.concatenate([teammate_masks(None if teammates is None else teammates[i], windows[owner == i],
+                                                   s.size) for i in np.unique(owner)])
+            cut = np.concatenate([cut, masks[..., None]], axis=-1)
         prior = to_window(boxes, windows)
         n = len(owner)
         pad = padded_count(n) - n

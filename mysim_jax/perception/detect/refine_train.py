@@ -24,6 +24,13 @@ probability ``p_low_res`` (as if the target were up to ``low_res_max`` times far
 window is cut at that many times fewer pixels and enlarged back), mirrored with probability
 0.5, and given the first stage's photometric augmentation (``train.gamma``,
 ``steps.photometric``, ...).
+
+With ``teammate_channel`` the window gets its fourth channel, the mask of where the team
+expects its UAVs (:func:`~mysim_jax.perception.detect.refine.teammate_masks`), drawn for
+each sample afresh from the frame's UAVs with the team's estimation errors
+(:func:`~mysim_jax.perception.detect.team.noisy_team_boxes`), mirrored with the window and
+left out of the photometric changes. A three-channel start (``refine.fine_tune`` from
+weights without the channel) gets zero weights for it (:func:`~mysim_jax.perception.detect.refine.widen_input`).
 """
 
 from __future__ import annotations
@@ -40,8 +47,10 @@ from tqdm.auto import tqdm
 
 from mysim_jax.perception.detect.config import DetectorConfig
 from mysim_jax.perception.detect.dataset import OCCLUDED_SCENES
-from mysim_jax.perception.detect.refine import (RefineNet, cut_windows, loss_fn, mirror_window_boxes, sample_labels,
-                                                to_window, windows_of)
+from mysim_jax.perception.camera import PerceptionError, intrinsics
+from mysim_jax.perception.detect.refine import (RefineNet, cut_windows, input_channels, loss_fn, mirror_window_boxes,
+                                                sample_labels, teammate_masks, to_window, widen_input, windows_of)
+from mysim_jax.perception.detect.team import frame_team, noisy_team_boxes
 from mysim_jax.perception.detect.steps import photometric, prefetch, run_steps, truths
 
 
@@ -87,6 +96,7 @@ class SamplePool:
 
     def __init__(self, labels: list[dict], candidates: list[list]):
         self.truths = truths(labels)
+        self.team = [frame_team(lab) for lab in labels]       # per frame: its UAVs and camera (None: not listed)
         self.positives, self.negatives = [], []
         for i, (cands, truth) in enumerate(zip(candidates, self.truths)):
             if not cands:
@@ -143,11 +153,22 @@ def make_sample(images, pool: SamplePool, cfg: DetectorConfig, rng: np.random.Ge
     cut = cut_windows(image, window, res)[0]
     if res != r.size:
         cut = cv2.resize(cut, (r.size, r.size), interpolation=cv2.INTER_LINEAR)
+    mask = None
+    if r.teammate_channel:
+        if pool.team[i] is None:
+            raise PerceptionError("refine.teammate_channel: these training frames' labels do not list the UAVs drawn "
+                                  "(meta['uavs']): render them again")
+        intr = intrinsics(width=image.shape[1], height=image.shape[0])
+        mask = teammate_masks(noisy_team_boxes(rng, intr, pool.team[i]), window, r.size)[0]
     prior, tgt = to_window(box[None], window)[0], to_window(target, window)[0]
     if rng.random() < 0.5:
         cut = np.ascontiguousarray(cut[:, ::-1])
+        mask = None if mask is None else np.ascontiguousarray(mask[:, ::-1])
         prior, tgt = mirror_window_boxes(prior), mirror_window_boxes(tgt)
-    return photometric(cut, cfg.train, rng), prior, tgt, float(label[0]), float(weight[0])
+    cut = photometric(cut, cfg.train, rng)
+    if mask is not None:
+        cut = np.concatenate([cut, mask[..., None]], axis=-1)
+    return cut, prior, tgt, float(label[0]), float(weight[0])
 
 
 def batch_of(images, pool: SamplePool, cfg: DetectorConfig, rng: np.random.Generator):
@@ -159,11 +180,15 @@ def batch_of(images, pool: SamplePool, cfg: DetectorConfig, rng: np.random.Gener
 
 def train_refiner(cfg: DetectorConfig, images, pool: SamplePool, progress: bool = True, log=None, params=None,
                   desc: str = "train refiner"):
-    """Train the second stage from scratch (or from ``params``); returns (params, [(step, loss)])."""
+    """Train the second stage from scratch (or from ``params``, widened to the teammate
+    channel when the config has it and they do not); returns (params, [(step, loss)])."""
     r = cfg.refine
     model = RefineNet(widths=tuple(r.widths), hidden=r.hidden)
+    channels = 4 if r.teammate_channel else 3
     if params is None:
-        params = model.init(jax.random.PRNGKey(r.seed), np.zeros((1, r.size, r.size, 3), np.float32))["params"]
+        params = model.init(jax.random.PRNGKey(r.seed), np.zeros((1, r.size, r.size, channels), np.float32))["params"]
+    elif input_channels(params) != channels:
+        params = widen_input(params, channels)
     warmup = max(min(r.warmup_steps, r.steps - 1), 1)
     schedule = optax.warmup_cosine_decay_schedule(0.0, r.learning_rate, warmup, max(r.steps, warmup + 1),
                                                   end_value=0.02 * r.learning_rate)

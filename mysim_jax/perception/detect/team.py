@@ -71,6 +71,31 @@ def perturbed_positions(rng: np.random.Generator, positions: np.ndarray, R: np.n
     return noisy, rotvec_to_matrix(rng.normal(0.0, attitude_sigma, 3)) @ np.asarray(R, float)
 
 
+def frame_team(label: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+    """What a rendered frame's label says about the team (``meta``: ``uavs`` with ``pos``
+    and ``radius``, ``camera_R``, ``camera_p``): ``(positions (K, 3) m, radii (K,) m,
+    camera R (3, 3), camera p (3,))``, K possibly 0; None when the label does not list the
+    UAVs drawn (frames rendered before it did)."""
+    meta = label.get("meta") or {}
+    uavs = meta.get("uavs")
+    if uavs is None:
+        return None
+    pos = np.array([u["pos"] for u in uavs], float).reshape(-1, 3)
+    radii = np.array([u["radius"] for u in uavs], float)
+    return pos, radii, np.asarray(meta["camera_R"], float), np.asarray(meta["camera_p"], float)
+
+
+def noisy_team_boxes(rng: np.random.Generator, intr: Intrinsics, team, position_sigma: float = TEAM_POSITION_SIGMA_M,
+                     attitude_sigma: float = TEAM_ATTITUDE_SIGMA_RAD) -> np.ndarray:
+    """(K', 4) px: where the team expects its UAVs of ``team`` (:func:`frame_team`) in the
+    frame, from its estimates (:func:`perturbed_positions`); (0, 4) without UAVs."""
+    pos, radii, R, p = team
+    if len(pos) == 0:
+        return np.zeros((0, 4))
+    noisy, R_est = perturbed_positions(rng, pos, R, position_sigma, attitude_sigma)
+    return expected_boxes(intr, R_est, p, noisy, radii)
+
+
 def _centre_side(boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     b = np.asarray(boxes, float).reshape(-1, 4)
     return np.stack([(b[:, 0] + b[:, 2]) / 2, (b[:, 1] + b[:, 3]) / 2], -1), np.maximum(b[:, 2:] - b[:, :2], 1e-6).max(-1)

@@ -54,8 +54,8 @@ from mysim_jax.perception.detect.model import CNNDetector, CenterNet, encode_tar
 from mysim_jax.perception.detect.refine import RefineSettings, Refiner, normalise
 from mysim_jax.perception.detect.refine_train import SamplePool, cached_candidates, train_refiner
 from mysim_jax.perception.detect.steps import photometric, prefetch, run_steps, truths
-from mysim_jax.perception.detect.team import (TEAM_ATTITUDE_SIGMA_RAD, TEAM_POSITION_SIGMA_M, expected_boxes,
-                                              perturbed_positions)
+from mysim_jax.perception.detect.team import (TEAM_ATTITUDE_SIGMA_RAD, TEAM_POSITION_SIGMA_M, frame_team,
+                                              noisy_team_boxes)
 
 SETS = {"train": "train", "eval_in": "train", "eval_held_out": "held_out"}
 # frame indices of the in-distribution evaluation set start here (after any training frame)
@@ -248,7 +248,10 @@ def refine_init_from(cfg: DetectorConfig, path: str | Path) -> list | None:
     if mine != theirs:
         raise PerceptionError(f"{path}: its second stage (widths, hidden, size, members) is {theirs}, the config's "
                               f"refine section asks for {mine}")
-    return list(ref.members)
+    if ref.uses_teammates and not r.teammate_channel:
+        raise PerceptionError(f"{path}: its second stage sees the teammate mask (4 input channels); set "
+                              "refine.teammate_channel: true to fine-tune it")
+    return list(ref.members)      # three channels with teammate_channel: widened to four (zero weights) in training
 
 
 def train(cfg: DetectorConfig, images, labels, progress: bool = True, steps: int | None = None, log=None,
@@ -344,15 +347,10 @@ def teammate_hints(labels: list[dict], seed: int, width: int, height: int) -> li
     out = []
     for i, lab in enumerate(labels):
         rng = np.random.default_rng([seed, 8, i])
-        uavs = lab["meta"].get("uavs")
-        if uavs is None:
+        team = frame_team(lab)
+        if team is None:
             raise PerceptionError("these frames' labels do not list the UAVs drawn (meta['uavs']): render them again")
-        if not uavs:
-            out.append(np.zeros((0, 4)))
-            continue
-        pos, R = perturbed_positions(rng, [u["pos"] for u in uavs], np.asarray(lab["meta"]["camera_R"]),
-                                     TEAM_POSITION_SIGMA_M, TEAM_ATTITUDE_SIGMA_RAD)
-        out.append(expected_boxes(intr, R, np.asarray(lab["meta"]["camera_p"]), pos, [u["radius"] for u in uavs]))
+        out.append(noisy_team_boxes(rng, intr, team, TEAM_POSITION_SIGMA_M, TEAM_ATTITUDE_SIGMA_RAD))
     return out
 
 
