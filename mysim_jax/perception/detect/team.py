@@ -82,6 +82,8 @@ def frame_team(label: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndar
         return None
     pos = np.array([u["pos"] for u in uavs], float).reshape(-1, 3)
     radii = np.array([u["radius"] for u in uavs], float)
+    if not uavs:                   # no UAV drawn: the camera's pose is not needed
+        return pos, radii, np.eye(3), np.zeros(3)
     return pos, radii, np.asarray(meta["camera_R"], float), np.asarray(meta["camera_p"], float)
 
 
