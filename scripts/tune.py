@@ -137,8 +137,9 @@ def _checked(args) -> tuple[dict, dict]:
 
 
 def _checked_design(args) -> tuple[dict, dict]:
-    """``--design``'s ``(loaders, settings)``: the scene loaders at the tuning and judging
-    levels and the design problem, checked; ValueError or ConfigError naming the problem."""
+    """``--design``'s ``(checked, settings)``: the design problem at the tuning level and
+    the scene loader at the judging level, checked; ValueError or ConfigError naming the
+    problem."""
     from mysim_jax.grad.design import DESIGN_METHODS, DesignField, DesignProblem
     from mysim_jax.mappo.config import capture_scenes
 
@@ -172,9 +173,9 @@ def _checked_design(args) -> tuple[dict, dict]:
                 "episodes": args.episodes, "level": args.level, "batch": args.batch, "seed": args.seed,
                 "overrides": list(args.overrides), "judge_episodes": args.judge_episodes,
                 "judge_level": args.judge_level, "judge_seed": args.judge_seed, "judge_batch": args.judge_batch}
-    loaders = {"tune": loader(args.level), "judge": loader(args.judge_level) if args.judge_episodes > 0 else None,
-               "fields": fields, "precision": problem.base.sim.precision}
-    return loaders, settings
+    checked = {"problem": problem, "judge": loader(args.judge_level) if args.judge_episodes > 0 else None,
+               "precision": problem.base.sim.precision}
+    return checked, settings
 
 
 def main(argv=None) -> int:
@@ -195,8 +196,7 @@ def main(argv=None) -> int:
         from mysim_jax.grad.tune_run import run_design
 
         use_precision(configs["precision"])
-        run_design(configs["tune"], configs["fields"], settings, out, load_judge=configs["judge"],
-                   progress=not args.no_progress)
+        run_design(configs["problem"], settings, out, load_judge=configs["judge"], progress=not args.no_progress)
         return 0
     use_precision(*(c.sim.precision for c in configs.values()))
 

@@ -88,17 +88,14 @@ def run_tune(config, settings: dict, out_dir: Path, judge_config=None, weights: 
     return out
 
 
-def run_design(load, fields, settings: dict, out_dir: Path, load_judge=None, progress: bool = True,
+def run_design(problem: DesignProblem, settings: dict, out_dir: Path, load_judge=None, progress: bool = True,
                log=print) -> dict:
-    """Tune the design ``fields`` (:class:`~.design.DesignField`) of the scene that
-    ``load(overrides)`` gives at the tuning level with ``settings`` (``method``,
-    ``budget``, ``episodes``, ``seed``, ``batch``, ``judge_episodes``, ``judge_seed``,
-    ``judge_batch``, ``judge_level``; the rest recorded as given), judge it at the level
-    ``load_judge`` gives (None: not judged) and write the folder (module docstring).
-    Returns the tuning's JSON dict."""
+    """Tune the design ``problem`` (:class:`~.design.DesignProblem`, checked) with
+    ``settings`` (``method``, ``budget``, ``seed``, ``batch``, ``judge_episodes``,
+    ``judge_seed``, ``judge_batch``, ``judge_level``; the rest recorded as given), judge
+    it at the level ``load_judge(overrides)`` gives (None: not judged) and write the folder
+    (module docstring). Returns the tuning's JSON dict."""
     t0 = time.perf_counter()
-    problem = DesignProblem(load, fields, episodes=settings["episodes"], seed=settings["seed"],
-                            batch=settings["episodes"])
     with tqdm(total=int(settings["budget"]), desc=f"design ({settings['method']})", unit="team step",
               disable=not progress) as bar:
         result = tune_design(problem, settings["method"], settings["budget"], batch=settings["batch"],
