@@ -217,3 +217,45 @@ def test_target_dropouts_have_the_declared_statistics_and_coast(envs):
 def test_bad_perception_blocks_name_the_field(override, message):
     with pytest.raises(ConfigError, match=message):
         load_config("configs/capture_falling.yaml", SMALL + [override])
+
+
+def test_per_episode_scale_multiplies_every_sigma(envs):
+    """``env.perception.scale``: each episode draws one factor on the four errors' sigma;
+    a fixed factor of 1 (the default) is exactly the errors without it."""
+    _, _, (env, params) = envs
+    np.testing.assert_array_equal(np.asarray(params.perception_scale), [1.0, 1.0])
+    reset, step = jax.jit(env.reset), jax.jit(env.step)
+    key = jax.random.PRNGKey(4)
+    fields = ("uav_pos", "uav_vel", "target_pos", "target_vel")
+
+    def errors(p):
+        _, s = reset(key, p)
+        first = s.perception
+        s = step(jax.random.PRNGKey(5), s, env.scripted_actions(s, p), p)[1]
+        return first, s.perception
+
+    one, one_next = errors(params)
+    assert float(one.scale) == 1.0
+    fixed3, fixed3_next = errors(params.replace(perception_scale=jnp.asarray([3.0, 3.0])))
+    assert float(fixed3.scale) == 3.0 and float(fixed3_next.scale) == 3.0      # kept over the episode
+    for name in fields:      # the same draws, three times the size, at the reset and after a step
+        np.testing.assert_allclose(getattr(fixed3, name), 3 * np.asarray(getattr(one, name)), rtol=1e-5, atol=1e-7)
+        np.testing.assert_allclose(getattr(fixed3_next, name), 3 * np.asarray(getattr(one_next, name)),
+                                   rtol=1e-4, atol=1e-6)
+    # a range: one factor per episode, inside it, different between episodes
+    ranged = params.replace(perception_scale=jnp.asarray([0.5, 2.5]))
+    keys = jax.random.split(jax.random.PRNGKey(6), 256)
+    scales = np.asarray(jax.vmap(lambda k: reset(k, ranged)[1].perception.scale)(keys))
+    assert scales.min() >= 0.5 and scales.max() <= 2.5 and scales.std() > 0.4    # uniform: std 0.58
+    assert reset._cache_size() == 1                                            # traced: no new compile
+
+
+def test_scale_in_the_scene_file():
+    config = load_config("configs/capture_falling.yaml", SMALL + [PERCEPTION[0][:-1] + ", scale: {low: 0.5, "
+                                                                                       "high: 2.0}}"])
+    _, params = make_env(config)
+    np.testing.assert_allclose(np.asarray(params.perception_scale), [0.5, 2.0])
+    with pytest.raises(ConfigError, match="scale"):
+        load_config("configs/capture_falling.yaml", SMALL + ["env.perception={scale: {low: 2.0, high: 1.0}}"])
+    with pytest.raises(ConfigError, match="scale"):
+        load_config("configs/capture_falling.yaml", SMALL + ["env.perception={scale: {low: -1.0, high: 1.0}}"])

@@ -75,6 +75,7 @@ def test_committed_stress_files_plan_the_shifts_they_declare(name, tmp_path):
                         continue
                     assert getattr(env.perception, k).sigma == pytest.approx(v * b["sigma"], rel=1e-12)
                     assert getattr(env.perception, k).correlation_time == b["correlation_time"]
+                assert "scale" not in block and env.perception.scale.low == env.perception.scale.high == 1.0
             # every other draw keeps its training range
             for other in type(env.randomize).model_fields:
                 if f.kind == "thrust_loss" and other == "thrust_loss":
@@ -121,6 +122,15 @@ def test_bad_stress_files_are_one_error_naming_the_problem(tmp_path, changes, me
     with pytest.raises(ConfigError, match="stress.yaml") as err:
         load_stress(_file(tmp_path, **changes))
     assert message in str(err.value)
+
+
+def test_a_perception_block_with_its_own_scale_is_refused(tmp_path):
+    """The suite sets the errors' scale (the factor's values); a block's own would be lost."""
+    block = yaml.safe_load((ROOT / "docs/perception_gap/perception_learned.yaml").read_text())
+    path = tmp_path / "block.yaml"
+    path.write_text(yaml.safe_dump({**block, "scale": {"low": 0.5, "high": 2.0}}))
+    with pytest.raises(ConfigError, match="block.yaml: scale {low: 0.5, high: 2}: a stress suite sets"):
+        perception_block(path)
 
 
 def test_a_factor_the_scene_does_not_draw_is_refused(tmp_path):

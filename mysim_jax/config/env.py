@@ -210,7 +210,12 @@ class PerceptionConfig(StrictModel):
     plus the estimation errors. The UAVs' own estimates have no latency.
 
     ``target_dropout``: the target estimate is lost at times and coasts meanwhile
-    (:class:`DropoutConfig`)."""
+    (:class:`DropoutConfig`).
+
+    ``scale``: a factor on the four errors' ``sigma``, drawn uniformly per episode (the
+    correlation times, latency and dropouts are kept): a team trained on a range of it
+    expects estimates from better and worse trackers than the one its errors were fitted
+    on. The default fixes it at 1."""
 
     uav_position: GaussMarkov = GaussMarkov()       # m
     uav_velocity: GaussMarkov = GaussMarkov()       # m/s
@@ -218,6 +223,7 @@ class PerceptionConfig(StrictModel):
     target_velocity: GaussMarkov = GaussMarkov()    # m/s
     target_latency: NonNegFloat = 0.0               # s, at most one policy period
     target_dropout: DropoutConfig | None = None     # None: the target estimate is never lost
+    scale: Range = fixed(1.0)                       # -, per-episode factor on every sigma
 
 
 class ThrustLossConfig(StrictModel):

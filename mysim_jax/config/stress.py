@@ -113,9 +113,14 @@ def perception_block(path) -> dict:
     """The env.perception block of a file (``scripts/perception_gap.py fit``'s output), validated."""
     data = read_yaml_file(path, "perception block")
     try:
-        return PerceptionConfig.model_validate(data).model_dump(exclude_none=True)
+        block = PerceptionConfig.model_validate(data)
     except ValidationError as err:
         raise ConfigError(f"{path}: {format_validation_error(err)}") from None
+    if (block.scale.low, block.scale.high) != (1.0, 1.0):
+        raise ConfigError(f"{path}: scale {{low: {block.scale.low:g}, high: {block.scale.high:g}}}: a stress suite "
+                          "sets the errors' scale itself (the perception factor's values); remove scale from the "
+                          "block")
+    return block.model_dump(exclude_none=True, exclude={"scale"})
 
 
 def factor_override(factor: StressFactor, value: float, perception: dict | None = None) -> str:
@@ -144,10 +149,12 @@ def factor_override(factor: StressFactor, value: float, perception: dict | None 
 def training_range(config, factor: StressFactor) -> tuple[float, float] | None:
     """The factor's training range in the scene ``config`` (low, high in the factor's
     unit): the draw's range (a box: its largest half-width on the factor's axes), ``(0,
-    0)`` for perception (trained on true states, or the scene's own perception scale 1);
+    0)`` for perception trained on true states, else the scene's ``env.perception.scale``
+    range (1 when it is fixed);
     None when the scene does not draw it."""
     if factor.kind == "perception_scale":
-        return (0.0, 0.0) if config.env.perception is None else (1.0, 1.0)
+        p = config.env.perception
+        return (0.0, 0.0) if p is None else (p.scale.low, p.scale.high)
     if factor.kind == "latency":
         p = config.env.perception
         return (0.0, 0.0) if p is None else (p.target_latency, p.target_latency)

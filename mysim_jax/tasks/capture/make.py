@@ -11,7 +11,8 @@ from mysim_jax.build import build
 from mysim_jax.config.capture import TeamConfig
 from mysim_jax.config.env import REWARD_TERMS, NoiseConfig
 from mysim_jax.tasks.capture.env import CaptureEnv
-from mysim_jax.tasks.capture.perception_errors import perception_levels, target_delay, target_dropout
+from mysim_jax.tasks.capture.perception_errors import (perception_levels, perception_scale, target_delay,
+                                                       target_dropout)
 from mysim_jax.tasks.capture.randomisation import episode_ranges
 from mysim_jax.tasks.capture.types import EnvParams
 from mysim_jax.tasks.outcome import border_knots
@@ -96,7 +97,8 @@ def make_env(config, discount: float | None = None) -> tuple[CaptureEnv, EnvPara
                            target_delay=jnp.asarray(target_delay(env_cfg.perception, control_steps * config.sim.dt),
                                                     scene.dtype),
                            target_dropout=jnp.asarray(target_dropout(env_cfg.perception,
-                                                                      control_steps * config.sim.dt), scene.dtype))
+                                                                      control_steps * config.sim.dt), scene.dtype),
+                           perception_scale=jnp.asarray(perception_scale(env_cfg.perception), scene.dtype))
     return env, env_params
 
 

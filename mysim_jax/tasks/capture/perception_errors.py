@@ -33,22 +33,29 @@ class PerceptionErrorsMixin:
                 "target_vel_before": phys.body_vel[self.target_body]}
 
     def _draw_errors(self, key, params: EnvParams, dtype, sim: State) -> PerceptionErrors:
-        """Errors drawn from their stationary distributions (an episode's first state ``sim``)."""
+        """The episode's factor on every sigma, drawn uniformly from
+        ``params.perception_scale``, and the errors drawn from their stationary
+        distributions at that factor (an episode's first state ``sim``)."""
         keys = jax.random.split(key, 4)
         shapes = self._error_shapes()
+        low, high = params.perception_scale[0].astype(dtype), params.perception_scale[1].astype(dtype)
+        # its own stream: a fixed factor (the default 1) leaves every error as without it
+        scale = low + (high - low) * jax.random.uniform(jax.random.fold_in(key, 9), (), dtype)
         xi = rng.normal_each(keys, list(shapes.values()), dtype)
-        e = {name: getattr(params.perception, name).sigma.astype(dtype) * xi[i] for i, name in enumerate(shapes)}
+        e = {name: scale * getattr(params.perception, name).sigma.astype(dtype) * xi[i]
+             for i, name in enumerate(shapes)}
         now = self._target_now(sim)
         return PerceptionErrors(**e, **now, target_lost=jnp.zeros((), bool),
                                 target_last_pos=now["target_pos_before"] + e["target_pos"],
                                 target_last_vel=now["target_vel_before"] + e["target_vel"],
-                                target_lost_steps=jnp.zeros((), jnp.int32))
+                                target_lost_steps=jnp.zeros((), jnp.int32), scale=scale)
 
     def _step_errors(self, key, errors: PerceptionErrors, params: EnvParams, dtype, before: State,
                      after: State) -> PerceptionErrors:
         """One policy period of every Gauss-Markov error: ``e' = rho e + sigma √(1 - rho²) ξ``;
         ``before``: the state the period started from (the target's, for the latency);
-        ``after``: the state it ended in. Then one step of the target estimate's losses: lost
+        ``after``: the state it ended in; every ``sigma`` at the episode's factor
+        ``errors.scale``. Then one step of the target estimate's losses: lost
         (seen) it is regained (lost) with probability ``params.target_dropout[1]`` (``[0]``);
         while seen, the estimate is remembered, while lost it ages."""
         keys = jax.random.split(key, 4)
@@ -57,7 +64,7 @@ class PerceptionErrorsMixin:
         new = {}
         for i, name in enumerate(shapes):
             level = getattr(params.perception, name)
-            sigma, rho = level.sigma.astype(dtype), level.rho.astype(dtype)
+            sigma, rho = errors.scale * level.sigma.astype(dtype), level.rho.astype(dtype)
             drive = sigma * jnp.sqrt(jnp.maximum(1.0 - rho * rho, 0.0))
             new[name] = (rho * getattr(errors, name) + drive * xi[i]).astype(dtype)
         u = jax.random.uniform(jax.random.fold_in(key, 7), (), dtype)
@@ -65,7 +72,7 @@ class PerceptionErrorsMixin:
         lost = jnp.where(errors.target_lost, u >= p_regain, u < p_lose)
         fresh = PerceptionErrors(**new, **self._target_now(before), target_lost=lost,
                                  target_last_pos=errors.target_last_pos, target_last_vel=errors.target_last_vel,
-                                 target_lost_steps=errors.target_lost_steps)
+                                 target_lost_steps=errors.target_lost_steps, scale=errors.scale)
         tpos, tvel = self._seen_target(after.phys, fresh, params)
         return fresh.replace(target_last_pos=jnp.where(lost, errors.target_last_pos, tpos),
                              target_last_vel=jnp.where(lost, errors.target_last_vel, tvel),
@@ -113,6 +120,11 @@ def perception_levels(config, policy_dt: float, dtype) -> PerceptionLevels:
 
     return PerceptionLevels(**{name: level(None if config is None else getattr(config, field))
                                for name, field in CONFIG_NAMES.items()})
+
+
+def perception_scale(config) -> tuple[float, float]:
+    """``(low, high)`` of ``env.perception.scale`` ((1, 1) without perception)."""
+    return (1.0, 1.0) if config is None else (config.scale.low, config.scale.high)
 
 
 def target_delay(config, policy_dt: float) -> float:

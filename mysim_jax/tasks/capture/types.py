@@ -97,6 +97,7 @@ class EnvParams:
     # (2,) per policy step: the probability of losing the target estimate while it is seen,
     # and of regaining it while lost (env.perception.target_dropout); zeros: never lost
     target_dropout: jnp.ndarray
+    perception_scale: jnp.ndarray  # (2,) low, high of the per-episode factor on every error's sigma
 
 
 @struct.dataclass
@@ -117,6 +118,7 @@ class PerceptionErrors:
     target_last_pos: jnp.ndarray     # (3,) m, the target estimate when last seen
     target_last_vel: jnp.ndarray     # (3,) m/s
     target_lost_steps: jnp.ndarray   # () int32, policy steps since it was last seen
+    scale: jnp.ndarray               # () this episode's factor on every error's sigma (env.perception.scale)
 
 
 @struct.dataclass
