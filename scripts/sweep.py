@@ -41,7 +41,9 @@ Every input (scene, ``--set``, every grid point's overrides, the specs, DIR, num
 checked before anything is compiled, and each team is made and traced on every point's
 environment before the first point runs: a problem is a one-line error, exit code 2, and
 nothing is written. Outputs are written to a temporary folder and moved into DIR only
-when complete.
+when complete. While it runs, each point saves its progress every 5 minutes into
+``.<DIR name>.resume/`` beside DIR: the same command run again after a stop goes on from
+there, with the numbers an uninterrupted run gives.
 """
 
 from __future__ import annotations

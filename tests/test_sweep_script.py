@@ -73,6 +73,7 @@ def test_outputs_agree(sweep):
     assert record["plots"] == ["success_env_success_hold_time.png", "success_seed.png"]
     for name in record["plots"]:
         assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert not (out.parent / ".out.resume").exists()        # the points' progress files are removed
 
 
 def test_rates_and_intervals(sweep):

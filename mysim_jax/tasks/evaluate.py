@@ -18,6 +18,14 @@ out; slots left without one idle until the last episode ends. Every episode runs
 own end, so short episodes (fast failures) are not favoured, and results come back in
 episode order.
 
+**Resuming.** Given a ``checkpoint`` file, an :class:`Evaluator` call saves everything it
+carries between calls (every slot's observation, state and episode bookkeeping, the rows of
+the episodes already ended, the queue) every ``every_s`` seconds and when it ends
+(:class:`Checkpoint`). A later call with the same file, episodes, key, batch, chunk and
+``fingerprint`` (the caller's name for what it evaluates: scene, team, seed) goes on from
+there with the same compiled program, so an interrupted evaluation ends with exactly the
+numbers an uninterrupted one gives; a file that does not match is ignored and overwritten.
+
 Policies are functions ``policy(key, obs, state, params) -> actions`` of one environment
 (:func:`scripted_policy`, :func:`random_policy`, or a trained one), or with
 ``policy_args``, ``policy(key, obs, state, params, args)``: ``args`` (e.g. a network's
@@ -27,8 +35,11 @@ without compiling again.
 
 from __future__ import annotations
 
+import json
+import os
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, NamedTuple
 
 import jax
@@ -43,7 +54,7 @@ from mysim_jax.tasks.runner import episode_key, episode_keys, rollout
 from mysim_jax.tasks.sweep import wilson_interval
 
 __all__ = ["episode_key", "episode_keys", "scripted_policy", "random_policy", "EpisodeStats", "Slots", "Evaluator",
-           "run_episodes", "run_two_teams"]
+           "Checkpoint", "run_episodes", "run_two_teams"]
 
 
 def scripted_policy(env):
@@ -140,6 +151,58 @@ def _next_in_slot(step, slot: Slots, fresh):
     return obs, state, slot
 
 
+_ROW_FIELDS = ("slot", "success", "failures", "timeout", "length", "returns", "terms")
+
+
+@dataclass
+class Checkpoint:
+    """Where an :class:`Evaluator` call saves its progress and what it must match to be
+    resumed: ``path`` (an ``.npz`` file, written atomically; its folder is made),
+    ``fingerprint`` (the caller's description of what is evaluated: a resumed call must give
+    the same one) and ``every_s`` (seconds of wall time between saves; it is also saved when
+    the call ends)."""
+
+    path: str | os.PathLike
+    fingerprint: str = ""
+    every_s: float = 300.0
+
+    def meta(self, key, n: int, batch: int, chunk: int, carry) -> str:
+        """What a saved file must match, as JSON: the fingerprint, the episodes, the key,
+        the batch and chunk, and every carried array's shape and type."""
+        return json.dumps({"fingerprint": self.fingerprint, "episodes": n, "batch": batch, "chunk": chunk,
+                           "key": np.asarray(key).tolist(),
+                           "carry": [[list(x.shape), str(x.dtype)] for x in jax.tree.leaves(carry)]})
+
+    def save(self, meta: str, carry, rows: dict, queue: int, steps: int, wall_s: float) -> None:
+        path = Path(self.path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        episodes = np.array(sorted(rows), np.int64)
+        by_field = {f: np.array([rows[e][i] for e in episodes]) for i, f in enumerate(_ROW_FIELDS)}
+        leaves = {f"carry_{i}": np.asarray(x) for i, x in enumerate(jax.tree.leaves(carry))}
+        tmp = path.with_name(path.name + ".tmp")
+        with open(tmp, "wb") as f:
+            np.savez(f, meta=np.array(meta), queue=queue, steps=steps, wall_s=wall_s, episodes=episodes,
+                     **{f"row_{k}": v for k, v in by_field.items()}, **leaves)
+        os.replace(tmp, path)
+
+    def load(self, meta: str, carry):
+        """``(carry, rows, queue, steps, wall_s)`` from the file, or None when there is no
+        file, it cannot be read or it does not match ``meta``."""
+        try:
+            with np.load(self.path) as z:
+                if str(z["meta"]) != meta:
+                    return None
+                treedef = jax.tree.structure(carry)
+                leaves = [jnp.asarray(z[f"carry_{i}"]) for i in range(treedef.num_leaves)]
+                episodes = z["episodes"]
+                fields = [z[f"row_{f}"] if episodes.size else None for f in _ROW_FIELDS]
+                rows = {int(e): tuple(v[j] for v in fields) for j, e in enumerate(episodes)}
+                return (jax.tree.unflatten(treedef, leaves), rows, int(z["queue"]), int(z["steps"]),
+                        float(z["wall_s"]))
+        except (OSError, KeyError, ValueError):
+            return None
+
+
 class Evaluator:
     """Numbered episodes (module docstring) of ``policy`` on ``env``, ``batch`` slots side
     by side: ``evaluator(key, n_episodes, policy_args)`` runs episodes ``0 .. n − 1`` drawn
@@ -149,7 +212,8 @@ class Evaluator:
     ``policy(key, obs, state, params, args)``. Each call runs ``chunk`` steps of every slot
     with :func:`mysim_jax.tasks.runner.rollout`. ``env_batching`` batches the slots as
     :func:`mysim_jax.core.batching.batch` says (``"batch_last"``, the CPU's choice, or
-    ``"vmap"``)."""
+    ``"vmap"``). A call given a :class:`Checkpoint` saves its progress and resumes from it
+    (module docstring)."""
 
     def __init__(self, env, params, policy, batch: int, chunk: int = 8, env_batching: str = "batch_last"):
         if batch < 1 or chunk < 1:
@@ -185,7 +249,7 @@ class Evaluator:
         return self._compiled[batch]
 
     def __call__(self, key, n_episodes: int, policy_args=None, progress: bool = False,
-                 desc: str = "episodes") -> EpisodeStats:
+                 desc: str = "episodes", checkpoint: Checkpoint | None = None) -> EpisodeStats:
         if n_episodes < 1:
             raise ValueError("Evaluator: n_episodes must be at least 1")
         n = n_episodes
@@ -199,10 +263,16 @@ class Evaluator:
                                    next=jnp.asarray(first, jnp.int32),
                                    term_sum=jnp.zeros((batch, self._n_terms), self._float)))
         rows = {}
+        steps, wall_before = 0, 0.0
+        if checkpoint is not None:
+            meta = checkpoint.meta(key, n, batch, self.chunk, carry)
+            resumed = checkpoint.load(meta, carry)
+            if resumed is not None:
+                carry, rows, queue, steps, wall_before = resumed
+            saved = time.perf_counter()
         bar = None
         if progress:
-            bar = tqdm(total=n, desc=desc, unit="ep")
-        steps = 0
+            bar = tqdm(total=n, initial=len(rows), desc=desc, unit="ep")
         while len(rows) < n:
             carry, out = advance(carry, policy_args, key)
             ep, finishing, success, failures, timeout, length, ret, terms = jax.tree.map(np.asarray, out)
@@ -221,9 +291,14 @@ class Evaluator:
                 nxt[free] = np.arange(queue, queue + free.size)
                 queue += free.size
                 carry = (carry[0], carry[1], carry[2]._replace(next=jnp.asarray(nxt, jnp.int32)))
+            if checkpoint is not None and time.perf_counter() - saved >= checkpoint.every_s and len(rows) < n:
+                checkpoint.save(meta, carry, rows, queue, steps, wall_before + time.perf_counter() - t0)
+                saved = time.perf_counter()
         if bar is not None:
             bar.close()
-        wall = time.perf_counter() - t0
+        wall = wall_before + time.perf_counter() - t0
+        if checkpoint is not None:
+            checkpoint.save(meta, carry, rows, queue, steps, wall)
         order = [rows[i] for i in range(n)]
         fail = np.stack([r[2] for r in order])
         term_rows = np.stack([r[6] for r in order])
@@ -234,7 +309,8 @@ class Evaluator:
             length=np.array([r[4] for r in order], int),
             returns=np.array([r[5] for r in order], float),
             terms={t: term_rows[:, i] for i, t in enumerate(REWARD_TERMS)},
-            slot=np.array([r[0] for r in order], int), wall_s=wall, policy_steps=steps)
+            slot=np.array([r[0] for r in order], int), wall_s=wall, policy_steps=steps,
+            extra={"resumed_wall_s": wall_before} if wall_before else {})
 
 
 def run_episodes(env, params, policy, n_episodes: int, batch: int, key, chunk: int = 8,

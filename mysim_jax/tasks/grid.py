@@ -34,13 +34,21 @@ files or none): ``sweep.csv`` (one row per point and team: the varied values as 
 seed, team, outcome counts and rates with 95 % Wilson intervals, mean length and return,
 and on the policy's row the paired difference policy - compare with its 95 % interval),
 ``sweep.json`` (the same rows and the run's record) and ``success_<key>.png`` per axis.
+
+**Resuming** (:func:`resume_folder`): while a sweep runs, each point's evaluation of each
+team saves its progress every few minutes into ``.<out name>.resume/`` beside the output
+folder (:class:`~mysim_jax.tasks.evaluate.Checkpoint`), and a run of the same sweep that
+was stopped goes on from there, with the same numbers an uninterrupted run gives; the
+folder is removed once the outputs are written.
 """
 
 from __future__ import annotations
 
 import csv
+import hashlib
 import itertools
 import json
+import shutil
 import sys
 import time
 from dataclasses import dataclass
@@ -62,7 +70,7 @@ from mysim_jax.core.config_base import parse_yaml  # noqa: E402
 from mysim_jax.core.machine import machine  # noqa: E402
 from mysim_jax.io.output import check_output_dir, staged_output  # noqa: E402
 from mysim_jax.tasks.capture import make_env  # noqa: E402
-from mysim_jax.tasks.evaluate import Evaluator  # noqa: E402
+from mysim_jax.tasks.evaluate import Checkpoint, Evaluator  # noqa: E402
 from mysim_jax.tasks.sweep import paired_difference_interval, wilson_interval  # noqa: E402
 
 SEED_KEY = "seed"
@@ -300,7 +308,8 @@ def _team_call(policy, other):
 @dataclass
 class PointResult:
     """One point's outcome: each team's EpisodeStats (``base`` None without a compared
-    team) and the wall time of its evaluation [s] (compilation included where it compiled)."""
+    team) and the wall time of its evaluation [s] (compilation included where it compiled;
+    a resumed evaluation's includes the earlier runs' time)."""
 
     point: GridPoint
     stats: object
@@ -308,9 +317,24 @@ class PointResult:
     wall_s: float
 
 
-def _run_points(plan: SweepPlan, prepared: dict, progress: bool) -> list[PointResult]:
+def resume_folder(plan: SweepPlan) -> Path:
+    """Where a running sweep saves its points' progress: ``.<out name>.resume`` beside ``out``."""
+    return plan.out.parent / f".{plan.out.name}.resume"
+
+
+def _checkpoint(plan: SweepPlan, point: GridPoint, team: str, every_s: float) -> Checkpoint:
+    """The progress file of one team at one point; its fingerprint names the scene (its
+    resolved YAML, hashed), the seed and both teams' specs."""
+    what = json.dumps({"scene": hashlib.sha256(point.scene_id.encode()).hexdigest(), "seed": point.seed,
+                       "team": team, "policy": plan.policy, "compare": plan.compare})
+    return Checkpoint(resume_folder(plan) / f"point{point.index}_{team}.npz", what, every_s)
+
+
+def _run_points(plan: SweepPlan, prepared: dict, progress: bool, save_every_s: float = 300.0) -> list[PointResult]:
     """Evaluate every point in grid order, one compiled evaluator per distinct scene,
-    dropped after its last point; a summary line per point as it finishes."""
+    dropped after its last point; a summary line per point as it finishes. Each team's
+    evaluation of a point saves its progress every ``save_every_s`` seconds and resumes
+    from what an earlier run saved (:func:`resume_folder`)."""
     last = {p.scene_id: p.index for p in plan.points}
     evaluators, results = {}, []
     bar = tqdm(plan.points, desc="grid points", unit="point")
@@ -322,13 +346,19 @@ def _run_points(plan: SweepPlan, prepared: dict, progress: bool) -> list[PointRe
         evaluator = evaluators[point.scene_id]
         key = jax.random.PRNGKey(point.seed)
         if other is None:
-            stats, base = evaluator(key, plan.episodes, None, progress=progress), None
+            stats = evaluator(key, plan.episodes, None, progress=progress,
+                              checkpoint=_checkpoint(plan, point, "policy", save_every_s))
+            base = None
         else:
-            stats = evaluator(key, plan.episodes, jnp.bool_(False), progress=progress, desc="episodes")
-            base = evaluator(key, plan.episodes, jnp.bool_(True), progress=progress, desc="compared team")
+            stats = evaluator(key, plan.episodes, jnp.bool_(False), progress=progress, desc="episodes",
+                              checkpoint=_checkpoint(plan, point, "policy", save_every_s))
+            base = evaluator(key, plan.episodes, jnp.bool_(True), progress=progress, desc="compared team",
+                             checkpoint=_checkpoint(plan, point, "compare", save_every_s))
         if last[point.scene_id] == point.index:
             del evaluators[point.scene_id]
-        results.append(PointResult(point, stats, base, time.perf_counter() - t0))
+        # a resumed evaluation adds what the earlier runs spent on it
+        earlier = sum(r.extra.get("resumed_wall_s", 0.0) for r in (stats, base) if r is not None)
+        results.append(PointResult(point, stats, base, time.perf_counter() - t0 + earlier))
         bar.write(point_line(plan, results[-1]))
     bar.close()
     return results
@@ -460,17 +490,18 @@ def write_sweep(plan: SweepPlan, rows: list[dict], record: dict) -> dict:
 
 
 def run_sweep(plan: SweepPlan, make_policy, *, progress: bool = True, command: str = "",
-              extra: dict | None = None) -> dict:
+              extra: dict | None = None, save_every_s: float = 300.0) -> dict:
     """Make every distinct scene's environment and both teams (``make_policy(env, params,
     spec, flag) -> policy``, raising ValueError for a team that cannot fly there), then
     evaluate every point and write the outputs (module docstring). ``progress``: the
     per-point episode bars (the bar over points is always shown). Returns sweep.json's
-    record. SweepError (before anything compiles) when a point cannot be evaluated."""
+    record. SweepError (before anything compiles) when a point cannot be evaluated.
+    ``save_every_s``: seconds between saves of a point's progress (module docstring)."""
     t0 = time.perf_counter()
     prepared = _prepare(plan, make_policy)
     if plan.env_note:
         print(plan.env_note, file=sys.stderr)
-    results = _run_points(plan, prepared, progress)
+    results = _run_points(plan, prepared, progress, save_every_s)
     rows = sweep_rows(plan, results)
     record = {
         "command": command,
@@ -491,4 +522,6 @@ def run_sweep(plan: SweepPlan, make_policy, *, progress: bool = True, command: s
         "machine": machine(),
         **(extra or {}),
     }
-    return write_sweep(plan, rows, record)
+    record = write_sweep(plan, rows, record)
+    shutil.rmtree(resume_folder(plan), ignore_errors=True)
+    return record
