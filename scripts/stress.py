@@ -16,8 +16,9 @@ value), ``table.md`` (the docs' table) and ``stress.png`` (a panel per factor).
 
 A factor whose ``DIR/<factor>/sweep.json`` already holds the same points, episodes, seed and
 teams is read instead of run again, and a point that was running goes on from the progress
-it saved (every 5 minutes, in ``DIR/.<factor>.resume/``), so an interrupted suite resumes
-where it stopped with the numbers an uninterrupted run gives.
+it saved (every 5 minutes, in ``DIR/.<factor>.resume/``; with the same code and team files
+only), so an interrupted suite resumes where it stopped with the numbers an uninterrupted
+run gives.
 ``--episodes`` runs fewer (or more) episodes than the file declares, e.g. to try a file.
 Every input is checked before anything compiles: a problem is a one-line error, exit code 2.
 """

@@ -124,3 +124,20 @@ def test_an_unreadable_checkpoint_is_run_from_the_start(evaluator, tmp_path):
     assert stats.n == 3 and calls["n"] > 0
     with np.load(path) as z:                                             # overwritten at the end
         assert z["episodes"].tolist() == [0, 1, 2]
+
+
+def test_the_sweeps_fingerprint_follows_the_files(tmp_path):
+    """A sweep's checkpoints name the teams' files and the package's source by digest
+    (mysim_jax.tasks.grid.files_digest): a changed file is another digest."""
+    from mysim_jax.tasks.grid import files_digest
+
+    team = tmp_path / "policy"
+    (team / "sub").mkdir(parents=True)
+    (team / "a.msgpack").write_bytes(b"weights")
+    (team / "sub" / "b.json").write_text("{}")
+    first = files_digest(team)
+    assert len(first) == 64 and files_digest(team) == first
+    (team / "sub" / "b.json").write_text('{"x": 1}')
+    assert files_digest(team) != first
+    assert files_digest(team, ".py") == ""                    # no such files
+    assert files_digest("scripted") == "" and files_digest(team / "a.msgpack") != files_digest(team)

@@ -38,8 +38,9 @@ and on the policy's row the paired difference policy - compare with its 95 % int
 **Resuming** (:func:`resume_folder`): while a sweep runs, each point's evaluation of each
 team saves its progress every few minutes into ``.<out name>.resume/`` beside the output
 folder (:class:`~mysim_jax.tasks.evaluate.Checkpoint`), and a run of the same sweep that
-was stopped goes on from there, with the same numbers an uninterrupted run gives; the
-folder is removed once the outputs are written.
+was stopped goes on from there, with the same numbers an uninterrupted run gives; a point
+saved by other code (the package's source), other team files or another batch starts
+again. The folder is removed once the outputs are written.
 """
 
 from __future__ import annotations
@@ -322,11 +323,31 @@ def resume_folder(plan: SweepPlan) -> Path:
     return plan.out.parent / f".{plan.out.name}.resume"
 
 
+def files_digest(path, suffix: str = "") -> str:
+    """SHA-256 of a file, or of every file (ending in ``suffix``) under a folder with its
+    relative name; "" when ``path`` is not a file or folder (``scripted``, ``random``)."""
+    root = Path(path)
+    files = [root] if root.is_file() else sorted(f for f in root.rglob(f"*{suffix}") if f.is_file()) \
+        if root.is_dir() else []
+    if not files:
+        return ""
+    h = hashlib.sha256()
+    for f in files:
+        h.update(str(f.relative_to(root) if f != root else f.name).encode())
+        h.update(f.read_bytes())
+    return h.hexdigest()
+
+
 def _checkpoint(plan: SweepPlan, point: GridPoint, team: str, every_s: float) -> Checkpoint:
     """The progress file of one team at one point; its fingerprint names the scene (its
-    resolved YAML, hashed), the seed and both teams' specs."""
+    resolved YAML, hashed), the seed, both teams' specs and files, and the package's source,
+    so a point resumes only with the same code and teams."""
+    import mysim_jax
+
     what = json.dumps({"scene": hashlib.sha256(point.scene_id.encode()).hexdigest(), "seed": point.seed,
-                       "team": team, "policy": plan.policy, "compare": plan.compare})
+                       "team": team, "policy": plan.policy, "compare": plan.compare,
+                       "files": [files_digest(s) for s in (plan.policy, plan.compare) if s],
+                       "code": files_digest(Path(mysim_jax.__file__).parent, ".py")})
     return Checkpoint(resume_folder(plan) / f"point{point.index}_{team}.npz", what, every_s)
 
 
