@@ -46,6 +46,7 @@ again. The folder is removed once the outputs are written.
 from __future__ import annotations
 
 import csv
+import functools
 import hashlib
 import itertools
 import json
@@ -338,16 +339,23 @@ def files_digest(path, suffix: str = "") -> str:
     return h.hexdigest()
 
 
+@functools.lru_cache(maxsize=1)
+def _code_digest() -> str:
+    """The package's source as this process first found it (files edited later do not
+    change what the running process computes, so they do not change its digest either)."""
+    import mysim_jax
+
+    return files_digest(Path(mysim_jax.__file__).parent, ".py")
+
+
 def _checkpoint(plan: SweepPlan, point: GridPoint, team: str, every_s: float) -> Checkpoint:
     """The progress file of one team at one point; its fingerprint names the scene (its
     resolved YAML, hashed), the seed, both teams' specs and files, and the package's source,
     so a point resumes only with the same code and teams."""
-    import mysim_jax
-
     what = json.dumps({"scene": hashlib.sha256(point.scene_id.encode()).hexdigest(), "seed": point.seed,
                        "team": team, "policy": plan.policy, "compare": plan.compare,
                        "files": [files_digest(s) for s in (plan.policy, plan.compare) if s],
-                       "code": files_digest(Path(mysim_jax.__file__).parent, ".py")})
+                       "code": _code_digest()})
     return Checkpoint(resume_folder(plan) / f"point{point.index}_{team}.npz", what, every_s)
 
 
@@ -519,6 +527,7 @@ def run_sweep(plan: SweepPlan, make_policy, *, progress: bool = True, command: s
     record. SweepError (before anything compiles) when a point cannot be evaluated.
     ``save_every_s``: seconds between saves of a point's progress (module docstring)."""
     t0 = time.perf_counter()
+    _code_digest()                      # the source this process runs, read before anything compiles
     prepared = _prepare(plan, make_policy)
     if plan.env_note:
         print(plan.env_note, file=sys.stderr)
