@@ -129,7 +129,7 @@ def test_an_unreadable_checkpoint_is_run_from_the_start(evaluator, tmp_path):
 def test_the_sweeps_fingerprint_follows_the_files(tmp_path):
     """A sweep's checkpoints name the teams' files and the package's source by digest
     (mysim_jax.tasks.grid.files_digest): a changed file is another digest."""
-    from mysim_jax.tasks.grid import files_digest
+    from mysim_jax.tasks.evaluate import files_digest
 
     team = tmp_path / "policy"
     (team / "sub").mkdir(parents=True)

@@ -437,6 +437,7 @@ def test_capture_environment_end_to_end_tiny(tmp_path):
     run_file = yaml.safe_load((out / "train.yaml").read_text())
     assert run_file["env"]["eval_scene"] == "scene_eval.yaml" and run_file["env"]["eval_level"] is None
     summary = json.loads((out / "summary.json").read_text())
+    assert not (out / ".eval.resume").exists()      # the evaluation's progress is removed once written
     assert summary["training_level"] == "train" and summary["evaluation"]["level"] == "full"
     assert summary["evaluation"]["episodes"] == 2
     assert yaml.safe_load((out / "eval" / "config.yaml").read_text())["level"] == "full"
@@ -498,3 +499,58 @@ def test_runs_side_by_side_plot_reads_every_run(tmp_path):
     out = plot_runs(runs, tmp_path / "runs.png", "two runs")
     assert out.is_file() and out.stat().st_size > 10_000
     assert plot_runs({}, tmp_path / "none.png", "no runs") is None
+
+
+def test_a_run_stopped_in_its_final_evaluation_resumes_there(tmp_path, capsys, monkeypatch):
+    """The capture path, tiny (the sets of the test above, 6 evaluation episodes with the
+    scripted team beside them): a run whose final evaluation is stopped after its first
+    saved progress resumes (``--resume``) inside that evaluation, not from its first
+    episode, and ends with exactly the outcomes of a run that was not stopped."""
+    import mysim_jax.mappo.run_outputs as run_outputs
+    from mysim_jax.tasks.evaluate import Checkpoint
+
+    sets = ["algo.num_envs=4", "algo.num_steps=2", "algo.total_env_steps=8", "algo.num_minibatches=2",
+            "algo.bc.num_envs=32", "algo.bc.steps=16", "algo.bc.epochs=2", "algo.bc.holdout=0.2",
+            "run.selection.episodes=2", "run.selection.every=1", "run.eval_episodes=6", "run.eval_batch=2",
+            "run.eval_baseline=true", "env.level=train", "env.eval_level=null"]
+    args = ["configs/train_capture_falling.yaml", *[a for s in sets for a in ("--set", s)], "--no-progress"]
+    code, _, err, _ = run_script_main("train", [*args, "--out", tmp_path / "whole"], capsys)
+    assert code == 0, err
+
+    class Stopped(RuntimeError):
+        pass
+
+    saves = []
+
+    class StopAfterFirstSave(Checkpoint):
+        def __init__(self, path, fingerprint="", every_s=300.0):
+            super().__init__(path, fingerprint, 0.0)          # saved after every call
+
+        def save(self, *a, **k):
+            super().save(*a, **k)
+            saves.append(self.path)
+            raise Stopped
+
+    monkeypatch.setattr(run_outputs, "Checkpoint", StopAfterFirstSave)
+    with pytest.raises(Stopped):
+        run_script_main("train", [*args, "--out", tmp_path / "stopped"], capsys)
+    assert len(saves) == 1 and saves[0].exists() and saves[0].parent.name == ".eval.resume"
+    with np.load(saves[0]) as z:
+        assert 0 <= z["episodes"].size < 6                  # stopped inside the evaluation
+    monkeypatch.undo()
+
+    calls = []
+    real_load = Checkpoint.load
+
+    def load(self, meta, carry):
+        found = real_load(self, meta, carry)
+        calls.append(found is not None)
+        return found
+
+    monkeypatch.setattr(Checkpoint, "load", load)
+    code, _, err, _ = run_script_main("train", ["--resume", tmp_path / "stopped", "--no-progress"], capsys)
+    assert code == 0, err
+    assert calls[0] is True                                  # the learned team's evaluation went on
+    assert not (tmp_path / "stopped" / ".eval.resume").exists()
+    for name in ("episodes.csv", "comparison_episodes.csv"):
+        assert (tmp_path / "stopped" / "eval" / name).read_text() == (tmp_path / "whole" / "eval" / name).read_text()

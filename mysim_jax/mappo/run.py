@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 import time
 from dataclasses import dataclass
 from typing import Callable
@@ -66,7 +67,7 @@ from mysim_jax.mappo.config import TrainConfig, check_memory_needs, init_policy_
 from mysim_jax.mappo.policies import PolicyError, check_trained_on, widen_policy
 from mysim_jax.mappo.run_files import (CSV_FIELDS, Prepared, describe_run, load_run_config, prepare, read_rows,
                                        write_rows, write_run_files)
-from mysim_jax.mappo.run_outputs import FinalEvaluation, SeedRun, Trained, summary, write_seed, write_seeds_table
+from mysim_jax.mappo.run_outputs import EVAL_RESUME, FinalEvaluation, SeedRun, Trained, summary, write_seed, write_seeds_table
 from mysim_jax.mappo.toy import ReachEnv
 from mysim_jax.mappo.networks import deterministic_policy
 from mysim_jax.mappo.shac import make_trainer
@@ -528,6 +529,7 @@ def train_run(p: Prepared, progress: bool = True, evaluate: bool = True, log=pri
             sm["evaluation_wall_s"] = round(time.perf_counter() - t_eval, 1)
         (one.out / "summary.json").write_text(json.dumps(sm, indent=2))
         summaries.append(sm)
+    shutil.rmtree(p.out / EVAL_RESUME, ignore_errors=True)     # the evaluations' progress, now written
     result = summaries[0]
     if s.stacked:
         table = write_seeds_table(p.out, c.name, summaries, run.seeds)

@@ -20,7 +20,7 @@ from mysim_jax.mappo.checkpoint import save_policy
 from mysim_jax.mappo.networks import deterministic_policy, deterministic_policy_fn
 from mysim_jax.mappo.run_files import EVAL_SCENE_FILE, SCENE_FILE, write_rows
 from mysim_jax.tasks.contract import environment_contract
-from mysim_jax.tasks.evaluate import Evaluator
+from mysim_jax.tasks.evaluate import Checkpoint, Evaluator, arrays_digest, source_digest
 from mysim_jax.tasks.report import comparison_line, summary_line, write_comparison, write_evaluation
 
 
@@ -114,10 +114,19 @@ def write_seed(s, one: SeedRun, run: Trained, arrays) -> None:
     save_policy(one.out / "policy", arrays, meta)
 
 
+EVAL_RESUME = ".eval.resume"
+"""The folder (in the run folder) where the final evaluation saves its progress."""
+
+
 class FinalEvaluation:
     """The final evaluation of a capture run's policies on the same fresh episodes of the
     evaluation scene: one compiled program flies either a policy or the scripted team (an
-    argument says which), and the scripted team flies once for every seed."""
+    argument says which), and the scripted team flies once for every seed. Each evaluation
+    saves its progress every 5 minutes in ``OUT/.eval.resume/``
+    (:class:`~mysim_jax.tasks.evaluate.Checkpoint`; fingerprinted by the evaluation scene,
+    the policy's arrays and the package's source), so a run resumed after it was stopped in
+    its evaluation goes on from there; the caller removes the folder when the run's files
+    are written."""
 
     def __init__(self, s):
         self.s = s
@@ -135,6 +144,13 @@ class FinalEvaluation:
                                    env_batching=s.trainer.env_batching)
         self.key = jax.random.PRNGKey(c.run.eval_seed)
         self._scripted = None
+        scene = s.p.eval_scene if s.p.evaluates_elsewhere else s.p.scene
+        self._scene = f"{scene.name}, level {scene.level}"
+
+    def _checkpoint(self, name: str, what: str) -> Checkpoint:
+        fingerprint = json.dumps({"scene": self._scene, "team": what,
+                                  "code": source_digest()})
+        return Checkpoint(self.s.p.out / EVAL_RESUME / f"{name}.npz", fingerprint)
 
     def __call__(self, one: SeedRun, arrays, summary: dict) -> dict:
         """Evaluate seed ``one``'s policy ``arrays``: ``one.out/eval/`` and the summary's
@@ -142,7 +158,7 @@ class FinalEvaluation:
         s, c, p = self.s, self.s.c, self.s.p
         desc = "evaluation" if len(s.seeds) == 1 else f"evaluation, seed {one.seed}"
         stats = self.evaluator(self.key, c.run.eval_episodes, (arrays, jnp.bool_(False)), progress=s.progress,
-                               desc=desc)
+                               desc=desc, checkpoint=self._checkpoint(f"seed_{one.seed}", arrays_digest(arrays)))
         eval_scene = p.eval_scene if p.evaluates_elsewhere else p.scene
         eval_file = EVAL_SCENE_FILE if p.evaluates_elsewhere else SCENE_FILE
         policy = deterministic_policy(s.trainer.actor, arrays, c.algo.normalize_obs, self.base)
@@ -163,7 +179,8 @@ class FinalEvaluation:
         if c.run.eval_baseline:
             if self._scripted is None:
                 self._scripted = self.evaluator(self.key, c.run.eval_episodes, (arrays, jnp.bool_(True)),
-                                                progress=s.progress, desc="scripted team")
+                                                progress=s.progress, desc="scripted team",
+                                                checkpoint=self._checkpoint("scripted", "scripted"))
             comparison = write_comparison(one.out / "eval", stats, self._scripted, names=("trained", "scripted"),
                                           seed=c.run.eval_seed)
             s.log(comparison_line(comparison))

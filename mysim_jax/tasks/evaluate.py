@@ -35,6 +35,8 @@ without compiling again.
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import json
 import os
 import time
@@ -54,7 +56,7 @@ from mysim_jax.tasks.runner import episode_key, episode_keys, rollout
 from mysim_jax.tasks.sweep import wilson_interval
 
 __all__ = ["episode_key", "episode_keys", "scripted_policy", "random_policy", "EpisodeStats", "Slots", "Evaluator",
-           "Checkpoint", "run_episodes", "run_two_teams"]
+           "Checkpoint", "files_digest", "source_digest", "arrays_digest", "run_episodes", "run_two_teams"]
 
 
 def scripted_policy(env):
@@ -149,6 +151,39 @@ def _next_in_slot(step, slot: Slots, fresh):
                  t=jnp.where(start | done, 0, slot.t + 1), next=jnp.where(start, -1, slot.next),
                  term_sum=jnp.where(start | done, jnp.zeros_like(term_sum), term_sum))
     return obs, state, slot
+
+
+def files_digest(path, suffix: str = "") -> str:
+    """SHA-256 of a file, or of every file (ending in ``suffix``) under a folder with its
+    relative name; "" when ``path`` is not a file or folder (``scripted``, ``random``)."""
+    root = Path(path)
+    files = [root] if root.is_file() else sorted(f for f in root.rglob(f"*{suffix}") if f.is_file()) \
+        if root.is_dir() else []
+    if not files:
+        return ""
+    h = hashlib.sha256()
+    for f in files:
+        h.update(str(f.relative_to(root) if f != root else f.name).encode())
+        h.update(f.read_bytes())
+    return h.hexdigest()
+
+
+@functools.lru_cache(maxsize=1)
+def source_digest() -> str:
+    """SHA-256 of the package's source as this process first read it (files edited later
+    do not change what the running process computes, so they do not change this either):
+    part of a :class:`Checkpoint`'s fingerprint, so that only the same code resumes."""
+    return files_digest(Path(__file__).resolve().parents[1], ".py")
+
+
+def arrays_digest(tree) -> str:
+    """SHA-256 of the arrays of a pytree (their shapes, types and bytes), e.g. a policy's."""
+    h = hashlib.sha256()
+    for leaf in jax.tree.leaves(tree):
+        a = np.asarray(leaf)
+        h.update(f"{a.shape}{a.dtype}".encode())
+        h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()
 
 
 _ROW_FIELDS = ("slot", "success", "failures", "timeout", "length", "returns", "terms")

@@ -46,7 +46,6 @@ again. The folder is removed once the outputs are written.
 from __future__ import annotations
 
 import csv
-import functools
 import hashlib
 import itertools
 import json
@@ -72,7 +71,7 @@ from mysim_jax.core.config_base import parse_yaml  # noqa: E402
 from mysim_jax.core.machine import machine  # noqa: E402
 from mysim_jax.io.output import check_output_dir, staged_output  # noqa: E402
 from mysim_jax.tasks.capture import make_env  # noqa: E402
-from mysim_jax.tasks.evaluate import Checkpoint, Evaluator  # noqa: E402
+from mysim_jax.tasks.evaluate import Checkpoint, Evaluator, files_digest, source_digest  # noqa: E402
 from mysim_jax.tasks.sweep import paired_difference_interval, wilson_interval  # noqa: E402
 
 SEED_KEY = "seed"
@@ -324,30 +323,6 @@ def resume_folder(plan: SweepPlan) -> Path:
     return plan.out.parent / f".{plan.out.name}.resume"
 
 
-def files_digest(path, suffix: str = "") -> str:
-    """SHA-256 of a file, or of every file (ending in ``suffix``) under a folder with its
-    relative name; "" when ``path`` is not a file or folder (``scripted``, ``random``)."""
-    root = Path(path)
-    files = [root] if root.is_file() else sorted(f for f in root.rglob(f"*{suffix}") if f.is_file()) \
-        if root.is_dir() else []
-    if not files:
-        return ""
-    h = hashlib.sha256()
-    for f in files:
-        h.update(str(f.relative_to(root) if f != root else f.name).encode())
-        h.update(f.read_bytes())
-    return h.hexdigest()
-
-
-@functools.lru_cache(maxsize=1)
-def _code_digest() -> str:
-    """The package's source as this process first found it (files edited later do not
-    change what the running process computes, so they do not change its digest either)."""
-    import mysim_jax
-
-    return files_digest(Path(mysim_jax.__file__).parent, ".py")
-
-
 def _checkpoint(plan: SweepPlan, point: GridPoint, team: str, every_s: float) -> Checkpoint:
     """The progress file of one team at one point; its fingerprint names the scene (its
     resolved YAML, hashed), the seed, both teams' specs and files, and the package's source,
@@ -355,7 +330,7 @@ def _checkpoint(plan: SweepPlan, point: GridPoint, team: str, every_s: float) ->
     what = json.dumps({"scene": hashlib.sha256(point.scene_id.encode()).hexdigest(), "seed": point.seed,
                        "team": team, "policy": plan.policy, "compare": plan.compare,
                        "files": [files_digest(s) for s in (plan.policy, plan.compare) if s],
-                       "code": _code_digest()})
+                       "code": source_digest()})
     return Checkpoint(resume_folder(plan) / f"point{point.index}_{team}.npz", what, every_s)
 
 
@@ -527,7 +502,7 @@ def run_sweep(plan: SweepPlan, make_policy, *, progress: bool = True, command: s
     record. SweepError (before anything compiles) when a point cannot be evaluated.
     ``save_every_s``: seconds between saves of a point's progress (module docstring)."""
     t0 = time.perf_counter()
-    _code_digest()                      # the source this process runs, read before anything compiles
+    source_digest()                     # the source this process runs, read before anything compiles
     prepared = _prepare(plan, make_policy)
     if plan.env_note:
         print(plan.env_note, file=sys.stderr)
