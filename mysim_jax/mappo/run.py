@@ -67,7 +67,8 @@ from mysim_jax.mappo.config import TrainConfig, check_memory_needs, init_policy_
 from mysim_jax.mappo.policies import PolicyError, check_trained_on, widen_policy
 from mysim_jax.mappo.run_files import (CSV_FIELDS, Prepared, describe_run, load_run_config, prepare, read_rows,
                                        write_rows, write_run_files)
-from mysim_jax.mappo.run_outputs import EVAL_RESUME, FinalEvaluation, SeedRun, Trained, summary, write_seed, write_seeds_table
+from mysim_jax.mappo.run_outputs import (EVAL_RESUME, FinalEvaluation, SeedRun, Trained, summary, write_seed,
+                                          write_seeds_table)
 from mysim_jax.mappo.toy import ReachEnv
 from mysim_jax.mappo.networks import deterministic_policy
 from mysim_jax.mappo.shac import make_trainer
