@@ -323,7 +323,7 @@ def resume_folder(plan: SweepPlan) -> Path:
     return plan.out.parent / f".{plan.out.name}.resume"
 
 
-def _checkpoint(plan: SweepPlan, point: GridPoint, team: str, every_s: float) -> Checkpoint:
+def _checkpoint(plan: SweepPlan, point: GridPoint, team: str) -> Checkpoint:
     """The progress file of one team at one point; its fingerprint names the scene (its
     resolved YAML, hashed), the seed, both teams' specs and files, and the package's source,
     so a point resumes only with the same code and teams."""
@@ -331,13 +331,13 @@ def _checkpoint(plan: SweepPlan, point: GridPoint, team: str, every_s: float) ->
                        "team": team, "policy": plan.policy, "compare": plan.compare,
                        "files": [files_digest(s) for s in (plan.policy, plan.compare) if s],
                        "code": source_digest()})
-    return Checkpoint(resume_folder(plan) / f"point{point.index}_{team}.npz", what, every_s)
+    return Checkpoint(resume_folder(plan) / f"point{point.index}_{team}.npz", what)
 
 
-def _run_points(plan: SweepPlan, prepared: dict, progress: bool, save_every_s: float = 300.0) -> list[PointResult]:
+def _run_points(plan: SweepPlan, prepared: dict, progress: bool) -> list[PointResult]:
     """Evaluate every point in grid order, one compiled evaluator per distinct scene,
     dropped after its last point; a summary line per point as it finishes. Each team's
-    evaluation of a point saves its progress every ``save_every_s`` seconds and resumes
+    evaluation of a point saves its progress as it goes (:class:`Checkpoint`) and resumes
     from what an earlier run saved (:func:`resume_folder`)."""
     last = {p.scene_id: p.index for p in plan.points}
     evaluators, results = {}, []
@@ -351,13 +351,13 @@ def _run_points(plan: SweepPlan, prepared: dict, progress: bool, save_every_s: f
         key = jax.random.PRNGKey(point.seed)
         if other is None:
             stats = evaluator(key, plan.episodes, None, progress=progress,
-                              checkpoint=_checkpoint(plan, point, "policy", save_every_s))
+                              checkpoint=_checkpoint(plan, point, "policy"))
             base = None
         else:
             stats = evaluator(key, plan.episodes, jnp.bool_(False), progress=progress, desc="episodes",
-                              checkpoint=_checkpoint(plan, point, "policy", save_every_s))
+                              checkpoint=_checkpoint(plan, point, "policy"))
             base = evaluator(key, plan.episodes, jnp.bool_(True), progress=progress, desc="compared team",
-                             checkpoint=_checkpoint(plan, point, "compare", save_every_s))
+                             checkpoint=_checkpoint(plan, point, "compare"))
         if last[point.scene_id] == point.index:
             del evaluators[point.scene_id]
         # a resumed evaluation adds what the earlier runs spent on it
@@ -494,19 +494,18 @@ def write_sweep(plan: SweepPlan, rows: list[dict], record: dict) -> dict:
 
 
 def run_sweep(plan: SweepPlan, make_policy, *, progress: bool = True, command: str = "",
-              extra: dict | None = None, save_every_s: float = 300.0) -> dict:
+              extra: dict | None = None) -> dict:
     """Make every distinct scene's environment and both teams (``make_policy(env, params,
     spec, flag) -> policy``, raising ValueError for a team that cannot fly there), then
     evaluate every point and write the outputs (module docstring). ``progress``: the
     per-point episode bars (the bar over points is always shown). Returns sweep.json's
-    record. SweepError (before anything compiles) when a point cannot be evaluated.
-    ``save_every_s``: seconds between saves of a point's progress (module docstring)."""
+    record. SweepError (before anything compiles) when a point cannot be evaluated."""
     t0 = time.perf_counter()
     source_digest()                     # the source this process runs, read before anything compiles
     prepared = _prepare(plan, make_policy)
     if plan.env_note:
         print(plan.env_note, file=sys.stderr)
-    results = _run_points(plan, prepared, progress, save_every_s)
+    results = _run_points(plan, prepared, progress)
     rows = sweep_rows(plan, results)
     record = {
         "command": command,
