@@ -94,6 +94,25 @@ def test_a_chain_is_the_two_runs_one_after_the_other(tmp_path, capsys):
     _same_policy(chain / "then" / "policy", tmp_path / "b" / "policy")
 
 
+def test_a_chain_has_one_seed_the_first_runs(tmp_path, capsys):
+    """``--set run.seed=3`` on a chain whose two files say another seed trains seed 3 in
+    both runs: the second run's ``train.yaml`` records it, the log names it, and its
+    metrics are not those of the files' own seed."""
+    first = _files(tmp_path)
+    own = yaml.safe_load((tmp_path / "second.yaml").read_text())["run"]["seed"]
+    assert own == yaml.safe_load(first.read_text())["run"]["seed"] != 3
+    runs = {}
+    for seed in (own, 3):
+        out = tmp_path / f"chain{seed}"
+        code, stdout, err, _ = run_script_main("train", [first, "--set", f"run.seed={seed}", "--out", out,
+                                                         "--no-eval", "--no-progress"], capsys)
+        assert code == 0, err
+        assert f"seed {seed} (the chain's)" in stdout
+        assert yaml.safe_load((out / "then" / "train.yaml").read_text())["run"]["seed"] == seed
+        runs[seed] = _rows(out / "then" / "metrics.csv")
+    assert runs[own] != runs[3]
+
+
 @pytest.mark.parametrize("change, message", [
     ({"then": "missing.yaml"}, "run.then missing.yaml: no such training file"),
     ({"second_algo": {"init": "none", "init_policy": None}}, "give it algo.init: policy"),

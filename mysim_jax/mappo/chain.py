@@ -16,7 +16,9 @@ what its environment's observations and actions mean against the first's
 ``OUT/then/`` with the first's, so ``--resume OUT`` continues the chain from the folder
 alone, whichever run it stopped in.
 
-A chain has two files (the second file's own ``run.then`` is refused) and one seed.
+A chain has two files (the second file's own ``run.then`` is refused) and one seed: the
+first run's ``run.seed`` (as ``--set run.seed=N`` makes it) replaces the second file's, so
+``--set run.seed=N`` trains another seed of the whole chain; the log names it.
 """
 
 from __future__ import annotations
@@ -68,5 +70,6 @@ def train_chain(p, progress: bool = True, evaluate: bool = True, log=print) -> l
     else:
         log(f"{p.out}: the first run of the chain has ended; continuing with {p.out / THEN_DIR}")
     second = prepare(None, resume=str(p.out / THEN_DIR))
-    log(f"then: {second.config.name} from {p.out / 'policy'}, writing {second.out}/")
+    log(f"then: {second.config.name} from {p.out / 'policy'}, seed {second.config.run.seed} (the chain's), "
+        f"writing {second.out}/")
     return [first, train_run(second, progress, evaluate, log)]

@@ -68,8 +68,8 @@ def prepare_then(config, source: str | Path, out: Path):
     """The second run of a chain whose first run is ``config`` (read from ``source``,
     writing ``out``), checked: the file exists, starts from a policy (``algo.init:
     policy``; its ``algo.init_policy`` becomes ``../policy``, the first run's), has this
-    file's networks, names no ``run.then`` itself, and the chain trains one seed
-    (:mod:`mysim_jax.mappo.chain`). None when ``config`` has no ``run.then``. Raises
+    file's networks, names no ``run.then`` itself, and the chain trains one seed (the
+    first run's ``run.seed`` replaces the second file's; :mod:`mysim_jax.mappo.chain`). None when ``config`` has no ``run.then``. Raises
     ConfigError naming the problem; imports no JAX."""
     path = then_path(config, source)
     if path is None:
@@ -85,7 +85,7 @@ def prepare_then(config, source: str | Path, out: Path):
     if not isinstance(algo, dict) or algo.get("init") != "policy":
         raise ConfigError(f"{where}: the file trained next starts from this run's policy: give it algo.init: policy "
                           f"(it has {(algo or {}).get('init', 'none') if isinstance(algo, dict) else 'no algo:'})")
-    nxt = train_config_from_dict(raw, str(path), [f"algo.init_policy={START}"])
+    nxt = train_config_from_dict(raw, str(path), [f"algo.init_policy={START}", f"run.seed={config.run.seed}"])
     if nxt.run.then is not None:
         raise ConfigError(f"{where}: that file names run.then {nxt.run.then} itself; a chain has two files")
     if nxt.run.seeds > 1:
