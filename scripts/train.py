@@ -32,7 +32,8 @@ moment loses at most one checkpoint interval) and finishes as the uninterrupted 
 A training file with ``run.then: FILE`` is a chain (mysim_jax/mappo/chain.py): when its run
 has ended, FILE (``algo.init: policy``) trains from the run's policy into ``OUT/then/``;
 the chain's team is ``OUT/then/policy``, and ``--resume OUT`` continues whichever run it
-stopped in.
+stopped in. ``--set run.seed=N`` is the seed of both runs; ``--set then.KEY=VALUE`` sets a
+value of FILE (``then.run.eval_baseline=false``).
 
 The environments are split over every device JAX sees (``run.devices``). Several
 processes (hosts) train one run together when each is started with the same arguments and

@@ -113,6 +113,37 @@ def test_a_chain_has_one_seed_the_first_runs(tmp_path, capsys):
     assert runs[own] != runs[3]
 
 
+def test_then_overrides_set_the_second_file(tmp_path, capsys):
+    """``--set then.KEY=VALUE`` changes the second file alone, as its ``train.yaml``
+    records; ``--set KEY=VALUE`` the first alone."""
+    first = _files(tmp_path)
+    out = tmp_path / "chain"
+    code, stdout, err, _ = run_script_main("train", [first, "--set", "algo.lr=2e-3", "then.algo.lr=7e-4",
+                                                     "then.run.eval_baseline=false", "--out", out, "--no-eval",
+                                                     "--no-progress"], capsys)
+    assert code == 0, err
+    one, two = (yaml.safe_load((out / f).read_text()) for f in ("train.yaml", "then/train.yaml"))
+    assert one["algo"]["lr"] == 2e-3 and two["algo"]["lr"] == 7e-4
+    assert one["run"]["eval_baseline"] != two["run"]["eval_baseline"] is False
+    rows = _rows(out / "then" / "metrics.csv")
+    assert float(rows[0]["lr"]) == pytest.approx(7e-4)          # the first iteration's, before the decay
+
+
+@pytest.mark.parametrize("sets, message", [
+    (["then.run.seed=3"], "--set then.run.seed: a chain has one seed"),
+    (["then.algo.init_policy=elsewhere"], "--set then.algo.init_policy: the second run starts from the first"),
+    (["then.algo.lrr=1e-3"], "second.yaml: invalid training configuration\n  algo.lrr: unknown key"),
+    (["run.then=null", "then.algo.lr=1e-3"], "--set then.algo.lr=1e-3: this file has no run.then"),
+])
+def test_bad_then_overrides_are_refused_before_anything_is_written(tmp_path, capsys, sets, message):
+    first = _files(tmp_path)
+    out = tmp_path / "out"
+    code, _, err, _ = run_script_main("train", [first, "--set", *sets, "--out", out, "--no-eval", "--no-progress"],
+                                      capsys)
+    assert code == 2 and message in err, err
+    assert not out.exists()
+
+
 @pytest.mark.parametrize("change, message", [
     ({"then": "missing.yaml"}, "run.then missing.yaml: no such training file"),
     ({"second_algo": {"init": "none", "init_policy": None}}, "give it algo.init: policy"),

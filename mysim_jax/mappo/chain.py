@@ -18,7 +18,9 @@ alone, whichever run it stopped in.
 
 A chain has two files (the second file's own ``run.then`` is refused) and one seed: the
 first run's ``run.seed`` (as ``--set run.seed=N`` makes it) replaces the second file's, so
-``--set run.seed=N`` trains another seed of the whole chain; the log names it.
+``--set run.seed=N`` trains another seed of the whole chain; the log names it. Overrides
+of the second file are ``--set then.KEY=VALUE``
+(:func:`mysim_jax.mappo.run_files.split_then`).
 """
 
 from __future__ import annotations

@@ -64,17 +64,45 @@ def then_path(config, source: str | Path) -> Path | None:
     return p if p.is_absolute() else Path(source).parent / p
 
 
-def prepare_then(config, source: str | Path, out: Path):
+THEN_SET = "then."
+"""Prefix of a ``--set`` override meant for a chain's second file (``then.algo.lr=3e-4``)."""
+CHAIN_SET = {"run.seed": "a chain has one seed: set run.seed, the first file's, which the second run takes",
+             "algo.init_policy": "the second run starts from the first run's policy"}
+
+
+def split_then(overrides) -> tuple[list[str], list[str]]:
+    """``(the first file's overrides, the second file's)``: an override whose key starts with
+    :data:`THEN_SET` is the second file's, the prefix removed."""
+    own, then = [], []
+    for item in overrides:
+        key = item.split("=", 1)[0].strip()
+        if key.startswith(THEN_SET):
+            then.append(item.strip()[len(THEN_SET):])
+        else:
+            own.append(item)
+    return own, then
+
+
+def prepare_then(config, source: str | Path, out: Path, overrides=()):
     """The second run of a chain whose first run is ``config`` (read from ``source``,
-    writing ``out``), checked: the file exists, starts from a policy (``algo.init:
+    writing ``out``), with ``overrides`` (``--set then.KEY=VALUE``, the prefix removed)
+    applied to its file, checked: the file exists, starts from a policy (``algo.init:
     policy``; its ``algo.init_policy`` becomes ``../policy``, the first run's), has this
-    file's networks, names no ``run.then`` itself, and the chain trains one seed (the
-    first run's ``run.seed`` replaces the second file's; :mod:`mysim_jax.mappo.chain`). None when ``config`` has no ``run.then``. Raises
-    ConfigError naming the problem; imports no JAX."""
+    file's networks, names no ``run.then`` itself, and the chain trains one seed (the first
+    run's ``run.seed`` replaces the second file's; :mod:`mysim_jax.mappo.chain`). None when
+    ``config`` has no ``run.then``. Raises ConfigError naming the problem; imports no JAX."""
     path = then_path(config, source)
+    overrides = list(overrides)
     if path is None:
+        if overrides:
+            raise ConfigError(f"{source}: --set {THEN_SET}{overrides[0]}: this file has no run.then, so no second "
+                              "file to set it in")
         return None
     where = f"{source}: run.then {config.run.then}"
+    for item in overrides:
+        key = item.split("=", 1)[0].strip()
+        if key in CHAIN_SET:
+            raise ConfigError(f"{where}: --set {THEN_SET}{key}: {CHAIN_SET[key]}")
     if config.run.seeds > 1:
         raise ConfigError(f"{where}: a chain trains one seed (run.seeds {config.run.seeds} here); train each seed's "
                           "chain on its own (--set run.seed=N)")
@@ -85,7 +113,8 @@ def prepare_then(config, source: str | Path, out: Path):
     if not isinstance(algo, dict) or algo.get("init") != "policy":
         raise ConfigError(f"{where}: the file trained next starts from this run's policy: give it algo.init: policy "
                           f"(it has {(algo or {}).get('init', 'none') if isinstance(algo, dict) else 'no algo:'})")
-    nxt = train_config_from_dict(raw, str(path), [f"algo.init_policy={START}", f"run.seed={config.run.seed}"])
+    nxt = train_config_from_dict(raw, str(path), [f"algo.init_policy={START}", f"run.seed={config.run.seed}",
+                                                  *overrides])
     if nxt.run.then is not None:
         raise ConfigError(f"{where}: that file names run.then {nxt.run.then} itself; a chain has two files")
     if nxt.run.seeds > 1:
@@ -110,8 +139,10 @@ def load_run_config(config_path: str, overrides=(), profile: str | None = None) 
 def prepare(config_path: str | None, overrides=(), out: str | None = None, resume: str | None = None,
             profile: str | None = None) -> Prepared:
     """Check a training file (with its profile ``profile`` applied, then ``overrides``) or a
-    run folder to resume, and the output folder. Raises ConfigError or OutputError with a
-    one-line message; imports no JAX."""
+    run folder to resume, and the output folder. Overrides whose key starts with ``then.``
+    apply to a chain's second file (:func:`prepare_then`). Raises ConfigError or
+    OutputError with a one-line message; imports no JAX."""
+    overrides, then_overrides = split_then(overrides)
     if resume is not None:
         run = Path(resume)
         if not (run / TRAIN_FILE).is_file():
@@ -121,7 +152,7 @@ def prepare(config_path: str | None, overrides=(), out: str | None = None, resum
         scene = load_scene(config, run / TRAIN_FILE)
         return Prepared(config, scene, run, True, str(run / TRAIN_FILE),
                         load_eval_scene(config, run / TRAIN_FILE, scene),
-                        then=prepare_then(config, run / TRAIN_FILE, run))
+                        then=prepare_then(config, run / TRAIN_FILE, run, then_overrides))
     if config_path is None:
         raise ConfigError("give a training file, or --resume RUN_DIR")
     config = load_train_config(config_path, overrides, profile)
@@ -133,7 +164,7 @@ def prepare(config_path: str | None, overrides=(), out: str | None = None, resum
         raise ConfigError(f"--out {target}: holds a training run already; continue it with --resume {target}, "
                           "or choose another folder")
     return Prepared(config, scene, target, False, str(config_path), load_eval_scene(config, config_path, scene),
-                    profile, prepare_then(config, config_path, target))
+                    profile, prepare_then(config, config_path, target, then_overrides))
 
 
 def describe_run(p: Prepared) -> str:
