@@ -8,22 +8,31 @@ from __future__ import annotations
 
 import csv
 import json
+from pathlib import Path
 
 import yaml
 
 from mysim_jax.bench import training
+from mysim_jax.config.scene import dump_config, load_config
 from mysim_jax.tasks.sweep import paired_difference_interval
 
 METRICS = ("iteration", "env_steps", "wall_s", "episodes", "success_rate", "select_success")
+SCENE = Path(__file__).resolve().parents[1] / "configs" / "capture_env_falling.yaml"
+FALLING = dump_config(load_config(SCENE))
+# the same scene name, another allocation: the scripted team flies other episodes' outcomes
+ATTITUDE = dump_config(load_config(SCENE, [f"quadrotors.{i}.controller.saturation=attitude_priority"
+                                           for i in range(4)]))
+ONE_UAV_ATTITUDE = dump_config(load_config(SCENE, ["quadrotors.0.controller.saturation=attitude_priority"]))
 
 
-def _run(folder, name: str, seed: int, metrics, summary=None, episodes=None, scripted=None, **more):
+def _run(folder, name: str, seed: int, metrics, summary=None, episodes=None, scripted=None, scene=FALLING,
+         **more):
     run = folder / name
     (run / "eval").mkdir(parents=True)
     (run / "train.yaml").write_text(yaml.safe_dump({"run": {"seed": seed, "eval_seed": 7, **more.get("run", {})},
                                                     "algo": {"init": "bc", **more.get("algo", {})},
                                                     **{k: v for k, v in more.items() if k not in ("run", "algo")}}))
-    (run / "scene.yaml").write_text(yaml.safe_dump({"name": "falling"}))
+    (run / "scene.yaml").write_text(scene)
     with (run / "metrics.csv").open("w", newline="") as f:
         w = csv.writer(f)
         w.writerow(METRICS)
@@ -92,6 +101,41 @@ def test_the_runs_list_pairs_runs_with_the_scripted_team_and_groups_seeds(tmp_pa
     assert "![kept training runs side by side](docs/train/runs.png)" in lines
     assert (tmp_path / "runs.png").is_file()
     assert lines[-2:] == ["**b_stopped**: Stopped by hand.", ""]
+
+
+def test_a_chains_second_run_is_listed_and_pairs_only_on_the_scene_it_flew(tmp_path):
+    """A kept chain's second run (``<run>/then/``) has a row of its own. Runs pair with the
+    scripted outcomes of a run evaluated on the same scene as today's schema reads it
+    (an older dump without a field added since pairs; the description and level table
+    do not count), not on a scene of the same name that differs (the allocation)."""
+    rows = [(0, 0, 10.0, "", "", "0.25"), (1, 1024, 120.0, "4", "0.5", "")]
+    base = {"seed": 7, "difference": {"estimate": 0.0, "interval95": [0.0, 0.0]}}
+    clip_scripted, attitude_scripted = [True, True, True, False], [False, True, False, False]
+    _run(tmp_path, "a_clip", 0, rows, summary=_summary(0.75, baseline=base), scripted=clip_scripted)
+    _run(tmp_path, "b_attitude", 0, rows, summary=_summary(0.75, baseline=base), scripted=attitude_scripted,
+         scene=ATTITUDE)
+    older = yaml.safe_load(FALLING)
+    older["description"] = "the same scene, described and dumped by older code"
+    older["levels"]["train"].pop("resolved")
+    older["levels"]["train"]["description"] = "the cheap level as older code described it"
+    _run(tmp_path, "c_older_dump", 1, rows, summary=_summary(0.5), episodes=[True, False, False, True],
+         scene=yaml.safe_dump(older))
+    _run(tmp_path, "d_chain", 2, rows, summary=_summary(0.5), episodes=[True, True, False, False])
+    _run(tmp_path / "d_chain", "then", 2, rows, summary=_summary(0.5), episodes=[True, True, True, False],
+         scene=ATTITUDE)
+    _run(tmp_path, "e_unpaired", 3, rows, summary=_summary(0.5), episodes=[True, False, True, False],
+         scene=ONE_UAV_ATTITUDE)
+    table = {ln.split("`")[1]: ln for ln in training.training_runs_lines(tmp_path) if ln.startswith("| `")}
+    assert list(table) == ["a_clip", "b_attitude", "c_older_dump", "d_chain", "d_chain/then", "e_unpaired"]
+
+    def versus(mine, scripted):
+        d, lo, hi = paired_difference_interval(mine, scripted)
+        return f"| {100 * d:+.1f} ({100 * lo:+.1f} to {100 * hi:+.1f}) |"
+
+    assert versus([True, False, False, True], clip_scripted) in table["c_older_dump"]
+    assert versus([True, True, False, False], clip_scripted) in table["d_chain"]
+    assert versus([True, True, True, False], attitude_scripted) in table["d_chain/then"]
+    assert "| — | 1 target_ground |" in table["e_unpaired"]                 # no scripted run on its scene
 
 
 def test_no_kept_runs_give_no_list(tmp_path):

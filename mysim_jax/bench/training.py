@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import csv
 import datetime as _dt
+import hashlib
 import json
 import sys
 from dataclasses import dataclass
@@ -32,10 +33,12 @@ import yaml
 
 from mysim_jax.bench.report import ROOT, TRAIN_CAPTURE, TRAIN_RUNS
 from mysim_jax.bench.timing import aot_compile, contention_note, median, time_round_robin, wait_for_quiet
+from mysim_jax.config.scene import dump_config, load_config
+from mysim_jax.core.config_base import ConfigError
 from mysim_jax.core import batching
 from mysim_jax.io.training_plots import plot_runs
 from mysim_jax.mappo.run import load_run_config, make_environment
-from mysim_jax.mappo.run_files import read_metrics
+from mysim_jax.mappo.run_files import THEN_DIR, read_metrics
 from mysim_jax.mappo.trainer import Trainer
 from mysim_jax.tasks.runner import rollout, shared_key
 from mysim_jax.tasks.sweep import paired_difference_interval
@@ -147,10 +150,35 @@ def _scripted_outcomes(runs) -> dict:
 
 
 def _run_scene(run):
-    """The name of the scene a kept run was evaluated on (``scene_eval.yaml``, else the
-    ``scene.yaml`` it trained on)."""
+    """What a kept run's evaluation flew (``scene_eval.yaml``, else the ``scene.yaml`` it
+    trained on): the SHA-256 of the scene as today's schema reads it (fields added since
+    the run took their defaults), without its ``levels`` block and description, which do
+    not change the level it was resolved at. Two runs pair episode by episode only when
+    these agree (two scenes of one name may differ: the allocation, the estimation
+    errors); None for a scene today's schema refuses."""
     scene = next((run / f for f in ("scene_eval.yaml", "scene.yaml") if (run / f).is_file()), None)
-    return yaml.safe_load(scene.read_text()).get("name") if scene is not None else None
+    if scene is None:
+        return None
+    try:
+        data = yaml.safe_load(dump_config(load_config(scene)))
+    except ConfigError:              # a scene today's schema refuses pairs with nothing
+        return None
+    data.pop("levels", None)
+    data.pop("description", None)
+    return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()
+
+
+def _run_name(run: Path) -> str:
+    """A kept run's name: its folder's, or ``<run>/then`` for a chain's second run."""
+    return f"{run.parent.name}/{run.name}" if run.name == THEN_DIR else run.name
+
+
+def _kept_runs(folder: Path) -> list[Path]:
+    """The run folders kept in ``folder`` and the second runs of kept chains
+    (``<run>/then/``), sorted by name."""
+    found = [p for pattern in ("*", f"*/{THEN_DIR}") for p in folder.glob(pattern)]
+    return sorted((p for p in found if (p / "metrics.csv").is_file() and (p / "train.yaml").is_file()),
+                  key=_run_name)
 
 
 def _run_settings(run):
@@ -162,12 +190,13 @@ def _run_settings(run):
 
 def training_runs_lines(folder: Path = TRAIN_RUNS) -> list[str]:
     """The training runs kept in docs/train/<run>/ (copied from scripts/train.py run folders:
-    summary.json, train.yaml, metrics.csv, curves.png, eval/): one table row each with the
+    summary.json, train.yaml, metrics.csv, curves.png, eval/; a chain's second run in
+    <run>/then/): one table row each with the
     paired difference to the scripted team on the same episodes where it was measured, the
     spread over seeds of runs that differ only in ``run.seed``, every run's curves side
     by side (``docs/train/runs.png``) and each run's own. ``folder``: the runs' folder (default
     docs/train/; the figure is written there, the links name docs/train/ either way)."""
-    runs = sorted(p for p in folder.glob("*") if (p / "metrics.csv").is_file() and (p / "train.yaml").is_file())
+    runs = _kept_runs(folder)
     if not runs:
         return []
     scripted = _scripted_outcomes([run for run in runs if (run / "summary.json").is_file()])
@@ -182,7 +211,9 @@ def training_runs_lines(folder: Path = TRAIN_RUNS) -> list[str]:
         "selection episodes; evaluation is the saved (selected) policy on `run.eval_episodes` fresh episodes "
         "(`eval_seed`), as `scripts/evaluate.py` reports it. *vs scripted* is the paired difference to the "
         "scripted team on the same evaluation episodes (the run's own `eval/comparison.json`, or the scripted "
-        "outcomes another run measured on the same episodes), with its 95 % interval.",
+        "outcomes another run measured on the same episodes: the same evaluation seed and the same scene, "
+        "levels and description aside), with its 95 % interval. A chain's second run (`run.then`) is listed "
+        "as `<run>/then`.",
         "",
         "| run | init | seed | team steps | machine | training [min] | team steps/s (update incl.) | "
         "evaluation [min] | success (95 % interval) | vs scripted [points] | how the others ended |",
@@ -193,16 +224,16 @@ def training_runs_lines(folder: Path = TRAIN_RUNS) -> list[str]:
         lines.append(_run_row(run, scripted, groups))
     lines.append("")
     lines += _seed_lines(groups)
-    figure = plot_runs({run.name: read_metrics(run) for run in runs}, folder / "runs.png",
+    figure = plot_runs({_run_name(run): read_metrics(run) for run in runs}, folder / "runs.png",
                        "kept training runs, side by side")
     if figure is not None:
         lines += ["![kept training runs side by side](docs/train/runs.png)", ""]
     for run in runs:
         if (run / "curves.png").is_file():
-            lines += [f"![{run.name}](docs/train/{run.name}/curves.png)", ""]
+            lines += [f"![{_run_name(run)}](docs/train/{_run_name(run)}/curves.png)", ""]
     notes = [run / "NOTE.md" for run in runs if (run / "NOTE.md").is_file()]
     for note in notes:
-        lines += [f"**{note.parent.name}**: " + note.read_text().strip(), ""]
+        lines += [f"**{_run_name(note.parent)}**: " + note.read_text().strip(), ""]
     return lines
 
 
@@ -226,11 +257,11 @@ def _run_row(run: Path, scripted: dict, groups: dict) -> str:
     rate_text = "—" if rate is None else f"{rate:,.0f}"
     eval_wall = s.get("evaluation_wall_s")
     eval_text = "—" if eval_wall is None else f"{eval_wall / 60:.1f}"       # a run trained with --no-eval
-    line = (f"| `{run.name}` | {init} | {seed} | {s['env_steps']:,}{stopped} | {run_machine(run, s)} | "
+    line = (f"| `{_run_name(run)}` | {init} | {seed} | {s['env_steps']:,}{stopped} | {run_machine(run, s)} | "
             f"{s['training_wall_s_total'] / 60:.1f} | {rate_text} | "
             f"{eval_text} | {succ_text} | {versus} | {fails or '—'} |")
     if succ:
-        groups.setdefault(_settings_key(cfg), []).append((run.name, succ["rate"], seed))
+        groups.setdefault(_settings_key(cfg), []).append((_run_name(run), succ["rate"], seed))
     return line
 
 
@@ -259,14 +290,14 @@ def run_machine(run: Path, summary: dict | None = None) -> str:
         return summary["machine"]
     table = run.parent / "machines.yaml"
     known = yaml.safe_load(table.read_text()) if table.is_file() else {}
-    return (known or {}).get(run.name, "not recorded")
+    return (known or {}).get(_run_name(run), "not recorded")
 
 
 def _unevaluated_row(run: Path, seed, init) -> str:
     """The row of a run stopped before its evaluation: what its metrics.csv says."""
     rows = read_metrics(run)
     last = rows[-1]
-    return (f"| `{run.name}` | {init} | {seed} | {int(last['env_steps']):,} | {run_machine(run)} | "
+    return (f"| `{_run_name(run)}` | {init} | {seed} | {int(last['env_steps']):,} | {run_machine(run)} | "
             f"{float(last['wall_s']) / 60:.1f} | — | — | not evaluated (stopped after training); "
             f"{_selection_text(run, rows)} | — | — |")
 
