@@ -99,16 +99,19 @@ def plot_runs(runs: dict[str, list[dict]], path: Path, title: str) -> Path | Non
 
     fig, axes = plt.subplots(2, 2, figsize=(12, 8), sharey=True)
     palette = plt.get_cmap("tab10" if len(runs) <= 10 else "tab20")
+    styles = ("-", "--", ":")                 # past the palette's colours, the next line style
+    handles = []
     for i, (name, rows) in enumerate(runs.items()):
-        colour = palette(i % palette.N)
+        colour, ls = palette(i % palette.N), styles[(i // palette.N) % len(styles)]
         sel = column(rows, "select_success")
         has = np.isfinite(sel)
         train = np.where(column(rows, "episodes") > 0, column(rows, "success_rate"), np.nan)
         keep = np.isfinite(train)
         for row, x in ((axes[0], column(rows, "wall_s") / 60.0), (axes[1], column(rows, "env_steps"))):
             if has.any():
-                row[0].plot(x[has], sel[has], "o-", ms=4, lw=1.2, color=colour, label=name)
-            row[1].plot(x[keep], train[keep], lw=1.0, color=colour, label=name)
+                row[0].plot(x[has], sel[has], "o", ls=ls, ms=4, lw=1.2, color=colour)
+            row[1].plot(x[keep], train[keep], ls=ls, lw=1.0, color=colour)
+        handles.append(plt.Line2D([], [], color=colour, ls=ls, lw=1.5, label=name))
     for row, xlabel in ((axes[0], "wall time of the run [min] (cloning, training, selection)"),
                         (axes[1], "team steps simulated in training")):
         row[0].set_title("deterministic policy, selection episodes", fontsize=10)
@@ -118,10 +121,10 @@ def plot_runs(runs: dict[str, list[dict]], path: Path, title: str) -> Path | Non
             ax.set_xlabel(xlabel)
             ax.set_ylim(-0.02, 1.02)
             ax.grid(alpha=0.3)
-            if ax.get_legend_handles_labels()[0]:      # a panel without any run's curve has no legend
-                ax.legend(fontsize=7, loc="lower right")
     fig.suptitle(title)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    # one legend for the four panels, beside them
+    fig.legend(handles=handles, loc="center left", bbox_to_anchor=(1.0, 0.5), fontsize=8, frameon=False)
+    fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)
     return path
