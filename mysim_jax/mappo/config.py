@@ -103,6 +103,10 @@ class EnvSection(StrictModel):
     # a resolved scene file (relative to the training file) to evaluate on instead; run
     # folders use it (their scene.yaml is the training scene, resolved)
     eval_scene: str | None = None
+    # the evaluation scene's overrides of ``scene`` in place of ``set`` (at ``eval_level``):
+    # a run that trains on shifted conditions (estimation errors, wider ranges, faults) and
+    # is judged on the nominal ones. None: ``set``
+    eval_set: list[str] | None = None
     # the evading target's difficulty from gentle to the full range (CurriculumConfig)
     curriculum: CurriculumConfig | None = None
 
@@ -122,6 +126,16 @@ class EnvSection(StrictModel):
         if self.eval_scene is not None and self.eval_level is not None:
             raise ValueError("give at most one of eval_level (a level of env.scene) and eval_scene (a scene file); "
                              "set eval_level: null with eval_scene")
+        if self.eval_set is not None:
+            if self.builtin is not None:
+                raise ValueError("eval_set (the evaluation scene's overrides) applies to a scene file, not to a "
+                                 "builtin environment")
+            if self.eval_scene is not None:
+                raise ValueError("give at most one of eval_set (overrides of env.scene to evaluate on) and "
+                                 "eval_scene (a resolved scene file)")
+            if self.eval_level is None:
+                raise ValueError("eval_set needs eval_level, the level of env.scene the evaluation runs on "
+                                 "(e.g. eval_level: full)")
         return self
 
 
@@ -484,17 +498,23 @@ def load_eval_scene(config: TrainConfig, train_path: str | Path, scene=None):
         return _check_learner_discount(config, load_config(path), f"{train_path}: env.eval_scene")
     if config.env.eval_level is None:
         return scene if scene is not None else load_scene(config, train_path)
+    if config.env.eval_set is not None:
+        return load_scene(config, train_path, level=config.env.eval_level, sets=config.env.eval_set,
+                          field="env.eval_set")
     try:
         return load_scene(config, train_path, level=config.env.eval_level)
     except ConfigError as err:
         raise ConfigError(f"{train_path}: env.eval_level: {err}") from None
 
 
-def load_scene(config: TrainConfig, train_path: str | Path, level: str | None = None):
+def load_scene(config: TrainConfig, train_path: str | Path, level: str | None = None, sets=None,
+               field: str = "env.set"):
     """The validated :class:`~mysim_jax.config.scene.SceneConfig` of ``env.scene`` with
-    ``env.set`` applied (then ``level=LEVEL`` when ``level`` is given), or None for a
-    builtin environment. Raises ConfigError naming ``env.scene`` when the file is missing
-    or is not a capture scene with an ``env:`` block."""
+    ``env.set`` applied (``sets`` instead when given, named ``field`` in errors; then
+    ``level=LEVEL`` when ``level`` is given), or None for a builtin environment. Raises
+    ConfigError naming ``env.scene`` when the file is missing or is not a capture scene
+    with an ``env:`` block."""
+    sets = config.env.set if sets is None else sets
     path = scene_path(config, train_path)
     if path is None:
         return None
@@ -502,24 +522,24 @@ def load_scene(config: TrainConfig, train_path: str | Path, level: str | None = 
         raise ConfigError(f"{train_path}: env.scene: no such file {path} (paths are relative to the training file)")
     raw = read_yaml_file(path, "config file")
     missing = [b for b in ("net", "target", "quadrotors", "env") if not (isinstance(raw, dict) and raw.get(b) is not None)
-               and b not in _set_blocks(config.env.set)]
+               and b not in _set_blocks(sets)]
     if missing:
         raise ConfigError(f"{train_path}: env.scene: {path} is not a capture environment: it has no "
                           f"{' and no '.join(missing)} block")
     level = config.env.level if level is None else level
     level_set = override_list(level=level)
     try:
-        scene = load_config(path, [*config.env.set, *level_set])
+        scene = load_config(path, [*sets, *level_set])
     except ConfigError as err:
-        if str(err).startswith("--set "):          # an entry of env.set that is not key=value
-            raise ConfigError(f"{train_path}: env.set: {err}") from None
+        if str(err).startswith("--set ") or field != "env.set":   # not key=value, or from env.eval_set
+            raise ConfigError(f"{train_path}: {field}: {err}") from None
         raise
     missing = [b for b, v in (("net", scene.net), ("target", scene.target), ("quadrotors", scene.quadrotors),
                               ("env", scene.env)) if not v]
     if missing:
         raise ConfigError(f"{train_path}: env.scene: {path} is not a capture environment: it has no "
                           f"{' and no '.join(missing)} block")
-    ignored = drawn_value_problems(scene, config.env.set, where=f"{train_path}: env.set:")
+    ignored = drawn_value_problems(scene, sets, where=f"{train_path}: {field}:")
     if ignored:
         raise ConfigError("; ".join(ignored))
     if config.env.curriculum is not None and scene.target.behaviour != "maneuvering":

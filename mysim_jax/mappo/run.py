@@ -16,9 +16,9 @@ A run folder ``OUT`` holds
 
 * ``train.yaml`` — the resolved training file, its ``env.scene`` pointing at
   ``scene.yaml`` (the resolved training scene, overrides and level applied) and, when the
-  final evaluation runs on another fidelity level (``env.eval_level``, default ``full``),
-  its ``env.eval_scene`` at ``scene_eval.yaml``: the folder is self-contained and
-  ``--resume OUT`` needs nothing else;
+  final evaluation runs on another fidelity level (``env.eval_level``, default ``full``) or
+  with other overrides (``env.eval_set``), its ``env.eval_scene`` at ``scene_eval.yaml``:
+  the folder is self-contained and ``--resume OUT`` needs nothing else;
 * ``metrics.csv`` — one row per iteration (env steps, wall time, return, success rate,
   losses, ...), and the same scalars as TensorBoard events under ``tb/``;
 * ``curves.png`` — learning curves;
@@ -127,7 +127,8 @@ def make_eval_environment(p: Prepared, env, env_params):
 
     eval_env, eval_params = make_env(p.eval_scene, discount=p.config.algo.gamma)
     if (eval_env.obs_size, tuple(eval_env.action_shape)) != (env.obs_size, tuple(env.action_shape)):
-        raise ConfigError(f"{p.source}: env.eval_level: the evaluation scene's observations/actions "
+        field = "env.eval_set" if p.config.env.eval_set is not None else "env.eval_level"
+        raise ConfigError(f"{p.source}: {field}: the evaluation scene's observations/actions "
                           f"({eval_env.obs_size}, {tuple(eval_env.action_shape)}) differ from training's "
                           f"({env.obs_size}, {tuple(env.action_shape)})")
     return eval_env, eval_params

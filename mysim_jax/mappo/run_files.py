@@ -172,6 +172,8 @@ def describe_run(p: Prepared) -> str:
     what = f"builtin:{p.config.env.builtin}" if p.scene is None else f"{p.scene.name} (level {p.scene.level})"
     if p.evaluates_elsewhere:
         what += f", evaluated at level {p.eval_scene.level}"
+        if p.config.env.eval_set is not None:
+            what += " with env.eval_set"
     if p.profile is not None:
         what += f", profile {p.profile}"
     line = f"{p.config.name} on {what}: {describe(p.config)}; writing {p.out}/" + (" (resuming)" if p.resume else "")
@@ -195,7 +197,7 @@ def write_run_files(p: Prepared, copy_start: bool = True) -> None:
         (p.out / SCENE_FILE).write_text(dump_config(p.scene))
         # the scene resolved into scene.yaml; the rest of the section (the curriculum) kept
         data["env"] = {**data["env"], "scene": SCENE_FILE, "set": [], "level": None, "eval_level": None,
-                       "eval_scene": None}
+                       "eval_scene": None, "eval_set": None}
         if p.evaluates_elsewhere:
             (p.out / EVAL_SCENE_FILE).write_text(dump_config(p.eval_scene))
             data["env"]["eval_scene"] = EVAL_SCENE_FILE
