@@ -416,7 +416,8 @@ def test_capture_environment_end_to_end_tiny(tmp_path):
     sets = ["algo.num_envs=4", "algo.num_steps=2", "algo.total_env_steps=8", "algo.num_minibatches=2",
             "algo.bc.num_envs=32", "algo.bc.steps=16", "algo.bc.epochs=2", "algo.bc.holdout=0.2",
             "run.selection.episodes=2", "run.selection.every=1", "env.eval_level=full",
-            "run.eval_episodes=2", "run.eval_batch=4", "run.eval_baseline=false", "env.level=train"]
+            "run.eval_episodes=2", "run.eval_batch=4", "run.eval_baseline=false", "env.level=train",
+            "run.then=null"]
     res = _run(["configs/train_capture_falling.yaml", "--out", str(out), *[a for s in sets for a in ("--set", s)]])
     assert res.returncode == 0, res.stderr
     # a batch larger than the episodes is not an error, but it is said
@@ -512,7 +513,7 @@ def test_a_run_stopped_in_its_final_evaluation_resumes_there(tmp_path, capsys, m
     sets = ["algo.num_envs=4", "algo.num_steps=2", "algo.total_env_steps=8", "algo.num_minibatches=2",
             "algo.bc.num_envs=32", "algo.bc.steps=16", "algo.bc.epochs=2", "algo.bc.holdout=0.2",
             "run.selection.episodes=2", "run.selection.every=1", "run.eval_episodes=6", "run.eval_batch=2",
-            "run.eval_baseline=true", "env.level=train", "env.eval_level=null"]
+            "run.eval_baseline=true", "env.level=train", "env.eval_level=null", "run.then=null"]
     args = ["configs/train_capture_falling.yaml", *[a for s in sets for a in ("--set", s)], "--no-progress"]
     code, _, err, _ = run_script_main("train", [*args, "--out", tmp_path / "whole"], capsys)
     assert code == 0, err
