@@ -141,3 +141,30 @@ def test_a_chains_second_run_is_listed_and_pairs_only_on_the_scene_it_flew(tmp_p
 def test_no_kept_runs_give_no_list(tmp_path):
     (tmp_path / "not_a_run").mkdir()
     assert training.training_runs_lines(tmp_path) == []
+
+
+def test_the_seeds_of_a_chain_are_grouped_run_by_run(tmp_path):
+    """Three seeds of a chain (the first runs naming their second, ``then/``, which starts
+    from ``../policy``): the first runs are one group of seeds and the second runs another,
+    each with its spread; the first runs' scripted outcomes pair with the second runs that
+    flew the same scene."""
+    rows = [(0, 0, 10.0, "", "", "0.25"), (1, 1024, 120.0, "4", "0.5", "")]
+    scripted = [True, True, False, True]
+    base = {"seed": 7, "difference": {"estimate": 0.0, "interval95": [0.0, 0.0]}}
+    for seed, (first, second) in enumerate([(0.5, 0.75), (0.25, 0.75), (0.5, 1.0)]):
+        name = f"chain_seed{seed}"
+        _run(tmp_path, name, seed, rows, summary=_summary(first, **({"baseline": base} if seed == 0 else {})),
+             scripted=scripted if seed == 0 else None, episodes=[True, False, True, False],
+             run={"then": "then/train.yaml", "eval_baseline": seed == 0})
+        _run(tmp_path / name, "then", seed, rows, summary=_summary(second), episodes=[True, True, True, False],
+             run={"eval_baseline": False}, algo={"init": "policy", "init_policy": "../policy"})
+    lines = training.training_runs_lines(tmp_path)
+    seeds = [ln for ln in lines if ln.startswith("**Over seeds**")]
+    assert len(seeds) == 2
+    first, second = sorted(seeds, key=lambda ln: "/then" in ln)
+    assert "(`chain_seed0`, `chain_seed1`, `chain_seed2`:" in first and "mean **41.7%**" in first
+    assert "(`chain_seed0/then`, `chain_seed1/then`, `chain_seed2/then`:" in second and "mean **83.3%**" in second
+    table = {ln.split("`")[1]: ln for ln in lines if ln.startswith("| `")}
+    d, lo, hi = paired_difference_interval([True, True, True, False], scripted)
+    assert all(f"| {100 * d:+.1f} ({100 * lo:+.1f} to {100 * hi:+.1f}) |" in table[f"chain_seed{s}/then"]
+               for s in range(3))
