@@ -34,8 +34,8 @@ import yaml
 from mysim_jax.bench.report import ROOT, TRAIN_CAPTURE, TRAIN_RUNS
 from mysim_jax.bench.timing import aot_compile, contention_note, median, time_round_robin, wait_for_quiet
 from mysim_jax.config.scene import dump_config, load_config
-from mysim_jax.core.config_base import ConfigError
 from mysim_jax.core import batching
+from mysim_jax.core.config_base import ConfigError
 from mysim_jax.io.training_plots import plot_runs
 from mysim_jax.mappo.run import load_run_config, make_environment
 from mysim_jax.mappo.run_files import THEN_DIR, read_metrics
