@@ -589,11 +589,15 @@ def _evaluate_sets(cfg: DetectorConfig, cnn, sets: dict, out: Path, modes, metri
     for set_name, (images, labels) in sets.items():
         results = {}
         seed = spec_of(cfg, "eval_held_out").seed
-        hints = region_hints(labels, seed) if {"region", "region_team"} & set(modes) else None
-        team = (teammate_hints(labels, seed, cfg.data.width, cfg.data.height) if "region_team" in modes else None)
+        hints = region_hints(labels, seed) if {"region", "region_team", "region_team_hint"} & set(modes) else None
+        team = (teammate_hints(labels, seed, cfg.data.width, cfg.data.height)
+                if {"region_team", "region_team_hint"} & set(modes) else None)
         runs = [("cnn", cnn, cfg.eval.min_score, None, None)] if "full" in modes else []
         runs += [("cnn_region", cnn, cfg.eval.min_score, hints, None)] if "region" in modes else []
         runs += [("cnn_region_team", cnn, cfg.eval.min_score, hints, team)] if "region_team" in modes else []
+        if "region_team_hint" in modes:
+            hinted = replace(cnn, region=replace(cnn.region, hint_candidate=True))
+            runs += [("cnn_region_team_hint", hinted, cfg.eval.min_score, hints, team)]
         for det_name, det, thr, h, tm in runs + [("baseline", baseline, 0.3, None, None)]:
             m, dets, rows = evaluate(det, images, labels, cfg, thr, progress=progress,
                                      name=f"{det_name} {set_name}", hints=h, teammates=tm)
@@ -619,7 +623,9 @@ def run(cfg: DetectorConfig, out: Path, progress: bool = True, cache: Path | Non
     ``modes``: how the CNN is evaluated, ``"full"`` (the whole image, ``cnn/<set>``) and / or
     ``"region"`` (around a tracker's hint, :func:`region_hints` with the evaluation seed,
     ``cnn_region/<set>``) and ``"region_team"`` (the same, told where the team's UAVs are,
-    :func:`teammate_hints`, ``cnn_region_team/<set>``)."""
+    :func:`teammate_hints`, ``cnn_region_team/<set>``) and ``"region_team_hint"`` (that, with
+    the second stage also looking at the hint's box, ``RegionSettings.hint_candidate``,
+    ``cnn_region_team_hint/<set>``)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "config.yaml").write_text(yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False))
