@@ -30,7 +30,9 @@ around a hint of where the target is, drawn near the truth with the tracker's pr
 errors (``mysim_jax.perception.detect.train.region_hints``); ``cnn_region/...`` in
 ``metrics.json``. ``region_team`` does the same with the detector also told where the team's
 own UAVs appear (``teammate_hints``: from their drawn positions with VIO-like errors), so it
-drops detections a teammate explains; ``cnn_region_team/...``.
+drops detections a teammate explains; ``cnn_region_team/...``. ``region_team_hint``: that, with
+the second stage also looking at the hint's box itself (``RegionSettings.hint_candidate``);
+``cnn_region_team_hint/...``.
 
 ``--eval-seed N`` draws the evaluation frames with seed N instead of ``data.seed`` (fresh frames
 of the same splits; the training frames keep ``data.seed``); ``--eval-images N`` makes each
@@ -62,10 +64,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "data.eval_seed, else data.seed)")
     parser.add_argument("--eval-images", type=int, help="frames per evaluation set (default: the config's "
                         "data.eval_images)")
-    parser.add_argument("--modes", nargs="+", choices=("full", "region", "region_team"), default=["full"],
+    parser.add_argument("--modes", nargs="+", choices=("full", "region", "region_team", "region_team_hint"),
+                        default=["full"],
                         help="how the CNN is evaluated: on the whole image (full, default) and / or around a "
                         "tracker's hint drawn near the truth (region: the mode gimbal tracking uses), and told where the "
-                        "team's UAVs are (region_team)")
+                        "team's UAVs are (region_team), and with the hint's box looked at as a candidate (region_team_hint)")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bars")
     return parser
 
@@ -124,10 +127,10 @@ def main(argv=None) -> int:
             f"{metrics['train_seconds']:.0f} s" +
             (f", the second stage {cfg.refine.steps} steps in {metrics['refine_seconds']:.0f} s" if cfg.refine else ""))
     print(f"{done}; wrote {out}/ ({time.perf_counter() - t0:.0f} s in all)")
-    names = [n for n in ("cnn", "cnn_region", "cnn_region_team", "baseline") if f"{n}/held_out" in metrics]
+    names = [n for n in ("cnn", "cnn_region", "cnn_region_team", "cnn_region_team_hint", "baseline") if f"{n}/held_out" in metrics]
     for key in [f"{n}/{set_name}" for set_name in ("held_out", "in_distribution") for n in names]:
         m = metrics[key]
-        print(f"  {key:26s} precision {m['precision']:.3f}  recall {m['recall']:.3f}  mean IoU {m['mean_iou']:.3f}  "
+        print(f"  {key:31s} precision {m['precision']:.3f}  recall {m['recall']:.3f}  mean IoU {m['mean_iou']:.3f}  "
               f"AP50 {m['ap50']:.3f}  {m['fps']:.1f} frames/s ({m['n_targets']} targets in {m['n_images']} frames)")
     return 0
 

@@ -12,6 +12,8 @@ round-robin on the same frames (:func:`mysim_jax.bench.timing.time_round_robin`)
 * ``region`` — :meth:`CNNDetector.detect_region <mysim_jax.perception.detect.model.CNNDetector.detect_region>`
   around a hint ``HINT_OFFSET_PX`` off the target's true centre, with its true size (the
   mode gimbal tracking runs, :class:`~mysim_jax.perception.track_detectors.RegionDetector`);
+* ``region, the hint as a candidate`` — the same with ``RegionSettings.hint_candidate``
+  (the second stage also looks at the hint's box);
 * ``region, first stage only`` — the same window without the second stage (what the
   second stage costs there).
 
@@ -58,6 +60,7 @@ def measure(samples, repeats: int, section: str = "k") -> dict[str, list[float]]
     """Seconds per frame of each variant (the counted rounds)."""
     detector = load_detector()
     stage1 = replace(detector, refiner=None)
+    hinted = replace(detector, region=replace(detector.region, hint_candidate=True))
     hints = [hint_of(s) for s in samples]
 
     def whole():
@@ -70,7 +73,8 @@ def measure(samples, repeats: int, section: str = "k") -> dict[str, list[float]]
                 d.detect_region(s.image, c, side)
         return run
 
-    calls = {"whole image": whole, "region": region(detector), "region, first stage only": region(stage1)}
+    calls = {"whole image": whole, "region": region(detector), "region, the hint as a candidate": region(hinted),
+             "region, first stage only": region(stage1)}
     times = time_round_robin(calls, repeats, section=section)
     return {k: [t / len(samples) for t in v] for k, v in times.items()}
 
@@ -94,7 +98,8 @@ def section_k(cfg, results) -> list[str]:
         f"{render_s:.0f} s), one image per call, no batching: **whole image** (`detect`: the image pyramid with the "
         f"flip test, then the second stage), **region** (`detect_region` around a hint "
         f"{np.hypot(*HINT_OFFSET_PX):.0f} px off the target's centre: the mode gimbal tracking runs, "
-        "docs/detector.md) and the region's first stage alone. Median per frame of the counted rounds, timed "
+        "docs/detector.md), the same with the hint's box as one more candidate of the second stage "
+        "(`RegionSettings.hint_candidate`) and the region's first stage alone. Median per frame of the counted rounds, timed "
         f"round-robin (mysim_jax/bench/detect.py). {contention_note('k', repeats)}",
         "",
         "| variant | ms per frame | frames/s | spread |",

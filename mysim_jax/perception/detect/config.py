@@ -114,6 +114,8 @@ class RefineConfig(StrictModel):
     score: Literal["refined", "geometric"] = "geometric"   # detection score: p2, or sqrt(p1 * p2)
     members: Annotated[int, Field(ge=1, le=8)] = 1   # networks averaged, trained with seeds seed, seed + 1, ...
     teammate_channel: bool = False       # a fourth input: where the team expects its own UAVs in the window
+    mask_weight: Annotated[float, Field(ge=0.0, allow_inf_nan=False)] = 0.0   # of a visible-pixel head's loss
+                                         # in training (0: no such head); inference does not use the head
     # training
     steps: PosInt = 4000
     batch_size: PosInt = 64

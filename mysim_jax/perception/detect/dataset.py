@@ -169,6 +169,7 @@ class Sample:
                                                # (camera_R (3, 3) OpenCV -> world, camera_p (3,) m), target_pos (3,) m,
                                                # formation (onboard frames: the camera's UAV, tether k, net pose),
                                                # uavs (the UAVs drawn: name, pos (3,) m, radius m)
+    mask: np.ndarray | None = None   # (h, w) bool over ``box``'s pixels: which of them show the target
 
 
 @lru_cache(maxsize=2)
@@ -514,6 +515,14 @@ def render_sample(spec: DatasetSpec, index: int) -> Sample:
                 formation=formation, uavs=_uavs_drawn(config, cols, hide))
     return Sample(image=frame.image, box=box, ignore=bool(ignore), kind=kind,
                   distance=float("nan") if empty else float(distance), visible_fraction=float(fraction),
-                  visible_px=int(visible_px), truncation=float(truncation), meta=meta)
+                  visible_px=int(visible_px), truncation=float(truncation), meta=meta,
+                  mask=None if box is None else box_mask(frame, config.target.name, box))
+
+
+def box_mask(frame, target_name: str, box: np.ndarray) -> np.ndarray:
+    """(h, w) bool: the pixels of ``box`` (renderer px, the visible target's box) that show
+    the target in ``frame`` (:class:`~mysim_jax.perception.render_io.Frame`)."""
+    u0, v0, u1, v1 = (int(round(x + 0.5)) for x in box)          # edge coordinates: whole pixels
+    return frame.ids[v0:v1, u0:u1] == frame.names.index(target_name)
 
 

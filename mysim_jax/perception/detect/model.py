@@ -66,6 +66,7 @@ from flax import serialization
 from mysim_jax.core import rng
 from mysim_jax.perception.camera import PerceptionError
 from mysim_jax.perception.detect import Detection, default_weights_path
+from mysim_jax.perception.detect.metrics import iou
 from mysim_jax.perception.detect.refine import Refiner, RefineSettings, normalise
 from mysim_jax.perception.detect.team import explained_by_teammates
 
@@ -224,6 +225,9 @@ class RegionSettings:
     teammate_gate: float = 1.5     # a detection fitting a teammate's expected box below this, and better than the
     teammate_margin: float = 0.5   # target's by this margin, is the teammate's (detect.team.fit: centre offset /
                                    # side + |log size ratio|; chosen on the selection draw, docs/detector.md)
+    hint_candidate: bool = False   # the second stage also looks at the expected box itself (a square of the
+    hint_score: float = 0.3        # expected side at the expected centre) as a candidate of this first-stage
+    hint_overlap: float = 0.1      # score; its detection is dropped where it overlaps a better one at this IoU
 
     def __post_init__(self):
         if self.input_px < PAD_TO or self.input_px % PAD_TO:
@@ -236,6 +240,9 @@ class RegionSettings:
         if not (self.teammate_gate >= 0 and self.teammate_margin >= 0):
             raise PerceptionError(f"region teammate_gate and teammate_margin must be >= 0, got "
                                   f"{self.teammate_gate}, {self.teammate_margin}")
+        if not (0 < self.hint_score <= 1 and 0 <= self.hint_overlap <= 1):
+            raise PerceptionError(f"region hint_score must be in (0, 1] and hint_overlap in [0, 1], got "
+                                  f"{self.hint_score}, {self.hint_overlap}")
 
 
 @dataclass
@@ -391,7 +398,17 @@ class CNNDetector:
         (:func:`~mysim_jax.perception.detect.team.explained_by_teammates`,
         ``region.teammate_gate`` and ``teammate_margin``) are dropped, and a second stage
         with the teammate channel (:attr:`~mysim_jax.perception.detect.refine.Refiner.uses_teammates`)
-        sees them as its fourth input."""
+        sees them as its fourth input.
+
+        ``region.hint_candidate`` (with a second stage): the expected box itself (the square of
+        side ``side_px`` at ``centre``) is one more candidate, of first-stage score
+        ``region.hint_score``. A first-stage box on a target partly hidden behind a teammate
+        often covers both, and the second stage's window around it is then off; the window
+        around the expected box is on the target. Its detection is kept unless it overlaps one
+        of the others that scores higher at IoU ``region.hint_overlap`` or more (then the
+        first stage had the target already), so it adds a box where the candidates missed,
+        not a duplicate. It leans on the hint: where the track's prediction is off, so is this
+        window, and the second stage has to reject what it shows."""
         image = check_image(image)
         region = self.region if region is None else region
         if not (np.all(np.isfinite(np.asarray(centre, float))) and np.isfinite(side_px) and side_px > 0):
@@ -425,8 +442,18 @@ class CNNDetector:
             if box[2] > box[0] and box[3] > box[1]:
                 dets.append(Detection(box=box, score=float(s)))
         if self.refiner is not None:
-            dets = self.refiner.refine([image], [dets[: region.max_candidates]],
-                                       teammates=None if teammates is None else [teammates])[0]
+            cands = [dets[: region.max_candidates]]
+            if region.hint_candidate:         # the expected box itself, one more candidate (in the same batch)
+                c, h = np.asarray(centre, float), 0.5 * float(side_px)
+                cands.append([Detection(box=np.array([c[0] - h, c[1] - h, c[0] + h, c[1] + h]),
+                                        score=region.hint_score)])
+            refined = self.refiner.refine([image] * len(cands), cands,
+                                          teammates=None if teammates is None else [teammates] * len(cands))
+            dets = refined[0]
+            if region.hint_candidate:
+                extra = [d for d in refined[1]
+                         if not any(a.score > d.score and iou(a.box, d.box) >= region.hint_overlap for a in dets)]
+                dets = sorted(dets + extra, key=lambda d: -d.score)
             dets = [d for d in _suppress(dets) if d.score >= floor]
         if teammates is not None and dets:
             theirs = explained_by_teammates(np.array([d.box for d in dets]), centre, side_px, teammates,

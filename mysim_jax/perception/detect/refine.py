@@ -70,24 +70,42 @@ IGNORE_IOU = 0.1     # below POS_IOU but above this (or above this with an ignor
 
 class RefineNet(nn.Module):
     """(N, S, S, 3) windows in [-0.5, 0.5] -> (N, 5): target logit and the box's edge changes
-    (u_min, v_min, u_max, v_max; window units) from the candidate's."""
+    (u_min, v_min, u_max, v_max; window units) from the candidate's.
+
+    ``with_mask=True`` also returns (N, S/2, S/2) logits of which window pixels show the
+    target (the visible-pixel head, trained with ``refine.mask_weight``: its parameters are
+    ``mask*``; a network without them computes the same logit and box)."""
 
     widths: tuple[int, ...] = (24, 32, 48, 64, 96)    # channels at strides 1, 2, 4, 8, 16
     hidden: int = 128
+    mask_width: int = 32                              # channels of the visible-pixel head
 
     @nn.compact
-    def __call__(self, x):
+    def __call__(self, x, with_mask: bool = False):
         conv = partial(nn.Conv, kernel_size=(3, 3), padding="SAME",
                        kernel_init=rng.as_matrix(nn.initializers.he_normal()))
+        features = []
         for k, c in enumerate(self.widths):
             x = nn.relu(conv(c, strides=(1, 1) if k == 0 else (2, 2), name=f"down{k}")(x))
             if k > 0:
                 x = nn.relu(conv(c, name=f"body{k}")(x))
+            features.append(x)
         x = x.reshape(x.shape[0], -1)
         x = nn.relu(nn.Dense(self.hidden, kernel_init=nn.initializers.he_normal(), name="fc")(x))
         logit = nn.Dense(1, bias_init=nn.initializers.constant(-2.0), name="logit")(x)
         delta = nn.Dense(4, kernel_init=nn.initializers.normal(1e-3), name="box")(x)
-        return jnp.concatenate([logit, delta], axis=-1)
+        out = jnp.concatenate([logit, delta], axis=-1)
+        if not with_mask:
+            return out
+        # a top-down path (as a feature pyramid's) from the coarsest map to stride 2
+        lateral = partial(nn.Conv, self.mask_width, kernel_size=(1, 1))
+        m = lateral(name="mask_lat_top")(features[-1])
+        for k in range(len(self.widths) - 2, 0, -1):
+            n, h, w, c = m.shape
+            m = jax.image.resize(m, (n, 2 * h, 2 * w, c), "nearest") + lateral(name=f"mask_lat{k}")(features[k])
+            m = nn.relu(conv(self.mask_width, name=f"mask_conv{k}")(m))
+        mask = nn.Conv(1, kernel_size=(1, 1), name="mask_out")(m)[..., 0]
+        return out, mask
 
 
 # --- windows ----------------------------------------------------------------------------------
@@ -231,15 +249,49 @@ def sample_labels(candidates: np.ndarray, truth: list) -> tuple[np.ndarray, np.n
     return label, weight, target
 
 
-def loss_fn(params, model: RefineNet, windows_u8, prior, label, weight, target, box_weight: float):
-    """BCE of the target logit (where ``weight``) + ``box_weight`` x L1 of the edges (positives)."""
-    out = model.apply({"params": params}, normalise(windows_u8))
+def loss_fn(params, model: RefineNet, windows_u8, prior, label, weight, target, box_weight: float,
+            mask=None, mask_on=None, mask_weight: float = 0.0):
+    """BCE of the target logit (where ``weight``) + ``box_weight`` x L1 of the edges (positives)
+    [+ ``mask_weight`` x the visible-pixel head's BCE against ``mask`` ((N, S/2, S/2) shares of
+    each cell that show the target), averaged over its cells and the windows where ``mask_on``]."""
+    if mask is None:
+        out = model.apply({"params": params}, normalise(windows_u8))
+    else:
+        out, mask_logit = model.apply({"params": params}, normalise(windows_u8), with_mask=True)
     logit = out[:, 0]
     bce = -(label * jax.nn.log_sigmoid(logit) + (1 - label) * jax.nn.log_sigmoid(-logit))
     cls = jnp.sum(weight * bce) / jnp.maximum(jnp.sum(weight), 1.0)
     pos = label * weight
     l1 = jnp.sum(pos[:, None] * jnp.abs(prior + out[:, 1:] - target)) / jnp.maximum(jnp.sum(pos), 1.0)
-    return cls + box_weight * l1, dict(cls=cls, box=l1)
+    parts = dict(cls=cls, box=l1)
+    loss = cls + box_weight * l1
+    if mask is not None:
+        cell = -(mask * jax.nn.log_sigmoid(mask_logit) + (1 - mask) * jax.nn.log_sigmoid(-mask_logit))
+        per_window = jnp.mean(cell, axis=(1, 2))
+        parts["mask"] = jnp.sum(mask_on * per_window) / jnp.maximum(jnp.sum(mask_on), 1.0)
+        loss = loss + mask_weight * parts["mask"]
+    return loss, parts
+
+
+def window_masks(mask, box, windows: np.ndarray, size: int, image_shape) -> np.ndarray:
+    """(N, size, size) float32: the share of each cell of every (x0, y0, side) window (resized
+    to ``size``) that shows the target, whose visible pixels are ``mask`` ((h, w) bool over the
+    renderer box ``box``; None: no target). Outside the image: none."""
+    windows = np.asarray(windows, np.int64).reshape(-1, 3)
+    out = np.zeros((len(windows), size, size), np.float32)
+    if mask is None or not np.any(mask):
+        return out
+    H, W = image_shape[:2]
+    u0, v0 = (int(round(x + 0.5)) for x in np.asarray(box)[:2])
+    full = np.zeros((H, W), np.float32)
+    full[v0:v0 + mask.shape[0], u0:u0 + mask.shape[1]] = mask
+    for n, (x0, y0, side) in enumerate(windows):
+        canvas = np.zeros((side, side), np.float32)
+        ya, yb, xa, xb = max(y0, 0), min(y0 + side, H), max(x0, 0), min(x0 + side, W)
+        if yb > ya and xb > xa:
+            canvas[ya - y0:yb - y0, xa - x0:xb - x0] = full[ya:yb, xa:xb]
+        out[n] = cv2.resize(canvas, (size, size), interpolation=cv2.INTER_AREA if side > size else cv2.INTER_LINEAR)
+    return out
 
 
 # --- inference --------------------------------------------------------------------------------

@@ -49,7 +49,8 @@ from mysim_jax.perception.detect.config import DetectorConfig
 from mysim_jax.perception.detect.dataset import OCCLUDED_SCENES
 from mysim_jax.perception.camera import PerceptionError, intrinsics
 from mysim_jax.perception.detect.refine import (RefineNet, cut_windows, input_channels, loss_fn, mirror_window_boxes,
-                                                sample_labels, teammate_masks, to_window, widen_input, windows_of)
+                                                sample_labels, teammate_masks, to_window, widen_input, window_masks,
+                                                windows_of)
 from mysim_jax.perception.detect.team import frame_team, noisy_team_boxes
 from mysim_jax.perception.detect.steps import photometric, prefetch, run_steps, truths
 
@@ -94,8 +95,10 @@ def _jitter(box: np.ndarray, sigma: float, rng: np.random.Generator) -> np.ndarr
 class SamplePool:
     """The training frames' candidates sorted into positives and negatives (unjittered)."""
 
-    def __init__(self, labels: list[dict], candidates: list[list]):
+    def __init__(self, labels: list[dict], candidates: list[list], masks: list | None = None):
         self.truths = truths(labels)
+        self.labels = labels
+        self.masks = masks          # per frame the target's visible pixels over its box (None: not kept)
         self.team = [frame_team(lab) for lab in labels]       # per frame: its UAVs and camera (None: not listed)
         self.positives, self.negatives = [], []
         for i, (cands, truth) in enumerate(zip(candidates, self.truths)):
@@ -161,21 +164,31 @@ def make_sample(images, pool: SamplePool, cfg: DetectorConfig, rng: np.random.Ge
         intr = intrinsics(width=image.shape[1], height=image.shape[0])
         mask = teammate_masks(noisy_team_boxes(rng, intr, pool.team[i]), window, r.size)[0]
     prior, tgt = to_window(box[None], window)[0], to_window(target, window)[0]
-    if rng.random() < 0.5:
+    visible, visible_on = np.zeros((r.size // 2, r.size // 2), np.float32), 0.0
+    if r.mask_weight > 0:
+        if pool.masks is None:
+            raise PerceptionError("refine.mask_weight: the training frames' visible-pixel masks were not loaded")
+        lab = pool.labels[i]
+        if not (lab["box"] is not None and lab["ignore"]):     # an ignored target's pixels: no mask label
+            visible = window_masks(pool.masks[i], lab["box"], window, r.size // 2, image.shape)[0]
+            visible_on = float(weight[0] > 0)
+    flip = rng.random() < 0.5
+    if flip:
         cut = np.ascontiguousarray(cut[:, ::-1])
         mask = None if mask is None else np.ascontiguousarray(mask[:, ::-1])
+        visible = np.ascontiguousarray(visible[:, ::-1])
         prior, tgt = mirror_window_boxes(prior), mirror_window_boxes(tgt)
     cut = photometric(cut, cfg.train, rng)
     if mask is not None:
         cut = np.concatenate([cut, mask[..., None]], axis=-1)
-    return cut, prior, tgt, float(label[0]), float(weight[0])
+    return cut, prior, tgt, float(label[0]), float(weight[0]), visible, visible_on
 
 
 def batch_of(images, pool: SamplePool, cfg: DetectorConfig, rng: np.random.Generator):
     samples = [make_sample(images, pool, cfg, rng) for _ in range(cfg.refine.batch_size)]
-    cut, prior, target, label, weight = zip(*samples)
+    cut, prior, target, label, weight, visible, visible_on = zip(*samples)
     return (np.stack(cut), np.array(prior, np.float32), np.array(target, np.float32), np.array(label, np.float32),
-            np.array(weight, np.float32))
+            np.array(weight, np.float32), np.stack(visible), np.array(visible_on, np.float32))
 
 
 def train_refiner(cfg: DetectorConfig, images, pool: SamplePool, progress: bool = True, log=None, params=None,
@@ -185,10 +198,16 @@ def train_refiner(cfg: DetectorConfig, images, pool: SamplePool, progress: bool 
     r = cfg.refine
     model = RefineNet(widths=tuple(r.widths), hidden=r.hidden)
     channels = 4 if r.teammate_channel else 3
+    with_mask = r.mask_weight > 0
+    fresh = model.init(jax.random.PRNGKey(r.seed), np.zeros((1, r.size, r.size, channels), np.float32),
+                       with_mask=with_mask)["params"]
     if params is None:
-        params = model.init(jax.random.PRNGKey(r.seed), np.zeros((1, r.size, r.size, channels), np.float32))["params"]
-    elif input_channels(params) != channels:
-        params = widen_input(params, channels)
+        params = fresh
+    else:
+        if input_channels(params) != channels:
+            params = widen_input(params, channels)
+        if with_mask:      # a start without the visible-pixel head: the head from a random init
+            params = {**{k: v for k, v in fresh.items() if k.startswith("mask")}, **params}
     warmup = max(min(r.warmup_steps, r.steps - 1), 1)
     schedule = optax.warmup_cosine_decay_schedule(0.0, r.learning_rate, warmup, max(r.steps, warmup + 1),
                                                   end_value=0.02 * r.learning_rate)
@@ -196,13 +215,14 @@ def train_refiner(cfg: DetectorConfig, images, pool: SamplePool, progress: bool 
     opt_state = opt.init(params)
 
     @jax.jit
-    def step(params, opt_state, cut, prior, target, label, weight):
-        (loss, parts), grads = jax.value_and_grad(loss_fn, has_aux=True)(params, model, cut, prior, label, weight,
-                                                                         target, r.box_weight)
+    def step(params, opt_state, cut, prior, target, label, weight, visible, visible_on):
+        (loss, parts), grads = jax.value_and_grad(loss_fn, has_aux=True)(
+            params, model, cut, prior, label, weight, target, r.box_weight,
+            mask=visible if with_mask else None, mask_on=visible_on, mask_weight=r.mask_weight)
         updates, opt_state = opt.update(grads, opt_state, params)
         return optax.apply_updates(params, updates), opt_state, loss, parts
 
     rng = np.random.default_rng(r.seed)
     batches = prefetch(lambda: batch_of(images, pool, cfg, rng), r.steps)
     return run_steps(step, params, opt_state, batches, r.steps, desc, "refine.learning_rate",
-                     ("cls", "box"), progress=progress, log=log)
+                     ("cls", "box") + (("mask",) if with_mask else ()), progress=progress, log=log)

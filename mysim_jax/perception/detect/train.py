@@ -88,14 +88,85 @@ def _label(s) -> dict:
 
 def _render_chunk(args):
     spec, path, first, indices = args
-    images = np.load(path, mmap_mode="r+")
-    labels = []
+    images = None if path is None else np.load(path, mmap_mode="r+")
+    labels, masks = [], []
     for i in indices:
         s = render_sample(spec, i + first)
-        images[i] = s.image
+        if images is not None:
+            images[i] = s.image
         labels.append(_label(s))
-    images.flush()
-    return indices, labels
+        masks.append(s.mask)
+    if images is not None:
+        images.flush()
+    return indices, labels, masks
+
+
+def _save_masks(path: Path, masks: list) -> None:
+    """``masks`` (per frame an (h, w) bool array or None) as one ``.npz``: shapes (-1: none)
+    and every mask's bits in order."""
+    shapes = np.array([(-1, -1) if m is None else m.shape for m in masks], np.int32)
+    flat = np.concatenate([m.reshape(-1) for m in masks if m is not None] + [np.zeros(0, bool)])
+    tmp = path.with_suffix(".part.npz")
+    np.savez(tmp, shapes=shapes, bits=np.packbits(flat), n=np.int64(flat.size))
+    tmp.rename(path)
+
+
+def _read_masks(path: Path) -> list:
+    with np.load(path) as z:
+        shapes, flat = z["shapes"], np.unpackbits(z["bits"], count=int(z["n"])).astype(bool)
+    out, k = [], 0
+    for h, w in shapes:
+        if h < 0:
+            out.append(None)
+            continue
+        out.append(flat[k:k + h * w].reshape(h, w))
+        k += h * w
+    return out
+
+
+def _render_all(spec: DatasetSpec, path: str | None, first: int, workers: int, desc: str, progress: bool):
+    """Render every frame of ``spec`` (into the image file ``path`` unless None): labels and masks."""
+    n = spec.n_images
+    labels: list = [None] * n
+    masks: list = [None] * n
+    chunks = [list(range(k, min(k + 25, n))) for k in range(0, n, 25)]
+    jobs = [(spec, path, first, c) for c in chunks]
+    bar = tqdm(total=n, desc=desc, unit="frame", disable=not progress)
+
+    def take(result):
+        indices, labs, ms = result
+        for i, lab, m in zip(indices, labs, ms):
+            labels[i], masks[i] = lab, m
+        bar.update(len(indices))
+
+    if workers > 1:
+        with mp.get_context("spawn").Pool(workers) as pool:
+            for result in pool.imap_unordered(_render_chunk, jobs):
+                take(result)
+    else:
+        for job in jobs:
+            take(_render_chunk(job))
+    bar.close()
+    return labels, masks
+
+
+def set_key(spec: DatasetSpec, first: int = 0) -> str:
+    """The cache key of a rendered set (:func:`build_set`)."""
+    return hashlib.sha1(repr((spec, first, LABELS_VERSION)).encode()).hexdigest()[:12]
+
+
+def load_masks(spec: DatasetSpec, folder: Path, name: str, first: int = 0, workers: int = 1,
+               progress: bool = True) -> list:
+    """Per frame of the set :func:`build_set` renders, the target's visible pixels over its box
+    (``Sample.mask``; None: no target in view), read from ``folder/NAME_KEY_masks.npz`` or, for a
+    set rendered before the masks were kept, rendered again (the same frames) and written there."""
+    path = Path(folder) / f"{name}_{set_key(spec, first)}_masks.npz"
+    if path.is_file():
+        return _read_masks(path)
+    Path(folder).mkdir(parents=True, exist_ok=True)
+    _, masks = _render_all(spec, None, first, workers, f"masks {name}", progress)
+    _save_masks(path, masks)
+    return masks
 
 
 def build_set(spec: DatasetSpec, folder: Path, name: str, first: int = 0, workers: int = 1,
@@ -104,32 +175,17 @@ def build_set(spec: DatasetSpec, folder: Path, name: str, first: int = 0, worker
     (n, H, W, 3)) and ``folder/NAME.json`` (labels), or read them if already there for the
     same spec. Returns the images (a read-only memory map) and the labels."""
     folder.mkdir(parents=True, exist_ok=True)
-    key = hashlib.sha1(repr((spec, first, LABELS_VERSION)).encode()).hexdigest()[:12]
+    key = set_key(spec, first)
     npy, js = folder / f"{name}_{key}.npy", folder / f"{name}_{key}.json"
     if npy.is_file() and js.is_file():
         return np.load(npy, mmap_mode="r"), json.loads(js.read_text())
     images = np.lib.format.open_memmap(npy.with_suffix(".part.npy"), mode="w+", dtype=np.uint8,
                                        shape=(spec.n_images, spec.height, spec.width, 3))
     del images
-    labels: list = [None] * spec.n_images
-    chunks = [list(range(k, min(k + 25, spec.n_images))) for k in range(0, spec.n_images, 25)]
-    jobs = [(spec, str(npy.with_suffix(".part.npy")), first, c) for c in chunks]
-    bar = tqdm(total=spec.n_images, desc=f"render {name}", unit="frame", disable=not progress)
-    if workers > 1:
-        with mp.get_context("spawn").Pool(workers) as pool:
-            for indices, labs in pool.imap_unordered(_render_chunk, jobs):
-                for i, lab in zip(indices, labs):
-                    labels[i] = lab
-                bar.update(len(indices))
-    else:
-        for job in jobs:
-            indices, labs = _render_chunk(job)
-            for i, lab in zip(indices, labs):
-                labels[i] = lab
-            bar.update(len(indices))
-    bar.close()
+    labels, masks = _render_all(spec, str(npy.with_suffix(".part.npy")), first, workers, f"render {name}", progress)
     npy.with_suffix(".part.npy").rename(npy)
     js.write_text(json.dumps(labels))
+    _save_masks(folder / f"{name}_{key}_masks.npz", masks)
     return np.load(npy, mmap_mode="r"), labels
 
 
@@ -285,7 +341,9 @@ def train_refine_stage(cfg: DetectorConfig, first_stage, images, labels, spec, c
     weights_bytes = b"".join(np.asarray(a, np.float32).tobytes() for a in jax.tree.leaves(first_stage.params))
     candidates = cached_candidates(first_stage, weights_bytes, images, repr((spec, LABELS_VERSION)),
                                    cfg.refine.candidate_min_score, cache, progress=progress)
-    pool = SamplePool(labels, candidates)
+    masks = (load_masks(spec, cache, "train", workers=cfg.data.workers, progress=progress)
+             if cfg.refine.mask_weight > 0 else None)
+    pool = SamplePool(labels, candidates, masks)
     r = cfg.refine
     members, history = [], []
     for k in range(r.members):       # an ensemble: the same training from seeds seed, seed + 1, ...
@@ -531,11 +589,15 @@ def _evaluate_sets(cfg: DetectorConfig, cnn, sets: dict, out: Path, modes, metri
     for set_name, (images, labels) in sets.items():
         results = {}
         seed = spec_of(cfg, "eval_held_out").seed
-        hints = region_hints(labels, seed) if {"region", "region_team"} & set(modes) else None
-        team = (teammate_hints(labels, seed, cfg.data.width, cfg.data.height) if "region_team" in modes else None)
+        hints = region_hints(labels, seed) if {"region", "region_team", "region_team_hint"} & set(modes) else None
+        team = (teammate_hints(labels, seed, cfg.data.width, cfg.data.height)
+                if {"region_team", "region_team_hint"} & set(modes) else None)
         runs = [("cnn", cnn, cfg.eval.min_score, None, None)] if "full" in modes else []
         runs += [("cnn_region", cnn, cfg.eval.min_score, hints, None)] if "region" in modes else []
         runs += [("cnn_region_team", cnn, cfg.eval.min_score, hints, team)] if "region_team" in modes else []
+        if "region_team_hint" in modes:
+            hinted = replace(cnn, region=replace(cnn.region, hint_candidate=True))
+            runs += [("cnn_region_team_hint", hinted, cfg.eval.min_score, hints, team)]
         for det_name, det, thr, h, tm in runs + [("baseline", baseline, 0.3, None, None)]:
             m, dets, rows = evaluate(det, images, labels, cfg, thr, progress=progress,
                                      name=f"{det_name} {set_name}", hints=h, teammates=tm)
@@ -561,7 +623,9 @@ def run(cfg: DetectorConfig, out: Path, progress: bool = True, cache: Path | Non
     ``modes``: how the CNN is evaluated, ``"full"`` (the whole image, ``cnn/<set>``) and / or
     ``"region"`` (around a tracker's hint, :func:`region_hints` with the evaluation seed,
     ``cnn_region/<set>``) and ``"region_team"`` (the same, told where the team's UAVs are,
-    :func:`teammate_hints`, ``cnn_region_team/<set>``)."""
+    :func:`teammate_hints`, ``cnn_region_team/<set>``) and ``"region_team_hint"`` (that, with
+    the second stage also looking at the hint's box, ``RegionSettings.hint_candidate``,
+    ``cnn_region_team_hint/<set>``)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "config.yaml").write_text(yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False))
