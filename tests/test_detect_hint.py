@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from mysim_jax.perception.camera import PerceptionError
-from mysim_jax.perception.detect.dataset import DatasetSpec, render_sample
+from mysim_jax.perception.detect.dataset import DatasetSpec, counted_samples, render_sample
 from mysim_jax.perception.detect.metrics import iou
 
 
@@ -28,15 +28,8 @@ def _hinted(detector, **kw):
 
 
 def _targets(n: int):
-    spec = DatasetSpec(split="held_out", n_images=40, seed=4242, p_empty=0.0, p_occluder=0.0, p_distractors=0.0)
-    out = []
-    for i in range(40):
-        s = render_sample(spec, i)
-        if s.box is not None and not s.ignore:
-            out.append(s)
-        if len(out) == n:
-            break
-    return out
+    return counted_samples(DatasetSpec(split="held_out", n_images=40, seed=4242, p_empty=0.0, p_occluder=0.0,
+                                       p_distractors=0.0), n)
 
 
 def test_the_hint_alone_finds_the_target_and_adds_no_duplicate(detector):

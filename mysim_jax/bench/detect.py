@@ -28,7 +28,7 @@ from dataclasses import replace
 import numpy as np
 
 from mysim_jax.bench.timing import contention_note, median, spread, time_round_robin, wait_for_quiet
-from mysim_jax.perception.detect.dataset import DatasetSpec, render_sample
+from mysim_jax.perception.detect.dataset import DatasetSpec, counted_samples
 from mysim_jax.perception.detect.model import load_detector
 
 FRAME_SEED = 2024           # held-out frames no evaluation of the detector draws (its seeds are small)
@@ -38,15 +38,7 @@ HINT_OFFSET_PX = (6.0, -4.0)
 
 def frames(n: int = N_FRAMES, seed: int = FRAME_SEED) -> list:
     """The first ``n`` held-out samples with a counted target."""
-    spec = DatasetSpec(split="held_out", n_images=4 * n, seed=seed, p_empty=0.0)
-    out = []
-    for i in range(4 * n):
-        s = render_sample(spec, i)
-        if s.box is not None and not s.ignore:
-            out.append(s)
-        if len(out) == n:
-            break
-    return out
+    return counted_samples(DatasetSpec(split="held_out", n_images=4 * n, seed=seed, p_empty=0.0), n)
 
 
 def hint_of(sample) -> tuple[np.ndarray, float]:

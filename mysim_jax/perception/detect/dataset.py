@@ -519,6 +519,19 @@ def render_sample(spec: DatasetSpec, index: int) -> Sample:
                   mask=None if box is None else box_mask(frame, config.target.name, box))
 
 
+def counted_samples(spec: DatasetSpec, n: int) -> list[Sample]:
+    """The first ``n`` samples of ``spec`` (of its ``n_images``) with a counted target (fewer
+    when the set has fewer)."""
+    out = []
+    for i in range(spec.n_images):
+        s = render_sample(spec, i)
+        if s.box is not None and not s.ignore:
+            out.append(s)
+        if len(out) == n:
+            break
+    return out
+
+
 def box_mask(frame, target_name: str, box: np.ndarray) -> np.ndarray:
     """(h, w) bool: the pixels of ``box`` (renderer px, the visible target's box) that show
     the target in ``frame`` (:class:`~mysim_jax.perception.render_io.Frame`)."""

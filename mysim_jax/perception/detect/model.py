@@ -442,23 +442,29 @@ class CNNDetector:
             if box[2] > box[0] and box[3] > box[1]:
                 dets.append(Detection(box=box, score=float(s)))
         if self.refiner is not None:
-            cands = [dets[: region.max_candidates]]
-            if region.hint_candidate:         # the expected box itself, one more candidate (in the same batch)
-                c, h = np.asarray(centre, float), 0.5 * float(side_px)
-                cands.append([Detection(box=np.array([c[0] - h, c[1] - h, c[0] + h, c[1] + h]),
-                                        score=region.hint_score)])
-            refined = self.refiner.refine([image] * len(cands), cands,
-                                          teammates=None if teammates is None else [teammates] * len(cands))
-            dets = refined[0]
-            if region.hint_candidate:
-                extra = [d for d in refined[1]
-                         if not any(a.score > d.score and iou(a.box, d.box) >= region.hint_overlap for a in dets)]
-                dets = sorted(dets + extra, key=lambda d: -d.score)
-            dets = [d for d in _suppress(dets) if d.score >= floor]
+            dets = [d for d in _suppress(self._refine_region(image, dets[: region.max_candidates], centre, side_px,
+                                                             region, teammates)) if d.score >= floor]
         if teammates is not None and dets:
             theirs = explained_by_teammates(np.array([d.box for d in dets]), centre, side_px, teammates,
                                             region.teammate_gate, region.teammate_margin)
             dets = [d for d, t in zip(dets, theirs) if not t]
+        return dets
+
+    def _refine_region(self, image, candidates, centre, side_px, region: RegionSettings, teammates):
+        """The second stage on region mode's first-stage ``candidates`` (and, with
+        ``region.hint_candidate``, on the expected box in the same batch; see
+        :meth:`detect_region`): detections best first, before suppression."""
+        cands = [candidates]
+        if region.hint_candidate:
+            c, h = np.asarray(centre, float), 0.5 * float(side_px)
+            cands.append([Detection(box=np.array([c[0] - h, c[1] - h, c[0] + h, c[1] + h]), score=region.hint_score)])
+        refined = self.refiner.refine([image] * len(cands), cands,
+                                      teammates=None if teammates is None else [teammates] * len(cands))
+        dets = refined[0]
+        if region.hint_candidate:
+            extra = [d for d in refined[1]
+                     if not any(a.score > d.score and iou(a.box, d.box) >= region.hint_overlap for a in dets)]
+            dets = sorted(dets + extra, key=lambda d: -d.score)
         return dets
 
     # --- files --------------------------------------------------------------------------------
