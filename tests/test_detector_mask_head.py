@@ -37,14 +37,14 @@ def test_windows_of_a_mask_keep_its_area_and_place():
     mask = np.zeros((10, 20), bool)
     mask[2:8, 5:15] = True                         # 60 px, image columns 105..114, rows 52..57
     box = np.array([99.5, 49.5, 119.5, 59.5])      # the mask's box: columns 100..119, rows 50..59
-    big = window_masks(mask, box, np.array([[90, 30, 64]]), 32, (360, 640))[0]    # shrunk 2x
+    big = window_masks(mask, box, np.array([[90, 30, 64]]), 32)[0]    # shrunk 2x
     assert np.isclose(big.sum() * 4, 60) and big.max() == 1.0
     rows, cols = np.nonzero(big > 0)
     assert (rows.min(), rows.max(), cols.min(), cols.max()) == (11, 13, 7, 12)   # (52-30)/2 .. (57-30)/2, ...
-    # part of a window beyond the image shows nothing; a window without the target is empty
-    edge = window_masks(mask, box, np.array([[-20, -20, 32], [110, 40, 32]]), 32, (360, 640))
+    # a window away from the target, or past the image's corner, shows nothing; a window over part of it, that part
+    edge = window_masks(mask, box, np.array([[-20, -20, 32], [110, 40, 32]]), 32)
     assert edge[0].sum() == 0 and np.isclose(edge[1].sum(), 30)       # columns 110..114 of the mask
-    assert window_masks(None, None, np.array([[0, 0, 16]]), 8, (90, 160)).sum() == 0
+    assert window_masks(None, None, np.array([[0, 0, 16]]), 8).sum() == 0
 
 
 def test_the_masks_file_round_trips_and_an_older_set_gets_the_same_masks(tmp_path):
@@ -112,23 +112,14 @@ def test_the_head_leaves_the_logit_and_box_as_they_were():
 
 def test_the_script_fine_tunes_a_second_stage_with_the_head(tmp_path):
     from mysim_jax.perception.detect.model import load_detector
-    from test_detector import _train_script
-    from test_detector_refine import TINY_REFINE
+    from test_detector_refine import fine_tune_tiny
 
-    module = _train_script()
-    tiny = TINY_REFINE.replace("members: 2}", "members: 1}")
-    cfg = tmp_path / "tiny.yaml"
-    cfg.write_text(tiny)
-    start = tmp_path / "start"
-    assert module.main([str(cfg), "--out", str(start), "--no-progress"]) == 0
+    def as_before_masks(start):                    # the training frames as cached before the masks were kept
+        for mask in (start / "cache").glob("train_*_masks.npz"):
+            mask.unlink()
+
+    start, out = fine_tune_tiny(tmp_path, "mask_weight: 1.0", between=as_before_masks)
     before = load_detector(start / "detector.msgpack").refiner.members[0]
-    for mask in (start / "cache").glob("train_*_masks.npz"):
-        mask.unlink()                              # the training frames as cached before the masks were kept
-    cfg.write_text(tiny.replace("steps: 2,", "steps: 0,").replace("members: 1}", "members: 1, fine_tune: true, "
-                                                                                  "mask_weight: 1.0}"))
-    out = tmp_path / "mask"
-    assert module.main([str(cfg), "--out", str(out), "--init", str(start / "detector.msgpack"), "--cache",
-                        str(start / "cache"), "--no-progress"]) == 0
     after = load_detector(out / "detector.msgpack").refiner.members[0]
     assert not any(k.startswith("mask") for k in before) and {k for k in after if k.startswith("mask")}
     assert not np.array_equal(before["fc"]["kernel"], after["fc"]["kernel"])

@@ -250,6 +250,28 @@ TINY_REFINE = ("data: {width: 160, height: 90, train_images: 4, eval_images: 3, 
                "refine: {steps: 3, batch_size: 4, widths: [4, 4, 4], hidden: 8, size: 32, candidate_min_score: 0.01,"
                " warmup_steps: 1, members: 2}\n"
                "eval: {n_examples: 0}\n")
+TINY_ONE = TINY_REFINE.replace("members: 2}", "members: 1}")    # one second-stage network
+
+
+def fine_tune_tiny(tmp_path, refine_options: str, between=None):
+    """``TINY_ONE`` trained by scripts/train_detector.py into ``tmp_path/start``, then (after
+    ``between(start)``, if given) its second stage fine-tuned with the extra ``refine:``
+    options ``refine_options`` (e.g. ``"teammate_channel: true"``; the first stage not trained
+    again) from start's weights and cached frames into ``tmp_path/tuned``. Returns (start, tuned)."""
+    from test_detector import _train_script
+
+    module = _train_script()
+    cfg = tmp_path / "tiny.yaml"
+    cfg.write_text(TINY_ONE)
+    start, tuned = tmp_path / "start", tmp_path / "tuned"
+    assert module.main([str(cfg), "--out", str(start), "--no-progress"]) == 0
+    if between is not None:
+        between(start)
+    cfg.write_text(TINY_ONE.replace("steps: 2,", "steps: 0,")
+                   .replace("members: 1}", f"members: 1, fine_tune: true, {refine_options}}}"))
+    assert module.main([str(cfg), "--out", str(tuned), "--init", str(start / "detector.msgpack"), "--cache",
+                        str(start / "cache"), "--no-progress"]) == 0
+    return start, tuned
 
 
 def test_script_trains_and_evaluates_both_stages_on_a_tiny_config(tmp_path, capsys):

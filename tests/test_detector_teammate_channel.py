@@ -129,22 +129,11 @@ def test_the_script_fine_tunes_a_three_channel_second_stage_into_a_four_channel_
     from mysim_jax.perception.detect.config import config_from_dict
     from mysim_jax.perception.detect.model import load_detector
     from mysim_jax.perception.detect.train import refine_init_from
-    from test_detector import _train_script
-    from test_detector_refine import TINY_REFINE
+    from test_detector_refine import TINY_ONE, fine_tune_tiny
 
-    module = _train_script()
-    tiny = TINY_REFINE.replace("members: 2}", "members: 1}")
-    cfg = tmp_path / "tiny.yaml"
-    cfg.write_text(tiny)
-    start = tmp_path / "three"
-    assert module.main([str(cfg), "--out", str(start), "--no-progress"]) == 0
+    start, out = fine_tune_tiny(tmp_path, "teammate_channel: true")
     three = load_detector(start / "detector.msgpack")
     assert three.refiner.channels == 3
-    cfg.write_text(tiny.replace("steps: 2,", "steps: 0,").replace("members: 1}", "members: 1, fine_tune: true, "
-                                                                                  "teammate_channel: true}"))
-    out = tmp_path / "four"
-    assert module.main([str(cfg), "--out", str(out), "--init", str(start / "detector.msgpack"), "--cache",
-                        str(start / "cache"), "--no-progress"]) == 0
     four = load_detector(out / "detector.msgpack")
     assert four.refiner.uses_teammates and input_channels(four.refiner.members[0]) == 4
     k3, k4 = three.refiner.members[0]["down0"]["kernel"], four.refiner.members[0]["down0"]["kernel"]
@@ -153,6 +142,6 @@ def test_the_script_fine_tunes_a_three_channel_second_stage_into_a_four_channel_
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["refine_steps"] == 3 and np.isfinite(metrics["refine_final_loss"])
     # the reverse: a four-channel start with a config without the channel is refused
-    plain = config_from_dict(yaml.safe_load(tiny.replace("members: 1}", "members: 1, fine_tune: true}")))
+    plain = config_from_dict(yaml.safe_load(TINY_ONE.replace("members: 1}", "members: 1, fine_tune: true}")))
     with pytest.raises(PerceptionError, match="teammate_channel: true"):
         refine_init_from(plain, out / "detector.msgpack")

@@ -273,23 +273,22 @@ def loss_fn(params, model: RefineNet, windows_u8, prior, label, weight, target, 
     return loss, parts
 
 
-def window_masks(mask, box, windows: np.ndarray, size: int, image_shape) -> np.ndarray:
+def window_masks(mask, box, windows: np.ndarray, size: int) -> np.ndarray:
     """(N, size, size) float32: the share of each cell of every (x0, y0, side) window (resized
     to ``size``) that shows the target, whose visible pixels are ``mask`` ((h, w) bool over the
-    renderer box ``box``; None: no target). Outside the image: none."""
+    renderer box ``box``, inside the image; None: no target)."""
     windows = np.asarray(windows, np.int64).reshape(-1, 3)
     out = np.zeros((len(windows), size, size), np.float32)
     if mask is None or not np.any(mask):
         return out
-    H, W = image_shape[:2]
     u0, v0 = (int(round(x + 0.5)) for x in np.asarray(box)[:2])
-    full = np.zeros((H, W), np.float32)
-    full[v0:v0 + mask.shape[0], u0:u0 + mask.shape[1]] = mask
+    h, w = mask.shape
     for n, (x0, y0, side) in enumerate(windows):
+        ya, yb, xa, xb = max(y0, v0), min(y0 + side, v0 + h), max(x0, u0), min(x0 + side, u0 + w)
+        if yb <= ya or xb <= xa:
+            continue
         canvas = np.zeros((side, side), np.float32)
-        ya, yb, xa, xb = max(y0, 0), min(y0 + side, H), max(x0, 0), min(x0 + side, W)
-        if yb > ya and xb > xa:
-            canvas[ya - y0:yb - y0, xa - x0:xb - x0] = full[ya:yb, xa:xb]
+        canvas[ya - y0:yb - y0, xa - x0:xb - x0] = mask[ya - v0:yb - v0, xa - u0:xb - u0]
         out[n] = cv2.resize(canvas, (size, size), interpolation=cv2.INTER_AREA if side > size else cv2.INTER_LINEAR)
     return out
 

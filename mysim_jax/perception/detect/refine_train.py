@@ -170,7 +170,7 @@ def make_sample(images, pool: SamplePool, cfg: DetectorConfig, rng: np.random.Ge
             raise PerceptionError("refine.mask_weight: the training frames' visible-pixel masks were not loaded")
         lab = pool.labels[i]
         if not (lab["box"] is not None and lab["ignore"]):     # an ignored target's pixels: no mask label
-            visible = window_masks(pool.masks[i], lab["box"], window, r.size // 2, image.shape)[0]
+            visible = window_masks(pool.masks[i], lab["box"], window, r.size // 2)[0]
             visible_on = float(weight[0] > 0)
     flip = rng.random() < 0.5
     if flip:
