@@ -87,6 +87,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--pose-seeds", type=int, default=0, metavar="N", help="--track, with --pose-noise: also "
                         "localise with N draws of the pose noise (seeds 0..N-1), from the detections and from the true "
                         "boxes (what the pose errors alone cost; default 0: the one draw of --seed)")
+    parser.add_argument("--pose-seed-start", type=int, default=0, metavar="K", help="--track, with --pose-seeds: "
+                        "the first draw's seed (default 0: draws K..K+N-1)")
+    parser.add_argument("--team-ranging", type=float, nargs=2, metavar=("M", "BIAS_M"), help="--track, with "
+                        "--pose-seeds: the UAVs also measure their distances to each other every frame (UWB-like: "
+                        "white noise of M and a constant bias per pair drawn with spread BIAS_M) and the "
+                        "self-calibration of the pose biases uses them (reported beside the one without)")
     parser.add_argument("--pose-noise-time", type=float, default=0.0, metavar="S", help="--track: correlation "
                         "time of the pose noise (Gauss-Markov over the frames, as VIO errors; default 0: white)")
     parser.add_argument("--out", required=True, help="output folder (created if missing)")
@@ -174,6 +180,15 @@ def _track(args) -> int:
             raise PerceptionError(f"--range-sigma must be positive, got {args.range_sigma}")
         if args.pose_seeds < 0 or (args.pose_seeds and args.pose_noise is None):
             raise PerceptionError(f"--pose-seeds {args.pose_seeds}: a count >= 0, and only with --pose-noise")
+        if args.pose_seed_start < 0 or (args.pose_seed_start and not args.pose_seeds):
+            raise PerceptionError(f"--pose-seed-start {args.pose_seed_start}: a seed >= 0, and only with --pose-seeds")
+        ranging = None
+        if args.team_ranging is not None:
+            if not args.pose_seeds:
+                raise PerceptionError("--team-ranging needs --pose-seeds (the draws it is reported over)")
+            from mysim_jax.perception.pose_bias import TeamRanging
+
+            ranging = TeamRanging(sigma_m=args.team_ranging[0], bias_m=args.team_ranging[1])
         if not args.camera_rate > 0:
             raise PerceptionError(f"--camera-rate must be positive, got {args.camera_rate}")
         intr = intrinsics(width=args.size[0], height=args.size[1])
@@ -211,7 +226,8 @@ def _track(args) -> int:
         if hasattr(detector, "stats"):
             extra["detection_time"] = detector.stats()
         metrics = write_tracking_report(record, tmp, pose_noise=pose_noise, extra=extra, progress=not args.no_progress,
-                                        range_sigma=args.range_sigma, pose_seeds=args.pose_seeds)
+                                        range_sigma=args.range_sigma, pose_seeds=args.pose_seeds,
+                                        first_pose_seed=args.pose_seed_start, ranging=ranging)
     print("\n".join(tracking_summary_lines(config.name, record, metrics, args.camera_rate, wall, out)))
     return 0
 

@@ -29,15 +29,83 @@ which ``dp`` along the ray would absorb). A frame's information is divided by
 ``frames_per_independent`` (the detector's box errors follow the target's attitude and are
 correlated over several frames, not independent). With ``pose_sigma`` zero nothing is
 calibrated and the points are ``fuse(method)`` of the rays as given.
+
+**Ranges between the cameras** (:class:`TeamRanging`, UWB-like radios on the UAVs; optional).
+The rays see neither the common shift nor the scale mode; a measured distance ``d_ij``
+between cameras ``i`` and ``j`` does see the scale mode and every other relative position
+bias along the pair's baseline: with ``c = p' − dp`` the true origins,
+``d_ij = |c_i − c_j| + noise``, linearised at the current estimate
+(``u`` the unit vector from ``c_j`` to ``c_i``) ``d_ij − |ĉ_i − ĉ_j| ≈ −uᵀ(dp_i − d̂p_i) + uᵀ(dp_j − d̂p_j)``,
+a Kalman update of ``θ`` per frame (every pair, white noise of the stated spread). What the
+filter does not model is each pair's constant bias (antenna delays): :class:`TeamRanging`
+draws one so that its cost shows.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
 from mysim_jax.core.npgeom import skew
 from mysim_jax.perception.camera import PerceptionError
 from mysim_jax.perception.localize import Localisation, PoseNoise, fuse, record_rays
+
+
+@dataclass(frozen=True)
+class TeamRanging:
+    """Distances between the team's cameras measured every frame (UWB-like radios, one on each
+    UAV at its camera): the true distance plus white noise of spread ``sigma_m`` (m) and a
+    constant per-pair bias drawn once per run with spread ``bias_m`` (m); ``seed`` draws both
+    (a stream of its own, apart from :class:`~mysim_jax.perception.localize.PoseNoise`'s)."""
+
+    sigma_m: float = 0.1
+    bias_m: float = 0.0
+    seed: int = 0
+
+    def __post_init__(self):
+        if not (self.sigma_m > 0 and self.bias_m >= 0):
+            raise PerceptionError(f"team ranging needs a noise sigma > 0 m and a bias spread >= 0 m; got "
+                                  f"{self.sigma_m} and {self.bias_m}")
+
+    def measure(self, camera_p: np.ndarray) -> np.ndarray:
+        """Measured distances (F, G, G) m, symmetric, NaN on the diagonal, from the true camera
+        positions ``camera_p`` (F, G, 3)."""
+        camera_p = np.asarray(camera_p, float)
+        F, G, _ = camera_p.shape
+        rng = np.random.default_rng([self.seed, 0x55B])
+        bias = np.triu(rng.normal(0.0, self.bias_m, (G, G)), 1) if self.bias_m > 0 else np.zeros((G, G))
+        noise = np.triu(rng.normal(0.0, self.sigma_m, (F, G, G)), 1)
+        d = np.linalg.norm(camera_p[:, :, None] - camera_p[:, None], axis=-1) + bias + noise
+        d = np.triu(d, 1)
+        d = d + np.swapaxes(d, 1, 2)
+        d[:, np.arange(G), np.arange(G)] = np.nan
+        return d
+
+
+def _range_update(th, S, p, distances, sigma: float):
+    """The Kalman update of the biases ``th`` (6 G,) and their covariance ``S`` from one
+    frame's measured distances (G, G) (NaN: none) between cameras at believed origins ``p``
+    (G, 3) (module doc)."""
+    G = len(p)
+    rows, z = [], []
+    c = p - th.reshape(G, 6)[:, :3]
+    for i in range(G):
+        for j in range(i + 1, G):
+            if not np.isfinite(distances[i, j]):
+                continue
+            d = c[i] - c[j]
+            u = d / np.linalg.norm(d)
+            h = np.zeros(6 * G)
+            h[6 * i:6 * i + 3], h[6 * j:6 * j + 3] = -u, u
+            rows.append(h)
+            z.append(distances[i, j] - np.linalg.norm(d))
+    if not rows:
+        return th, S
+    H, z = np.array(rows), np.array(z)
+    K = np.linalg.solve(H @ S @ H.T + sigma * sigma * np.eye(len(z)), H @ S).T
+    S = S - K @ H @ S
+    return th + K @ z, (S + S.T) / 2.0
 
 
 def _corrected(p: np.ndarray, b: np.ndarray, th: np.ndarray, cams: np.ndarray):
@@ -88,14 +156,17 @@ def _inliers(pc, bc, x0, cams, S, angle_sigma: float, gate: float) -> np.ndarray
 
 def self_calibrated_points(t, has, origins, bearings, ranges, pose_sigma, correlation_time: float,
                            angle_sigma: float = 2e-3, range_sigma: float = 0.05, method: str = "triples_weighted",
-                           frames_per_independent: float = 5.0, gate: float = 3.0):
+                           frames_per_independent: float = 5.0, gate: float = 3.0,
+                           distances: np.ndarray | None = None, distance_sigma: float = 0.1):
     """Target points (F, 3) m (NaN: none that frame) and the bias estimates (F, G, 6) (m, rad)
     from the believed rays of ``G`` cameras over ``F`` frames (see the module doc).
 
     ``t`` (F,) s; ``has`` (F, G) bool (a detection); ``origins``, ``bearings`` (F, G, 3);
     ``ranges`` (F, G) m (NaN: none), used by the fusion only; ``pose_sigma`` (position m per
     axis, rotation rad about a random axis, as :class:`~mysim_jax.perception.localize.PoseNoise`);
-    ``correlation_time`` s (0: the biases are constant)."""
+    ``correlation_time`` s (0: the biases are constant); ``distances`` (F, G, G) m, measured
+    distances between the cameras (:meth:`TeamRanging.measure`; NaN: none), taken as carrying
+    white noise of spread ``distance_sigma`` m."""
     has = np.asarray(has, bool)
     F, G = has.shape
     sp, st = (float(v) for v in pose_sigma)
@@ -103,6 +174,9 @@ def self_calibrated_points(t, has, origins, bearings, ranges, pose_sigma, correl
         raise PerceptionError(f"self-calibration needs pose_sigma (>= 0 m, >= 0 rad), correlation_time >= 0, "
                               f"frames_per_independent >= 1 and gate > 0; got {pose_sigma}, {correlation_time}, "
                               f"{frames_per_independent}, {gate}")
+    if distances is not None and (np.shape(distances) != (F, G, G) or not distance_sigma > 0):
+        raise PerceptionError(f"self-calibration: distances between the cameras must be (frames, cameras, cameras) "
+                              f"= {(F, G, G)} with a noise sigma > 0; got {np.shape(distances)} and {distance_sigma}")
     calibrate = sp > 0 or st > 0
     S0 = np.diag(np.tile(np.r_[np.full(3, max(sp * sp, 1e-12)), np.full(3, max(st * st / 3.0, 1e-12))], G))
     S, th = S0.copy(), np.zeros(6 * G)
@@ -112,6 +186,8 @@ def self_calibrated_points(t, has, origins, bearings, ranges, pose_sigma, correl
         if k and correlation_time > 0:
             rho = float(np.exp(-(t[k] - t[k - 1]) / correlation_time))
             th, S = rho * th, rho * rho * S + (1.0 - rho * rho) * S0
+        if distances is not None and calibrate:
+            th, S = _range_update(th, S, origins[k], distances[k], distance_sigma)
         cams = np.flatnonzero(has[k])
         if cams.size:
             p, b, r = origins[k, cams], bearings[k, cams], ranges[k, cams]
@@ -132,17 +208,21 @@ def self_calibrated_points(t, has, origins, bearings, ranges, pose_sigma, correl
 
 def localize_self_calibrated(record, pose_noise: PoseNoise | None = None, pose_sigma=None,
                              correlation_time: float | None = None, angle_sigma: float = 2e-3,
-                             range_sigma: float = 0.05, method: str = "triples_weighted", **options) -> Localisation:
+                             range_sigma: float = 0.05, method: str = "triples_weighted",
+                             ranging: TeamRanging | None = None, **options) -> Localisation:
     """:func:`~mysim_jax.perception.localize.localize_record` with the cameras' pose biases
-    self-calibrated (:func:`self_calibrated_points`; estimates under ``"self_calibrated"``).
-    ``pose_sigma`` and ``correlation_time`` default to ``pose_noise``'s; ``options``:
-    ``frames_per_independent``, ``gate``."""
+    self-calibrated (:func:`self_calibrated_points`; estimates under ``"self_calibrated"``),
+    from the rays and, with ``ranging``, the distances it measures between the record's true
+    camera positions. ``pose_sigma`` and ``correlation_time`` default to ``pose_noise``'s;
+    ``options``: ``frames_per_independent``, ``gate``."""
     if pose_sigma is None or correlation_time is None:
         if pose_noise is None:
             raise PerceptionError("self-calibration needs pose_sigma and correlation_time, or pose_noise")
         pose_sigma = (pose_noise.position_m, pose_noise.rotation_rad) if pose_sigma is None else pose_sigma
         correlation_time = pose_noise.correlation_time if correlation_time is None else correlation_time
     has, p, b, r = record_rays(record, pose_noise)
+    if ranging is not None:
+        options = {**options, "distances": ranging.measure(record.camera_p), "distance_sigma": ranging.sigma_m}
     points, _ = self_calibrated_points(record.t, has, p, b, r, pose_sigma, correlation_time,
                                        angle_sigma=angle_sigma, range_sigma=range_sigma, method=method, **options)
     return Localisation(t=np.asarray(record.t), truth=np.asarray(record.target_pos),

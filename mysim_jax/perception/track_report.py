@@ -19,7 +19,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 from mysim_jax.perception.localize import (METHODS, PoseNoise, box_size_px, box_touches_border, localize_record,
                                            size_range_fits, sphere_range)
 from mysim_jax.perception.metrics import gauss_markov_fit
-from mysim_jax.perception.pose_bias import localize_self_calibrated
+from mysim_jax.perception.pose_bias import TeamRanging, localize_self_calibrated
 from mysim_jax.perception.target_filter import target_filter
 from mysim_jax.perception.track import TrackingRecord, target_moving, tracking_metrics
 
@@ -170,44 +170,56 @@ def _error_stats(loc, method: str) -> tuple[float, float]:
 def _draw_summary(stats: list) -> dict:
     means, p95s = [m for m, _ in stats], [p for _, p in stats]
     return {"error_mean_m": float(np.mean(means)), "error_p95_m": float(np.mean(p95s)),
-            "draw_mean_range_m": [min(means), max(means)]}
+            "draw_mean_range_m": [min(means), max(means)], "draw_means_m": means}
 
 
 def pose_noise_seeds(record: TrackingRecord, pose_noise: PoseNoise, seeds: int, range_sigma: float,
-                     method: str = TEAM_METHOD) -> dict:
-    """The fused target error (``method``) with ``seeds`` draws of ``pose_noise`` (seeds 0,
-    1, ...), from the run's detections and, in the same frames, from the renderer's true
-    boxes: what the camera-pose errors alone cost, whatever the detector. Per kind of box:
-    the error mean and p95 (m) averaged over the draws, and the smallest and largest
-    draw's mean; ``self_calibrated``: the same with the cameras' pose biases calibrated
-    from the target's rays (:mod:`mysim_jax.perception.pose_bias`, assuming ``pose_noise``'s
-    spreads; ``true_poses``: with the true poses, the cost of calibrating what is not
-    there); ``error_model``: the team track's error model pooled over the draws
+                     method: str = TEAM_METHOD, first_seed: int = 0, ranging: TeamRanging | None = None) -> dict:
+    """The fused target error (``method``) with ``seeds`` draws of ``pose_noise`` (seeds
+    ``first_seed``, ``first_seed + 1``, ...), from the run's detections and, in the same
+    frames, from the renderer's true boxes: what the camera-pose errors alone cost, whatever
+    the detector. Per kind of box: the error mean and p95 (m) averaged over the draws, and
+    the smallest and largest draw's mean, and each draw's mean (``draw_means_m``);
+    ``self_calibrated``: the same with the cameras' pose biases calibrated from the target's
+    rays (:mod:`mysim_jax.perception.pose_bias`, assuming ``pose_noise``'s spreads;
+    ``true_poses``: with the true poses, the cost of calibrating what is not there);
+    ``error_model``: the team track's error model pooled over the draws
     (:func:`pooled_error_model`), the track filtering the self-calibrated fusion, and
-    ``error_model_plain`` the same of the plain fusion's track."""
+    ``error_model_plain`` the same of the plain fusion's track. With ``ranging`` (the
+    distances between the cameras, a draw of its own per seed), also
+    ``self_calibrated_ranging`` and ``error_model_ranging``: the calibration that uses them."""
     truth = dataclasses.replace(record, det_box=np.where(np.isfinite(record.det_box), record.true_box, np.nan))
-    out = {"seeds": seeds, "method": method}
-    calibrated = {}
-    models, models_plain = [], []
+    out = {"seeds": seeds, "first_seed": first_seed, "method": method}
+    kinds = {"": None} if ranging is None else {"": None, "_ranging": ranging}
+    calibrated = {kind: {} for kind in kinds}
+    models = {"_plain": [], **{kind: [] for kind in kinds}}
     for name, rec in (("detections", record), ("true_boxes", truth)):
-        plain, cal = [], []
-        for seed in range(seeds):
+        plain, cal = [], {kind: [] for kind in kinds}
+        for seed in range(first_seed, first_seed + seeds):
             noise = dataclasses.replace(pose_noise, seed=seed)
             loc = localize_record(rec, pose_noise=noise, methods=(method,), range_sigma=range_sigma)
-            loc_cal = localize_self_calibrated(rec, noise, range_sigma=range_sigma, method=method)
             plain.append(_error_stats(loc, method))
-            cal.append(_error_stats(loc_cal, SELF_CALIBRATED))
             if name == "detections":
-                models.append(target_error_model(record, loc_cal, poses="perturbed", method=SELF_CALIBRATED))
-                models_plain.append(target_error_model(record, loc, poses="perturbed", method=method))
+                models["_plain"].append(target_error_model(record, loc, poses="perturbed", method=method))
+            for kind, rg in kinds.items():
+                loc_cal = localize_self_calibrated(rec, noise, range_sigma=range_sigma, method=method,
+                                                   ranging=None if rg is None else dataclasses.replace(rg, seed=seed))
+                cal[kind].append(_error_stats(loc_cal, SELF_CALIBRATED))
+                if name == "detections":
+                    models[kind].append(target_error_model(record, loc_cal, poses="perturbed", method=SELF_CALIBRATED))
         out[name] = _draw_summary(plain)
-        calibrated[name] = _draw_summary(cal)
-    loc = localize_self_calibrated(record, pose_sigma=(pose_noise.position_m, pose_noise.rotation_rad),
-                                   correlation_time=pose_noise.correlation_time, range_sigma=range_sigma, method=method)
-    mean, p95 = _error_stats(loc, "self_calibrated")
-    out["self_calibrated"] = {**calibrated, "true_poses": {"error_mean_m": mean, "error_p95_m": p95}}
-    out["error_model"] = pooled_error_model(models)
-    out["error_model_plain"] = pooled_error_model(models_plain)
+        for kind in kinds:
+            calibrated[kind][name] = _draw_summary(cal[kind])
+    for kind, rg in kinds.items():
+        loc = localize_self_calibrated(record, pose_sigma=(pose_noise.position_m, pose_noise.rotation_rad),
+                                       correlation_time=pose_noise.correlation_time, range_sigma=range_sigma,
+                                       method=method, ranging=rg)
+        mean, p95 = _error_stats(loc, "self_calibrated")
+        out["self_calibrated" + kind] = {**calibrated[kind], "true_poses": {"error_mean_m": mean, "error_p95_m": p95}}
+    if ranging is not None:
+        out["self_calibrated_ranging"]["ranging"] = {"sigma_m": ranging.sigma_m, "bias_m": ranging.bias_m}
+    for kind, fitted in models.items():
+        out["error_model" + kind] = pooled_error_model(fitted)
     return out
 
 
@@ -232,11 +244,12 @@ def pooled_error_model(models: list[dict]) -> dict:
 
 def write_tracking_report(record: TrackingRecord, out: Path, pose_noise: PoseNoise | None = None,
                           extra: dict | None = None, progress: bool = True, range_sigma: float = 0.05,
-                          pose_seeds: int = 0) -> dict:
+                          pose_seeds: int = 0, first_pose_seed: int = 0, ranging: TeamRanging | None = None) -> dict:
     """Write ``metrics.json``, ``tracking.npz``, ``localisation.csv`` and the plots into ``out``;
     returns the metrics. ``range_sigma``: the relative range noise the fusion assumes;
     ``pose_seeds``: with ``pose_noise``, also :func:`pose_noise_seeds` over that many draws
-    (``localisation.perturbed_poses_draws``, and the pooled ``error_model_draws``). With
+    from seed ``first_pose_seed`` (``localisation.perturbed_poses_draws``, and the pooled
+    ``error_model_draws``; with ``ranging``, ``error_model_draws_ranging`` too). With
     ``pose_noise`` the team's track (``error_model``) filters the self-calibrated fusion
     (``error_model_plain``: the plain one's; see SELF_CALIBRATED above)."""
     out = Path(out)
@@ -252,9 +265,11 @@ def write_tracking_report(record: TrackingRecord, out: Path, pose_noise: PoseNoi
             "correlation_time_s": pose_noise.correlation_time,
             **noisy.metrics()}
         if pose_seeds:
-            draws = pose_noise_seeds(record, pose_noise, pose_seeds, range_sigma)
-            metrics["error_model_draws"] = draws.pop("error_model")
-            metrics["error_model_draws_plain"] = draws.pop("error_model_plain")
+            draws = pose_noise_seeds(record, pose_noise, pose_seeds, range_sigma, first_seed=first_pose_seed,
+                                     ranging=ranging)
+            for kind in ("", "_plain", "_ranging"):
+                if "error_model" + kind in draws:
+                    metrics["error_model_draws" + kind] = draws.pop("error_model" + kind)
             metrics["localisation"]["perturbed_poses_draws"] = draws
         cal = localize_self_calibrated(record, pose_noise, range_sigma=range_sigma)
         metrics["error_model"] = target_error_model(record, cal, poses="perturbed", method=SELF_CALIBRATED)
@@ -331,15 +346,22 @@ def tracking_summary_lines(scene: str, record, metrics: dict, frame_rate: float,
                      f"(draws {d['draw_mean_range_m'][0]:.4f}-{d['draw_mean_range_m'][1]:.4f}), p95 "
                      f"{d['error_p95_m']:.4f} m; from the true boxes in the same frames: mean {tb['error_mean_m']:.4f} m, "
                      f"p95 {tb['error_p95_m']:.4f} m")
-        sc = draws.get("self_calibrated")
-        if sc is not None:
+        for kind, what in (("self_calibrated", "self-calibrated"),
+                           ("self_calibrated_ranging", "self-calibrated with the team's ranges")):
+            sc = draws.get(kind)
+            if sc is None:
+                continue
             d, tb, tp = sc["detections"], sc["true_boxes"], sc["true_poses"]
-            lines.append(f"  the same with the cameras' pose biases self-calibrated: error mean {d['error_mean_m']:.4f} m "
+            rg = sc.get("ranging")
+            lines.append(f"  the same with the cameras' pose biases {what}"
+                         + (f" ({1000 * rg['sigma_m']:.0f} mm noise, {1000 * rg['bias_m']:.0f} mm pair biases)" if rg else "")
+                         + f": error mean {d['error_mean_m']:.4f} m "
                          f"(draws {d['draw_mean_range_m'][0]:.4f}-{d['draw_mean_range_m'][1]:.4f}), p95 "
                          f"{d['error_p95_m']:.4f} m; true boxes: mean {tb['error_mean_m']:.4f} m, p95 "
                          f"{tb['error_p95_m']:.4f} m; true poses: mean {tp['error_mean_m']:.4f} m, p95 "
                          f"{tp['error_p95_m']:.4f} m")
-    for key in ("error_model", "error_model_plain", "error_model_draws", "error_model_draws_plain"):
+    for key in ("error_model", "error_model_plain", "error_model_draws", "error_model_draws_plain",
+                "error_model_draws_ranging"):
         if "position_m" in metrics.get(key, {}):
             lines.append(_team_track_line(metrics[key]))
     dt = metrics.get("detection_time")
