@@ -220,6 +220,8 @@ def pose_noise_seeds(record: TrackingRecord, pose_noise: PoseNoise, seeds: int, 
         out["self_calibrated_ranging"]["ranging"] = {"sigma_m": ranging.sigma_m, "bias_m": ranging.bias_m}
     for kind, fitted in models.items():
         out["error_model" + kind] = pooled_error_model(fitted)
+    if ranging is not None:
+        out["error_model_ranging"]["method"] += " with the team's ranges"
     return out
 
 
