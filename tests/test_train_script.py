@@ -447,6 +447,7 @@ def test_capture_environment_end_to_end_tiny(tmp_path):
     assert bc["pairs"] == 32 * 16 * 4 and bc["holdout_environments"] == 6
     assert summary["behaviour_cloning"] == bc
     assert summary["selection"]["selected_iteration"] in (0, 1) and summary["selection"]["episodes"] == 2
+    assert summary["selection"]["scene"] == "training" and not (out / "scene_select.yaml").exists()
     # iteration 0 is the clone's selection row; the policy saved is the selected one
     rows = _rows(out / "metrics.csv")
     assert [int(r["iteration"]) for r in rows] == [0, 1]

@@ -304,11 +304,28 @@ class SelectionConfig(StrictModel):
     """Model selection during training: every ``every`` iterations (and before the first,
     and after the last) the deterministic policy is evaluated on ``episodes`` fixed episodes
     (drawn from ``seed``, the same ones every time, apart from the final evaluation's), and
-    the best so far (most successes, then the highest mean return) is the run's policy."""
+    the best so far (most successes, then the highest mean return) is the run's policy.
+    The episodes fly the training scene unless ``set`` or ``scene`` names another: a run
+    that trains on shifted conditions (estimation errors, wider ranges, faults) and is
+    judged on the nominal ones can select on those."""
 
     every: PosInt = 10
     episodes: PosInt = 128
     seed: NonNegInt = 777
+    # the selection scene's overrides of env.scene in place of env.set, at env.level (the
+    # training level), e.g. env.eval_set's: select on the conditions the run is judged on.
+    # None: the training scene
+    set: list[str] | None = None
+    # a resolved scene file (relative to the training file) to select on instead; run
+    # folders use it (scene_select.yaml)
+    scene: str | None = None
+
+    @model_validator(mode="after")
+    def _one_scene(self):
+        if self.set is not None and self.scene is not None:
+            raise ValueError("give at most one of set (overrides of env.scene to select on) and scene (a resolved "
+                             "scene file)")
+        return self
 
 
 class RunConfig(StrictModel):
@@ -371,6 +388,14 @@ class TrainConfig(StrictModel):
             raise ValueError("algo.residual: the builtin environment has no scripted team to add a residual to")
         if self.algo.init == "bc" and self.env.builtin is not None:
             raise ValueError("algo.init: bc clones the scripted team, which the builtin environment does not have")
+        return self
+
+    @model_validator(mode="after")
+    def _selection_scene_needs_a_scene(self):
+        sel = self.run.selection
+        if self.env.builtin is not None and sel is not None and (sel.set is not None or sel.scene is not None):
+            raise ValueError("run.selection.set / run.selection.scene apply to a scene file, not to a builtin "
+                             "environment")
         return self
 
     @model_validator(mode="after")
@@ -454,6 +479,7 @@ def load_train_config(path: str | Path, overrides=(), profile: str | None = None
     file; its scene file is checked too (:func:`load_scene`)."""
     config = train_config_from_dict(read_yaml_file(path, "training file"), str(path), overrides, profile)
     load_eval_scene(config, path, load_scene(config, path))
+    load_select_scene(config, path)
     check_init_policy(config, path)
     return config
 
@@ -505,6 +531,23 @@ def load_eval_scene(config: TrainConfig, train_path: str | Path, scene=None):
         return load_scene(config, train_path, level=config.env.eval_level)
     except ConfigError as err:
         raise ConfigError(f"{train_path}: env.eval_level: {err}") from None
+
+
+def load_select_scene(config: TrainConfig, train_path: str | Path):
+    """The scene model selection flies when it is not the training scene
+    (``run.selection.scene``, or ``env.scene`` with ``run.selection.set`` in place of
+    ``env.set`` at ``env.level``), else None. Raises ConfigError naming the field."""
+    sel = config.run.selection
+    if config.env.scene is None or sel is None or (sel.set is None and sel.scene is None):
+        return None
+    if sel.scene is not None:
+        p = Path(sel.scene)
+        path = p if p.is_absolute() else Path(train_path).parent / p
+        if not path.exists():
+            raise ConfigError(f"{train_path}: run.selection.scene: no such file {path} "
+                              "(paths are relative to the training file)")
+        return _check_learner_discount(config, load_config(path), f"{train_path}: run.selection.scene")
+    return load_scene(config, train_path, sets=sel.set, field="run.selection.set")
 
 
 def load_scene(config: TrainConfig, train_path: str | Path, level: str | None = None, sets=None,

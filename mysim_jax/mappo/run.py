@@ -81,6 +81,7 @@ from mysim_jax.tasks.sweep import wilson_interval
 # a run from a training file: prepare (or load_run_config) -> train_run; the first three
 # live with the run folder's files (mysim_jax.mappo.run_files)
 __all__ = ["Prepared", "prepare", "load_run_config", "describe_run", "make_environment", "make_eval_environment",
+           "make_select_environment",
            "training_mesh", "train_run", "evaluate_builtin"]
 
 
@@ -125,13 +126,27 @@ def make_eval_environment(p: Prepared, env, env_params):
     if not p.evaluates_elsewhere:
         return env, env_params
 
-    eval_env, eval_params = make_env(p.eval_scene, discount=p.config.algo.gamma)
-    if (eval_env.obs_size, tuple(eval_env.action_shape)) != (env.obs_size, tuple(env.action_shape)):
-        field = "env.eval_set" if p.config.env.eval_set is not None else "env.eval_level"
-        raise ConfigError(f"{p.source}: {field}: the evaluation scene's observations/actions "
-                          f"({eval_env.obs_size}, {tuple(eval_env.action_shape)}) differ from training's "
+    field = "env.eval_set" if p.config.env.eval_set is not None else "env.eval_level"
+    return _like_training(p, p.eval_scene, env, f"{field}: the evaluation scene")
+
+
+def make_select_environment(p: Prepared, env, env_params):
+    """``(env, env_params)`` model selection flies: ``env, env_params`` themselves unless
+    ``run.selection`` names another scene (``set`` or ``scene``). Raises ConfigError when
+    its observations or actions differ in shape from training's."""
+    if p.select_scene is None:
+        return env, env_params
+    return _like_training(p, p.select_scene, env, "run.selection: the selection scene")
+
+
+def _like_training(p: Prepared, scene, env, what: str):
+    """``make_env(scene)``, refused unless its observations and actions have training's shapes."""
+    other, params = make_env(scene, discount=p.config.algo.gamma)
+    if (other.obs_size, tuple(other.action_shape)) != (env.obs_size, tuple(env.action_shape)):
+        raise ConfigError(f"{p.source}: {what}'s observations/actions "
+                          f"({other.obs_size}, {tuple(other.action_shape)}) differ from training's "
                           f"({env.obs_size}, {tuple(env.action_shape)})")
-    return eval_env, eval_params
+    return other, params
 
 
 def evaluate_builtin(env, env_params, policy, episodes: int, seed: int) -> dict:
@@ -183,6 +198,8 @@ class _Session:
     seeds: list                # a SeedRun per seed (run.seeds)
     eval_env: object = None    # the evaluation scene's environment (capture scenes, when evaluating)
     eval_params: object = None
+    select_env: object = None  # the scene model selection flies (run.selection; the training scene's by default)
+    select_params: object = None
     evaluator: Evaluator | None = None    # model selection on fixed episodes
     select_key: object = None
 
@@ -250,6 +267,7 @@ def _open_session(p: Prepared, progress: bool, evaluate: bool, log) -> _Session:
         if c.run.eval_batch > c.run.eval_episodes:
             log(f"note: run.eval_batch {c.run.eval_batch} is more than run.eval_episodes {c.run.eval_episodes}: "
                 f"the final evaluation runs {c.run.eval_episodes} side by side")
+    select_env, select_params = make_select_environment(p, env, env_params)
     if c.algo.init == "policy" and not p.resume:
         # the starting policy must fit this environment (shapes and meaning)
         folder = init_policy_path(c, p.source)
@@ -273,7 +291,8 @@ def _open_session(p: Prepared, progress: bool, evaluate: bool, log) -> _Session:
             one.out.mkdir(parents=True, exist_ok=True)
     return _Session(p=p, log=log, progress=progress, lead=lead, many=many, env=env, env_params=env_params,
                     trainer=trainer, ckpt=Checkpoints(p.out / "checkpoints", keep=c.run.keep_checkpoints),
-                    seeds=seeds, eval_env=eval_env, eval_params=eval_params)
+                    seeds=seeds, eval_env=eval_env, eval_params=eval_params, select_env=select_env,
+                    select_params=select_params)
 
 
 def _keys(s: _Session):
@@ -326,7 +345,7 @@ def _start_selection(s: _Session, state) -> None:
               f"{', '.join(f'{cur.config.stages[k]:g}' for k in stages)})")
     # model selection on fixed episodes (capture environments; the builtin task has its own evaluation)
     if s.selection is not None:
-        s.evaluator = Evaluator(s.env, s.env_params, s.trainer.policy_fn(),
+        s.evaluator = Evaluator(s.select_env, s.select_params, s.trainer.policy_fn(),
                                 batch=min(s.selection.episodes, c.run.eval_batch), env_batching=s.trainer.env_batching)
         s.select_key = jax.random.PRNGKey(s.selection.seed)
 

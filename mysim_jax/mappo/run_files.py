@@ -1,6 +1,6 @@
 """A training run's folder on disk: the checked run (:class:`Prepared`), the files that make
-the folder self-contained (``train.yaml``, ``scene.yaml``, ``scene_eval.yaml``, a copy of
-the starting policy), its ``metrics.csv``, and a chain's second run (``run.then``,
+the folder self-contained (``train.yaml``, ``scene.yaml``, ``scene_eval.yaml``,
+``scene_select.yaml``, a copy of the starting policy), its ``metrics.csv``, and a chain's second run (``run.then``,
 :func:`prepare_then`). The run itself is :mod:`mysim_jax.mappo.run`, a chain
 :mod:`mysim_jax.mappo.chain`.
 Imports no JAX: a training file is checked, and a run folder read, without it."""
@@ -18,12 +18,13 @@ from mysim_jax.config.scene import dump_config
 from mysim_jax.core.config_base import ConfigError, read_yaml_file
 from mysim_jax.io.output import check_output_dir
 from mysim_jax.mappo.config import (TrainConfig, check_memory, describe, init_policy_path, load_eval_scene,
-                                    load_scene, load_train_config, train_config_from_dict)
+                                    load_scene, load_select_scene, load_train_config, train_config_from_dict)
 
 TRAIN_FILE = "train.yaml"
 INIT_POLICY_DIR = "init_policy"      # a copy of algo.init_policy's folder
 SCENE_FILE = "scene.yaml"
 EVAL_SCENE_FILE = "scene_eval.yaml"
+SELECT_SCENE_FILE = "scene_select.yaml"
 CSV_FIELDS = ("iteration", "env_steps", "wall_s", "iteration_s", "episodes", "mean_return", "success_rate",
               "mean_length", "step_reward", "policy_loss", "value_loss", "entropy", "approx_kl", "clip_fraction",
               "explained_variance", "grad_norm", "action_std", "lr", "updates_applied", "policy_coef",
@@ -47,6 +48,7 @@ class Prepared:
     eval_scene: object | None = None   # the scene of the final evaluation (None: ``scene``)
     profile: str | None = None         # the training file's profile applied (``--profile``)
     then: Prepared | None = None       # ``run.then``'s run, trained next (mysim_jax/mappo/chain.py)
+    select_scene: object | None = None  # the scene model selection flies (None: ``scene``)
 
     @property
     def evaluates_elsewhere(self) -> bool:
@@ -124,7 +126,8 @@ def prepare_then(config, source: str | Path, out: Path, overrides=()):
     if differ:
         raise ConfigError(f"{where}: its networks must be this file's, which it starts from ({'; '.join(differ)})")
     scene = load_scene(nxt, path)
-    return Prepared(nxt, scene, Path(out) / THEN_DIR, False, str(path), load_eval_scene(nxt, path, scene))
+    return Prepared(nxt, scene, Path(out) / THEN_DIR, False, str(path), load_eval_scene(nxt, path, scene),
+                    select_scene=load_select_scene(nxt, path))
 
 
 def load_run_config(config_path: str, overrides=(), profile: str | None = None) -> Prepared:
@@ -133,7 +136,8 @@ def load_run_config(config_path: str, overrides=(), profile: str | None = None) 
     config = load_train_config(config_path, overrides, profile)
     scene = load_scene(config, config_path)
     return Prepared(config, scene, Path("runs") / config.name, False, str(config_path),
-                    load_eval_scene(config, config_path, scene), profile)
+                    load_eval_scene(config, config_path, scene), profile,
+                    select_scene=load_select_scene(config, config_path))
 
 
 def prepare(config_path: str | None, overrides=(), out: str | None = None, resume: str | None = None,
@@ -152,7 +156,8 @@ def prepare(config_path: str | None, overrides=(), out: str | None = None, resum
         scene = load_scene(config, run / TRAIN_FILE)
         return Prepared(config, scene, run, True, str(run / TRAIN_FILE),
                         load_eval_scene(config, run / TRAIN_FILE, scene),
-                        then=prepare_then(config, run / TRAIN_FILE, run, then_overrides))
+                        then=prepare_then(config, run / TRAIN_FILE, run, then_overrides),
+                        select_scene=load_select_scene(config, run / TRAIN_FILE))
     if config_path is None:
         raise ConfigError("give a training file, or --resume RUN_DIR")
     config = load_train_config(config_path, overrides, profile)
@@ -164,7 +169,8 @@ def prepare(config_path: str | None, overrides=(), out: str | None = None, resum
         raise ConfigError(f"--out {target}: holds a training run already; continue it with --resume {target}, "
                           "or choose another folder")
     return Prepared(config, scene, target, False, str(config_path), load_eval_scene(config, config_path, scene),
-                    profile, prepare_then(config, config_path, target, then_overrides))
+                    profile, prepare_then(config, config_path, target, then_overrides),
+                    load_select_scene(config, config_path))
 
 
 def describe_run(p: Prepared) -> str:
@@ -174,6 +180,8 @@ def describe_run(p: Prepared) -> str:
         what += f", evaluated at level {p.eval_scene.level}"
         if p.config.env.eval_set is not None:
             what += " with env.eval_set"
+    if p.select_scene is not None:
+        what += ", selecting on run.selection's scene"
     if p.profile is not None:
         what += f", profile {p.profile}"
     line = f"{p.config.name} on {what}: {describe(p.config)}; writing {p.out}/" + (" (resuming)" if p.resume else "")
@@ -201,6 +209,9 @@ def write_run_files(p: Prepared, copy_start: bool = True) -> None:
         if p.evaluates_elsewhere:
             (p.out / EVAL_SCENE_FILE).write_text(dump_config(p.eval_scene))
             data["env"]["eval_scene"] = EVAL_SCENE_FILE
+        if p.select_scene is not None:
+            (p.out / SELECT_SCENE_FILE).write_text(dump_config(p.select_scene))
+            data["run"]["selection"] = {**data["run"]["selection"], "set": None, "scene": SELECT_SCENE_FILE}
     if p.then is not None:
         data["run"]["then"] = f"{THEN_DIR}/{TRAIN_FILE}"
         write_run_files(p.then, copy_start=False)

@@ -18,7 +18,7 @@ from mysim_jax.core.machine import machine
 from mysim_jax.io.training_plots import plot_curves, plot_runs
 from mysim_jax.mappo.checkpoint import save_policy
 from mysim_jax.mappo.networks import deterministic_policy, deterministic_policy_fn
-from mysim_jax.mappo.run_files import EVAL_SCENE_FILE, SCENE_FILE, write_rows
+from mysim_jax.mappo.run_files import EVAL_SCENE_FILE, SCENE_FILE, SELECT_SCENE_FILE, write_rows
 from mysim_jax.tasks.contract import environment_contract
 from mysim_jax.tasks.evaluate import Checkpoint, Evaluator, arrays_digest, source_digest
 from mysim_jax.tasks.report import comparison_line, summary_line, write_comparison, write_evaluation
@@ -90,7 +90,8 @@ def summary(s, one: SeedRun, run: Trained, train_wall: float) -> dict:
         score = [float(x) for x in jax.device_get(one.state.best_score)]
         out["selection"] = {"episodes": s.selection.episodes, "seed": s.selection.seed,
                             "every": s.selection.every, "selected_iteration": int(one.state.best_iteration),
-                            "successes": int(score[0]), "mean_return": score[1]}
+                            "successes": int(score[0]), "mean_return": score[1],
+                            "scene": "training" if s.p.select_scene is None else SELECT_SCENE_FILE}
     return out
 
 
